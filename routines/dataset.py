@@ -1,0 +1,290 @@
+"""The measurement CSV that ``cellcal identify`` and ``cellcal analyze`` read.
+
+One header line, then one row per measurement in the order measured; comma
+separated, ``.`` as decimal point, UTF-8. Lines whose first character is ``#``
+are comments and blank lines are skipped; line numbers in messages are physical
+lines of the file. Each record is one physical line.
+
+Required: ``q1_deg`` .. ``qN_deg`` or ``q1_rad`` .. ``qN_rad`` (one unit for all
+joints, N = the robot model's joint count) and ``x_mm``, ``y_mm``, ``z_mm``.
+Optional: ``target``, ``qw``/``qx``/``qy``/``qz`` (all four or none), ``t_s``,
+``temp_c``, ``payload_kg``, ``split`` (``cal`` or ``val``). Other columns are
+kept as text. A file that cannot be used raises :class:`DatasetError` with one
+message naming the file, the line and the column; nothing is partly loaded.
+"""
+from __future__ import annotations
+
+import csv
+import os
+import re
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from ..solvers.measurement_model import Observations
+
+XYZ = ("x_mm", "y_mm", "z_mm")
+QUAT = ("qw", "qx", "qy", "qz")
+SCALARS = ("t_s", "temp_c", "payload_kg")
+SPLITS = ("cal", "val")
+DEFAULT_TARGET = "tcp"
+KNOWN = XYZ + QUAT + SCALARS + ("target", "split")
+
+_JOINT = re.compile(r"q(\d+)_(deg|rad)")
+# Stricter than float(): no "1_000", no non-ASCII digits, no nan/inf.
+_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
+
+
+class DatasetError(ValueError):
+    """A measurement file that cannot be used; the message names file, line and column."""
+
+
+@dataclass(frozen=True)
+class MeasurementTable:
+    """The rows of one measurement file, in measurement order."""
+
+    path: str
+    q_rad: np.ndarray  # (N, n_joints)
+    xyz_mm: np.ndarray  # (N, 3), instrument frame
+    target: np.ndarray  # (N,) int index into target_names
+    target_names: tuple[str, ...]  # order of first appearance
+    line: np.ndarray  # (N,) 1-based physical line of each row
+    quat: np.ndarray | None  # (N, 4) qw, qx, qy, qz, unit norm
+    t_s: np.ndarray | None
+    temp_c: np.ndarray | None
+    payload_kg: np.ndarray | None
+    split: np.ndarray | None  # (N,) 'cal' or 'val'
+    extra: dict[str, tuple[str, ...]]  # unknown columns, as text
+    joint_unit: str  # 'deg' or 'rad', as in the file
+
+    def __len__(self) -> int:
+        return len(self.q_rad)
+
+    def rows(self, mask_or_indices) -> "MeasurementTable":
+        """The subset of rows picked by a boolean mask or indices; target_names is kept whole."""
+        idx = np.asarray(mask_or_indices)
+        idx = np.flatnonzero(idx) if idx.dtype == bool else idx.astype(int).reshape(-1)
+        picked = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, np.ndarray):
+                value = value[idx]
+            elif f.name == "extra":
+                value = {k: tuple(v[i] for i in idx) for k, v in value.items()}
+            picked[f.name] = value
+        return MeasurementTable(**picked)
+
+    def observations(self) -> Observations:
+        return Observations(q=self.q_rad, xyz=self.xyz_mm, target=self.target, target_names=self.target_names)
+
+
+def read_measurements(path, n_joints: int) -> MeasurementTable:
+    """Read and validate a measurement file for a robot model with ``n_joints`` joints."""
+    if int(n_joints) < 1:
+        raise ValueError(f"n_joints must be >= 1, got {n_joints}")
+    name = os.fspath(path)
+    records = _records(name)
+    if not records:
+        raise DatasetError(f"{name}: empty file: no header line (only comments or blank lines)")
+    header_line, header = records[0]
+    header = [h.strip() for h in header]
+    where = f"{name}:{header_line}"
+    cols, joints, unit = _check_header(where, header, int(n_joints))
+    rows = records[1:]
+    if not rows:
+        raise DatasetError(f"{where}: header but no measurement rows")
+
+    for lineno, fields_ in rows:
+        if len(fields_) != len(header):
+            raise DatasetError(f"{name}:{lineno}: row has {len(fields_)} fields, header has {len(header)}")
+    lines = np.array([ln for ln, _ in rows], dtype=int)
+
+    def at(column):
+        return [(f"{name}:{ln}", column, r[cols[column]]) for ln, r in rows]
+
+    q = np.column_stack([_numbers(at(c)) for c in joints])
+    xyz = np.column_stack([_numbers(at(c)) for c in XYZ])
+    scalars = {c: _numbers(at(c)) if c in cols else None for c in SCALARS}
+
+    quat = None
+    if "qw" in cols:
+        quat = np.column_stack([_numbers(at(c)) for c in QUAT])
+        norm = np.linalg.norm(quat, axis=1)
+        bad = np.flatnonzero(norm < 1e-9)
+        if bad.size:
+            raise DatasetError(f"{name}:{lines[bad[0]]}: columns 'qw','qx','qy','qz': quaternion has zero norm")
+        quat = quat / norm[:, None]
+
+    target_names, target = (DEFAULT_TARGET,), np.zeros(len(rows), dtype=int)
+    if "target" in cols:
+        ids = [v.strip() for v in (r[cols["target"]] for _, r in rows)]
+        for ln, v in zip(lines, ids):
+            if not v:
+                raise DatasetError(f"{name}:{ln}: column 'target': empty target id")
+        target_names = tuple(dict.fromkeys(ids))
+        index = {t: i for i, t in enumerate(target_names)}
+        target = np.array([index[v] for v in ids], dtype=int)
+
+    split = None
+    if "split" in cols:
+        values = [r[cols["split"]].strip() for _, r in rows]
+        for ln, v in zip(lines, values):
+            if v not in SPLITS:
+                raise DatasetError(f"{name}:{ln}: column 'split': {v!r} is not 'cal' or 'val'")
+        split = np.array(values, dtype=str)
+
+    extra = {c: tuple(r[i] for _, r in rows) for c, i in cols.items() if c not in KNOWN and c not in joints}
+    return MeasurementTable(
+        path=name, q_rad=np.deg2rad(q) if unit == "deg" else q, xyz_mm=xyz, target=target,
+        target_names=target_names, line=lines, quat=quat, split=split, extra=extra,
+        joint_unit=unit, **scalars,
+    )
+
+
+def _records(name: str) -> list[tuple[int, list[str]]]:
+    """(physical line number, fields) of every non-comment, non-blank line."""
+    try:
+        with open(name, "rb") as f:
+            raw = f.read()
+    except OSError as exc:
+        raise DatasetError(f"{name}: cannot read file: {exc.strerror or exc}") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        lineno = raw[: exc.start].count(b"\n") + 1
+        raise DatasetError(f"{name}:{lineno}: not UTF-8 text (byte 0x{raw[exc.start]:02x})") from None
+    records = []
+    for lineno, line in enumerate(text.split("\n"), start=1):
+        line = line.rstrip("\r")
+        if not line.strip() or line.startswith("#"):
+            continue
+        try:
+            records.append((lineno, next(csv.reader([line], strict=True))))
+        except csv.Error as exc:
+            raise DatasetError(f"{name}:{lineno}: malformed CSV: {exc}") from None
+    return records
+
+
+def _check_header(where: str, header: list[str], n_joints: int):
+    """Column positions, the joint column names q1..qN in order, and the joint unit."""
+    cols: dict[str, int] = {}
+    for i, h in enumerate(header):
+        if not h:
+            raise DatasetError(f"{where}: column {i + 1} of the header has no name")
+        if h in cols:
+            raise DatasetError(f"{where}: column {h!r}: duplicate header name (columns {cols[h] + 1} and {i + 1})")
+        cols[h] = i
+
+    found = [(int(m[1]), m[2], h) for h in header if (m := _JOINT.fullmatch(h))]
+    unit = found[0][1] if found else "rad"
+    for _, u, h in found:
+        if u != unit:
+            raise DatasetError(f"{where}: column {h!r}: mixed joint units: {found[0][2]!r} is in {unit}, "
+                               f"{h!r} in {u}; a file uses one unit for all joints")
+    joint_range = f"q1_{unit}" + (f" .. q{n_joints}_{unit}" if n_joints > 1 else "")
+    required = f"{joint_range} (or all _{'rad' if unit == 'deg' else 'deg'}), " + ", ".join(XYZ)
+    for k, u, h in found:
+        if k < 1 or h != f"q{k}_{u}":
+            raise DatasetError(f"{where}: column {h!r}: joint columns are numbered q1, q2, .. without leading zeros")
+    in_file = max((k for k, _, _ in found), default=0)
+    if in_file > n_joints:
+        h = next(h for k, _, h in found if k > n_joints)
+        raise DatasetError(f"{where}: column {h!r}: the file has joint columns up to q{in_file}, "
+                           f"the robot model has {n_joints} joints")
+    joints = tuple(f"q{k}_{unit}" for k in range(1, n_joints + 1))
+    for c in joints + XYZ:
+        if c not in cols:
+            plural = "" if len(found) == 1 else "s"
+            counts = f" (the file has {len(found)} joint column{plural}, the robot model {n_joints} joints)" \
+                if c in joints else ""
+            raise DatasetError(f"{where}: missing required column {c!r}{counts}; "
+                               f"a {n_joints}-joint robot needs {required}")
+    present = [c for c in QUAT if c in cols]
+    if 0 < len(present) < 4:
+        missing = next(c for c in QUAT if c not in cols)
+        raise DatasetError(f"{where}: column {missing!r} missing: partial quaternion "
+                           f"(has {', '.join(present)}); give all of qw, qx, qy, qz or none")
+    return cols, joints, unit
+
+
+def _numbers(cells) -> np.ndarray:
+    """Parse (where, column, text) cells of one column into floats, refusing bad values."""
+    out = np.empty(len(cells))
+    for i, (where, column, text) in enumerate(cells):
+        s = text.strip()
+        if not _NUMBER.fullmatch(s):
+            try:
+                kind = "not finite" if not np.isfinite(float(s)) else "not a number"
+            except ValueError:
+                kind = "not a number"
+            raise DatasetError(f"{where}: column {column!r}: {text!r} is {kind}")
+        out[i] = float(s)
+        if not np.isfinite(out[i]):
+            raise DatasetError(f"{where}: column {column!r}: {text!r} is not finite")
+    return out
+
+
+def write_measurements(path, *, q_rad, xyz_mm, target_names=None, target=None, t_s=None, temp_c=None,
+                       payload_kg=None, split=None, quat=None, extra=None, comment: str | None = None,
+                       joint_unit: str = "rad") -> None:
+    """Write measurements in the format :func:`read_measurements` reads; floats round-trip exactly."""
+    q = np.atleast_2d(np.asarray(q_rad, dtype=float))
+    n = len(q)
+    if joint_unit not in ("deg", "rad"):
+        raise ValueError(f"joint_unit must be 'deg' or 'rad', got {joint_unit!r}")
+    columns: dict[str, list[str]] = {}
+
+    def numeric(names, values, width):
+        a = np.asarray(values, dtype=float).reshape(n, width)
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{', '.join(names)}: values must be finite")
+        for j, c in enumerate(names):
+            columns[c] = [repr(float(v)) for v in a[:, j]]
+
+    q_out = np.rad2deg(q) if joint_unit == "deg" else q
+    numeric([f"q{k}_{joint_unit}" for k in range(1, q.shape[1] + 1)], q_out, q.shape[1])
+    numeric(XYZ, xyz_mm, 3)
+    if target is not None:
+        names = tuple(target_names) if target_names is not None else None
+        if not names or any(not str(t).strip() for t in names):
+            raise ValueError("target needs target_names, each a non-empty id")
+        columns["target"] = [str(names[i]).strip() for i in np.asarray(target, dtype=int).reshape(n)]
+    if quat is not None:
+        quat = np.asarray(quat, dtype=float).reshape(n, 4)
+        if np.any(np.linalg.norm(quat, axis=1) < 1e-9):
+            raise ValueError("quat: zero-norm quaternion")
+        numeric(QUAT, quat, 4)
+    for c, values in (("t_s", t_s), ("temp_c", temp_c), ("payload_kg", payload_kg)):
+        if values is not None:
+            numeric([c], values, 1)
+    if split is not None:
+        columns["split"] = [str(s) for s in np.asarray(split).reshape(n)]
+        if not set(columns["split"]) <= set(SPLITS):
+            raise ValueError("split values must be 'cal' or 'val'")
+    for c, values in (extra or {}).items():
+        if c in columns or c in KNOWN or _JOINT.fullmatch(c):
+            raise ValueError(f"extra column {c!r} clashes with a column of the format")
+        columns[c] = [str(v) for v in values]
+        if len(columns[c]) != n:
+            raise ValueError(f"extra column {c!r} has {len(columns[c])} values for {n} rows")
+
+    for c in ("target", *(extra or {})):
+        if any("\n" in v or "\r" in v for v in columns.get(c, ())):
+            raise ValueError(f"column {c!r}: values must not contain line breaks (one record per line)")
+    with open(os.fspath(path), "w", encoding="utf-8", newline="") as f:
+        for text in (comment.splitlines() if comment else ()):
+            f.write(f"# {text}\n")
+        out = csv.writer(f, lineterminator="\n")
+        out.writerow(columns)
+        out.writerows(zip(*columns.values()))
+
+
+def write_table(path, table: MeasurementTable, comment: str | None = None) -> None:
+    """Write a MeasurementTable; the target column is left out for a single default target."""
+    single = table.target_names == (DEFAULT_TARGET,)
+    write_measurements(
+        path, q_rad=table.q_rad, xyz_mm=table.xyz_mm, target_names=table.target_names,
+        target=None if single else table.target, t_s=table.t_s, temp_c=table.temp_c,
+        payload_kg=table.payload_kg, split=table.split, quat=table.quat, extra=table.extra,
+        comment=comment, joint_unit=table.joint_unit,
+    )

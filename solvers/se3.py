@@ -1,0 +1,112 @@
+"""Rigid-body helpers: rotations, homogeneous transforms, rigid fits.
+
+Everything is vectorised over leading dimensions. Lengths are in whatever unit
+the caller uses (the solvers use mm), angles in radians.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrix of vectors ``v`` (..., 3) -> (..., 3, 3)."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1] = -v[..., 2]
+    out[..., 0, 2] = v[..., 1]
+    out[..., 1, 0] = v[..., 2]
+    out[..., 1, 2] = -v[..., 0]
+    out[..., 2, 0] = -v[..., 1]
+    out[..., 2, 1] = v[..., 0]
+    return out
+
+
+def rot(axis: str, angle) -> np.ndarray:
+    """Rotation matrices about a principal axis, for an array of angles."""
+    angle = np.asarray(angle, dtype=float)
+    c, s = np.cos(angle), np.sin(angle)
+    out = np.zeros(angle.shape + (3, 3))
+    i = _AXES[axis]
+    j, k = (i + 1) % 3, (i + 2) % 3
+    out[..., i, i] = 1.0
+    out[..., j, j] = c
+    out[..., k, k] = c
+    out[..., j, k] = -s
+    out[..., k, j] = s
+    return out
+
+
+def homogeneous(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    rotation = np.asarray(rotation, dtype=float)
+    translation = np.asarray(translation, dtype=float)
+    shape = np.broadcast_shapes(rotation.shape[:-2], translation.shape[:-1])
+    out = np.zeros(shape + (4, 4))
+    out[..., :3, :3] = rotation
+    out[..., :3, 3] = translation
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def invert(transform: np.ndarray) -> np.ndarray:
+    r = transform[..., :3, :3]
+    t = transform[..., :3, 3]
+    rt = np.swapaxes(r, -1, -2)
+    return homogeneous(rt, -np.einsum("...ij,...j->...i", rt, t))
+
+
+def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula, vectorised; exact near zero."""
+    rotvec = np.asarray(rotvec, dtype=float)
+    theta = np.linalg.norm(rotvec, axis=-1)[..., None, None]
+    k = skew(rotvec)
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    return np.eye(3) + a * k + b * (k @ k)
+
+
+def matrix_to_rotvec(matrix: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    m = np.asarray(matrix, dtype=float)
+    flat = m.reshape(-1, 3, 3)
+    return Rotation.from_matrix(flat).as_rotvec().reshape(m.shape[:-2] + (3,))
+
+
+def left_jacobian(rotvec: np.ndarray) -> np.ndarray:
+    """SO(3) left Jacobian: R(r + dr) ~= exp([J_l(r) dr]x) R(r)."""
+    rotvec = np.asarray(rotvec, dtype=float)
+    theta = float(np.linalg.norm(rotvec))
+    k = skew(rotvec)
+    if theta < 1e-6:
+        return np.eye(3) + 0.5 * k + (k @ k) / 6.0
+    return (
+        np.eye(3)
+        + (1.0 - np.cos(theta)) / theta**2 * k
+        + (theta - np.sin(theta)) / theta**3 * (k @ k)
+    )
+
+
+def orthonormalize(rotation: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrix (polar decomposition via SVD)."""
+    u, _, vt = np.linalg.svd(np.asarray(rotation, dtype=float))
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def rigid_fit(source: np.ndarray, target: np.ndarray, weights=None):
+    """Least-squares rotation R and translation t with target ~= R @ source + t (Kabsch)."""
+    source = np.asarray(source, dtype=float)
+    target = np.asarray(target, dtype=float)
+    w = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum()
+    cs = w @ source
+    ct = w @ target
+    h = (source - cs).T @ ((target - ct) * w[:, None])
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return r, ct - r @ cs
