@@ -1,2 +1,138 @@
-def main():
-    print("hi")
+"""The ``cellcal`` command line (contract: the project's spec/cli.md).
+
+Exit status: 0 success, 2 bad usage or bad input (one clear message), 1 a failure
+of the cell or the computation. With ``--json`` stdout carries one JSON object and
+nothing else; progress goes to stderr.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import numpy as np
+
+from ..routines.dataset import DatasetError, MeasurementTable, read_measurements
+from ..solvers.identify import LOSSES, IdentifyOptions, identify
+from ..solvers.robot_model import ModelError
+from .report import identification_json, identification_text
+from .robot_files import load_robot
+
+
+class UsageError(Exception):
+    """Bad usage or input detected after parsing; exit status 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # argparse's own errors: exit 2 with one line
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _progress(enabled: bool):
+    if not enabled:
+        return lambda msg: None
+    return lambda msg: print(f"cellcal: {msg}", file=sys.stderr, flush=True)
+
+
+def _split(table: MeasurementTable, validate: MeasurementTable | None, path: str):
+    """Calibration and validation rows: --validate file, else the split column."""
+    if validate is not None:
+        if table.split is not None and np.any(table.split == "val"):
+            raise UsageError(f"{path}: has rows marked split=val and --validate was given too; use one")
+        return table, validate
+    if table.split is None or not np.any(table.split == "val"):
+        return table, None
+    cal = table.rows(table.split == "cal")
+    if len(cal) == 0:
+        raise UsageError(f"{path}: every row is marked split=val; nothing is left to calibrate on")
+    return cal, table.rows(table.split == "val")
+
+
+def cmd_identify(args) -> int:
+    say = _progress(True)
+    model = load_robot(args.robot)
+    table = read_measurements(args.data, model.n_joints)
+    validate = read_measurements(args.validate, model.n_joints) if args.validate else None
+    cal, val = _split(table, validate, args.data)
+    if val is not None:
+        unknown = sorted(set(val.target_names) - set(cal.target_names))
+        if unknown:
+            raise UsageError(f"{args.validate or args.data}: target(s) {', '.join(unknown)} do not occur "
+                             "in the calibration rows, so their offsets are unknown")
+    if args.folds < 2:
+        raise UsageError(f"--folds must be at least 2, got {args.folds}")
+    bad = sorted(set(args.fix or ()) - set(model.param_names))
+    if bad:
+        raise UsageError(f"--fix: {', '.join(bad)} not a parameter of {model.name} "
+                         f"(parameters: {', '.join(model.param_names)})")
+    n_min = 10
+    if len(cal) < n_min:
+        raise UsageError(f"{args.data}: {len(cal)} calibration rows; identification needs at least {n_min}")
+    options = IdentifyOptions(regularize=args.regularize, loss=args.loss, folds=args.folds,
+                              fixed=tuple(args.fix or ()), prior_mm=args.prior_mm)
+    obs = cal.observations()
+    val_obs = None
+    if val is not None:
+        # validation rows use the calibration's target numbering
+        index = {t: i for i, t in enumerate(cal.target_names)}
+        val_obs = val.observations()
+        val_obs = type(val_obs)(val_obs.q, val_obs.xyz,
+                                np.array([index[val.target_names[t]] for t in val.target]),
+                                cal.target_names)
+    result = identify(model, obs, options, progress=say)
+    if args.json:
+        print(json.dumps(identification_json(result, obs, val_obs)))
+    else:
+        print(identification_text(result, obs, val_obs, model.name))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="cellcal", description="Calibration for robot cells.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    p = sub.add_parser("identify", help="kinematic calibration from measured target positions",
+                       description="Identify geometric parameters, the instrument -> base transform "
+                                   "and the flange -> target offsets from measured positions.")
+    p.add_argument("--robot", required=True, metavar="ROBOT",
+                   help="robot model file (YAML), or the name of a shipped model such as ur10e")
+    p.add_argument("--data", required=True, metavar="CAL.csv", help="measurement CSV")
+    p.add_argument("--validate", metavar="VAL.csv",
+                   help="measurements to validate on (default: rows of --data marked split=val, if any)")
+    p.add_argument("--regularize", choices=("cv", "none"), default="cv",
+                   help="cv: L2 prior toward nominal, weight by k-fold cross-validation (default); "
+                        "none: least squares over the identifiable parameters")
+    p.add_argument("--loss", choices=LOSSES, default="linear",
+                   help="robust loss against outliers (default: linear, i.e. least squares)")
+    p.add_argument("--folds", type=int, default=5, help="folds of the cross-validation (default 5)")
+    p.add_argument("--fix", nargs="+", metavar="PARAM", help="hold these parameters at nominal (e.g. d1 theta1)")
+    p.add_argument("--prior-mm", type=float, default=1.0,
+                   help="a direction whose estimate would scatter more than this (mm at the target) "
+                        "is held at nominal (default 1.0)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.set_defaults(func=cmd_identify)
+
+    from .sim_campaign import add_parser as add_sim_campaign
+
+    add_sim_campaign(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (DatasetError, ModelError, UsageError) as exc:
+        print(f"cellcal: error: {exc}", file=sys.stderr)
+        return 2
+    except (ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
+        print(f"cellcal: computation failed: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("cellcal: interrupted", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Benchmarks for cellcal's solvers against baselines (run from the repository root)."""
