@@ -274,21 +274,38 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
 
 
 def _choose_lambda(layout, obs, x0, free, scale, options, f_scale, say):
-    """Grouped k-fold CV over the lambda grid; returns (lambda, curve)."""
+    """Grouped k-fold CV over the lambda grid; returns (lambda, curve).
+
+    For each lambda the full-data fit is computed (warm-started along the path
+    from strong to weak prior); each fold's estimate is then one Gauss-Newton
+    step from it using only the fold's training rows. Near a least-squares
+    minimum that step is the fold's own solution to second order, at a fraction
+    of the cost of k separate nonlinear fits.
+    """
     folds = _fold_ids(obs, options.folds, options.seed)
     grid = sorted(set([0.0, *options.lambdas]), reverse=True)
+    idx = np.flatnonzero(free)
+    kin = idx < layout.n_kin
+    prior_w = np.where(kin, 1.0 / scale[idx] ** 2, 0.0)
+    centre = np.where(kin, layout.model.nominal[np.minimum(idx, layout.n_kin - 1)], 0.0)
     curve = []
-    # warm starts along the path from strong to weak prior, one per fold
-    starts = [x0.copy() for _ in range(options.folds)]
+    start = x0
     for lam in grid:
+        full = fit(layout, obs, start, free, lam=lam, scale=scale, loss=options.loss, f_scale=f_scale)
+        start = full.x
+        _, j = jacobian(layout, full.x, obs)
+        j = j[:, :, idx] * scale[idx]  # scaled columns keep the normal equations well conditioned
+        r = full.residuals
+        z_dev = (full.x[idx] - centre) / scale[idx]
         errs = np.empty(len(obs))
         for f in range(options.folds):
-            train = np.flatnonzero(folds != f)
-            test = np.flatnonzero(folds == f)
-            res = fit(layout, obs.subset(train), starts[f], free, lam=lam, scale=scale,
-                      loss=options.loss, f_scale=f_scale)
-            starts[f] = res.x
-            errs[test] = np.linalg.norm(predict(layout, res.x, obs.subset(test)) - obs.xyz[test], axis=1)
+            train = folds != f
+            jt = j[train].reshape(-1, len(idx))
+            a = jt.T @ jt + lam * np.diag(prior_w * scale[idx] ** 2)
+            g = jt.T @ r[train].ravel() + lam * prior_w * scale[idx] ** 2 * z_dev
+            step = -np.linalg.lstsq(a, g, rcond=None)[0]
+            pred = r[~train] + np.einsum("nij,j->ni", j[~train], step)
+            errs[~train] = np.linalg.norm(pred, axis=1)
         curve.append((float(lam), float(errs.mean())))
     curve.sort()
     best = min(curve, key=lambda c: c[1])

@@ -168,7 +168,8 @@ def model_from_mapping(doc, source: str = "<memory>") -> KinematicModel:
     if "links" in doc:
         raw = doc["links"]
         if not isinstance(raw, list) or len(raw) != n:
-            _fail(source, "links", f"expected {n} entries (one per joint)")
+            _fail(source, "links", f"expected {n} entries (one per joint), got "
+                  f"{len(raw) if isinstance(raw, list) else raw!r}")
         out = []
         for i, row in enumerate(raw):
             if not isinstance(row, dict):

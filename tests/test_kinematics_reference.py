@@ -24,8 +24,9 @@ POS_TOL_M = 1e-9
 ROT_TOL = 1e-9
 
 # Classic DH: Puma560, UR5, UR10 (required), IRB140 (plain 6R), Jaco (non-zero theta
-# offsets, 60 deg twists, and flipped joints, compared at negated joint values). Modified DH: Panda (7 joints, tool transform), AL5D
-# (MDH with non-zero theta offsets and a tool transform).
+# offsets, 60 deg twists, and flipped joints, compared at negated joint values).
+# Modified DH: Panda (7 joints, tool transform), AL5D (MDH with non-zero theta offsets
+# and a tool transform).
 DH_REFERENCES = ["Puma560", "UR5", "UR10", "IRB140", "Jaco"]
 MDH_REFERENCES = ["Panda", "AL5D"]
 
