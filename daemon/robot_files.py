@@ -4,9 +4,34 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
+import re
+
 import yaml
 
 from ..solvers.robot_model import KinematicModel, ModelError, model_from_mapping
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """Safe YAML with two fixes for hand-written model files: ``1e3`` is a number
+    (as in YAML 1.2, not a string as in 1.1) and a repeated key is an error
+    instead of silently overriding the first."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise ModelError(f"{self.name}:{key_node.start_mark.line + 1}: {key}: "
+                                 "key given twice in the same mapping")
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+_StrictLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+$"),
+    list("-+0123456789."),
+)
 
 
 def shipped_robots() -> dict[str, Path]:
@@ -37,7 +62,12 @@ def load_robot(name_or_path: str | Path) -> KinematicModel:
     except (OSError, UnicodeDecodeError) as exc:
         raise ModelError(f"{path}: cannot read: {exc}") from None
     try:
-        doc = yaml.safe_load(text)
+        loader = _StrictLoader(text)
+        loader.name = str(path)
+        try:
+            doc = loader.get_single_data()
+        finally:
+            loader.dispose()
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f":{mark.line + 1}" if mark is not None else ""

@@ -319,3 +319,17 @@ def test_unknown_robot_name_lists_the_shipped_ones():
     message = str(err.value)
     assert message.startswith("ur99:"), message
     assert "not a shipped robot" in message and "ur5e" in message, message
+
+
+def test_scientific_notation_is_a_number(tmp_path):
+    text = good_text().replace("a: 175,", "a: 1.75e2,", 1)
+    assert "1.75e2" in text
+    model = load_robot(write(tmp_path, text))
+    assert model.nominal[model.index("a1")] == pytest.approx(175.0)
+
+
+def test_a_key_given_twice_is_refused_naming_the_line(tmp_path):
+    text = good_text().replace("theta: 0}", "theta: 0, d: 400}", 1)
+    path = write(tmp_path, text)
+    line = next(i for i, row in enumerate(text.splitlines(), 1) if "d: 400" in row)
+    refused(path, f":{line}:", "d", "twice")
