@@ -256,7 +256,7 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
         final = fit(layout, obs, x0, free, scale=scale, loss=loss, f_scale=f_scale)
     else:
         free = structural.keep
-        lam, cv_curve = _choose_lambda(layout, obs, x0, free, scale, options, f_scale, say)
+        lam, cv_curve = _choose_lambda(layout, obs, first, j1, free, scale, options, say)
         final = fit(layout, obs, x0, free, lam=lam, scale=scale, loss=loss, f_scale=f_scale)
     std, noise_final = _std(layout, obs, final.x, free, lam, scale, len(obs))
     unident = tuple(n for i, n in enumerate(model.param_names) if candidates[i] and not free[i])
@@ -273,41 +273,35 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
     )
 
 
-def _choose_lambda(layout, obs, x0, free, scale, options, f_scale, say):
+def _choose_lambda(layout, obs, first: Fit, j_scaled, free, scale, options, say):
     """Grouped k-fold CV over the lambda grid; returns (lambda, curve).
 
-    For each lambda the full-data fit is computed (warm-started along the path
-    from strong to weak prior); each fold's estimate is then one Gauss-Newton
-    step from it using only the fold's training rows. Near a least-squares
-    minimum that step is the fold's own solution to second order, at a fraction
-    of the cost of k separate nonlinear fits.
+    Every fold and lambda is solved on the model linearised at the unregularised
+    fit over the same parameters (``first``): one regularised Gauss-Newton step
+    from it on the fold's training rows. The parameter changes involved are far
+    inside the range where the kinematics is linear, so this is each fold's own
+    solution to second order, and the whole grid costs a few small solves per
+    fold instead of one nonlinear fit per fold and lambda.
     """
     folds = _fold_ids(obs, options.folds, options.seed)
-    grid = sorted(set([0.0, *options.lambdas]), reverse=True)
+    grid = sorted(set([0.0, *options.lambdas]))
     idx = np.flatnonzero(free)
-    kin = idx < layout.n_kin
-    prior_w = np.where(kin, 1.0 / scale[idx] ** 2, 0.0)
-    centre = np.where(kin, layout.model.nominal[np.minimum(idx, layout.n_kin - 1)], 0.0)
-    curve = []
-    start = x0
-    for lam in grid:
-        full = fit(layout, obs, start, free, lam=lam, scale=scale, loss=options.loss, f_scale=f_scale)
-        start = full.x
-        _, j = jacobian(layout, full.x, obs)
-        j = j[:, :, idx] * scale[idx]  # scaled columns keep the normal equations well conditioned
-        r = full.residuals
-        z_dev = (full.x[idx] - centre) / scale[idx]
-        errs = np.empty(len(obs))
-        for f in range(options.folds):
-            train = folds != f
-            jt = j[train].reshape(-1, len(idx))
-            a = jt.T @ jt + lam * np.diag(prior_w * scale[idx] ** 2)
-            g = jt.T @ r[train].ravel() + lam * prior_w * scale[idx] ** 2 * z_dev
-            step = -np.linalg.lstsq(a, g, rcond=None)[0]
+    j = j_scaled[:, idx].reshape(len(obs), 3, len(idx))
+    r = first.residuals
+    # the prior acts on kinematic parameters only, in scaled units (mm at the target)
+    prior = (idx < layout.n_kin).astype(float)
+    dev = prior * (first.x[idx] - layout.initial()[idx]) / scale[idx]
+    errs = np.empty((len(grid), len(obs)))
+    for f in range(options.folds):
+        train = folds != f
+        jt = j[train].reshape(-1, len(idx))
+        normal = jt.T @ jt
+        grad = jt.T @ r[train].ravel()
+        for g, lam in enumerate(grid):
+            step = -np.linalg.lstsq(normal + lam * np.diag(prior), grad + lam * dev, rcond=None)[0]
             pred = r[~train] + np.einsum("nij,j->ni", j[~train], step)
-            errs[~train] = np.linalg.norm(pred, axis=1)
-        curve.append((float(lam), float(errs.mean())))
-    curve.sort()
+            errs[g, ~train] = np.linalg.norm(pred, axis=1)
+    curve = [(float(lam), float(e)) for lam, e in zip(grid, errs.mean(axis=1))]
     best = min(curve, key=lambda c: c[1])
     say(f"cross-validation: lambda {best[0]:.3g}, held-out mean {best[1]:.3f} mm")
     return best[0], curve

@@ -143,3 +143,19 @@ def test_d_optimal_pose_design_beats_random_choice():
             excess[name].append(result.errors(val).mean() / floor - 1.0)
     # the error above the floor (what the poses can still improve) shrinks by a quarter or more
     assert np.mean(excess["design"]) < 0.75 * np.mean(excess["random"]), excess
+
+
+def test_linearised_cross_validation_matches_refitting_every_fold():
+    from cellcal.solvers.identify import _fold_ids
+
+    model, arm, cal, _ = _seed004_cell(0)  # the small-volume case, where the prior matters most
+    options = IdentifyOptions(regularize="cv")
+    result = identify(model, cal, options)
+    folds = _fold_ids(cal, options.folds, options.seed)
+    for lam, curve_err in result.cv_curve[::5]:
+        errs = np.empty(len(cal))
+        for f in range(options.folds):
+            train, test = np.flatnonzero(folds != f), np.flatnonzero(folds == f)
+            refit = fit(result.layout, cal.subset(train), result.x_nominal, result.free, lam=lam)
+            errs[test] = np.linalg.norm(predict(result.layout, refit.x, cal.subset(test)) - cal.xyz[test], axis=1)
+        assert curve_err == pytest.approx(errs.mean(), rel=0.03), lam
