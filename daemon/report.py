@@ -48,6 +48,7 @@ def identification_json(result: Identification, obs: Observations, val: Observat
         "before": {"train_mean_mm": float(_errors(result, result.x_nominal, obs).mean())},
         "parameters": parameter_rows(result),
         "unidentifiable": list(result.unidentifiable),
+        "weakly_identifiable": list(result.details.get("weakly_identifiable", ())),
         "fixed": list(result.fixed),
         "regularize": {"lambda": result.lam,
                        "cv_curve": [{"lambda": lam, "heldout_mean_mm": e} for lam, e in result.cv_curve]},
@@ -80,6 +81,9 @@ def identification_text(result: Identification, obs: Observations, val: Observat
     lines.append("")
     if result.unidentifiable:
         lines.append("not identifiable from this data (held at nominal): " + ", ".join(result.unidentifiable))
+    weak = result.details.get("weakly_identifiable", ())
+    if weak:
+        lines.append("below the noise on their own, estimated with the prior's help: " + ", ".join(weak))
     if result.fixed:
         lines.append("held at nominal on request: " + ", ".join(result.fixed))
     if result.cv_curve:

@@ -17,6 +17,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from . import identifiability, se3
+from .chain import forward
 from .measurement_model import Layout, Observations, jacobian, predict, predict_base
 from .robot_model import KinematicModel
 
@@ -159,8 +160,6 @@ def initial_base_and_targets(layout: Layout, obs: Observations, x: np.ndarray | 
             if not len(rows):
                 continue
             chain = layout.model.chains[layout.model.chain_for(layout.target_names[ti])]
-            from .chain import forward
-
             rot, org = forward(chain, k, obs.q[rows])
             a = rot.reshape(-1, 3)
             b = (local[rows] - org).ravel()
@@ -184,7 +183,9 @@ def _fold_ids(obs: Observations, folds: int, seed: int) -> np.ndarray:
     return fold_of_group[group]
 
 
-def _std(layout, obs, x, free, lam, scale, dof_rows) -> tuple[np.ndarray, float]:
+def _std(layout, obs, x, free, lam, scale) -> tuple[np.ndarray, float]:
+    """Standard deviations from the final Jacobian and the residual variance
+    (sandwich form, so a prior shrinks them only as far as it really does)."""
     fun, jac, _ = _residual_fn(layout, obs, x, free, lam, scale)
     z = x[free]
     j = jac(z)
@@ -258,8 +259,10 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
         free = structural.keep
         lam, cv_curve = _choose_lambda(layout, obs, first, j1, free, scale, options, say)
         final = fit(layout, obs, x0, free, lam=lam, scale=scale, loss=loss, f_scale=f_scale)
-    std, noise_final = _std(layout, obs, final.x, free, lam, scale, len(obs))
+    std, noise_final = _std(layout, obs, final.x, free, lam, scale)
     unident = tuple(n for i, n in enumerate(model.param_names) if candidates[i] and not free[i])
+    # estimated, but only as well as the prior allows: below the noise on their own
+    weak = tuple(n for i, n in enumerate(model.param_names) if free[i] and not noisy.keep[i])
     kept = j1[:, free]
     sv = np.linalg.svd(kept, compute_uv=False)
     return Identification(
@@ -269,7 +272,7 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
         condition=float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf"),
         seconds=time.perf_counter() - t0,
         details={"structural_rank": structural.rank, "noise_rank": noisy.rank,
-                 "first_pass_noise_mm": noise},
+                 "first_pass_noise_mm": noise, "weakly_identifiable": weak},
     )
 
 
