@@ -1,0 +1,186 @@
+"""The small interfaces every piece of cell hardware sits behind.
+
+Modelled on python-can's ``BusABC``: a handful of methods, SI units at the
+boundary (metres, radians, rotation vectors, seconds), and backends chosen by
+name from the cell file through :mod:`cellcal.drivers.registry`, so routines
+never import a concrete driver or simulator.
+
+Every call that waits has a deadline and raises :class:`DeviceError` (or a
+subclass) naming the device and what happened; nothing blocks forever.
+"""
+from __future__ import annotations
+
+import abc
+import enum
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class DeviceError(RuntimeError):
+    """A device fault: connection refused or lost, timeout, bad message, stop."""
+
+    def __init__(self, device: str, what: str):
+        super().__init__(f"{device}: {what}")
+        self.device = device
+        self.what = what
+
+
+class DeviceTimeout(DeviceError):
+    """A wait ran past its deadline."""
+
+
+class ProtocolError(DeviceError):
+    """A malformed, truncated, out-of-order or badly checksummed message."""
+
+
+class RobotState(enum.Enum):
+    READY = "ready"
+    PROGRAM_RUNNING = "program running"
+    PROTECTIVE_STOP = "protective stop"
+    EMERGENCY_STOP = "emergency stop"
+    DISCONNECTED = "disconnected"
+
+
+@dataclass(frozen=True)
+class RobotSample:
+    """One sample of the robot's state stream."""
+
+    t_s: float  # controller time
+    q_rad: np.ndarray  # (n_joints,)
+    tcp_pose: np.ndarray  # (6,) x, y, z [m], rotation vector [rad], base frame
+    digital_inputs: int = 0  # bit field, for triggers wired to the robot's own inputs
+
+
+@dataclass(frozen=True)
+class ContactResult:
+    contact: bool
+    tcp_pose: np.ndarray  # where motion stopped (6,)
+    q_rad: np.ndarray
+
+
+class Robot(abc.ABC):
+    """An arm that moves in joint or Cartesian space and reports its state."""
+
+    name = "robot"
+
+    @abc.abstractmethod
+    def move_j(self, q_rad, speed_rad_s: float, accel_rad_s2: float) -> None:
+        """Joint move; returns when the arm is there (or raises)."""
+
+    @abc.abstractmethod
+    def move_l(self, tcp_pose, speed_m_s: float, accel_m_s2: float) -> None:
+        """Linear move of the TCP to pose [x, y, z, rx, ry, rz]; returns when there."""
+
+    @abc.abstractmethod
+    def move_until_contact(self, direction_m_s, timeout_s: float) -> ContactResult:
+        """Move along a TCP velocity until a contact stops the arm, or the time runs out."""
+
+    @abc.abstractmethod
+    def stop(self) -> None:
+        """Stop any motion now (decelerating); safe to call at any time."""
+
+    @abc.abstractmethod
+    def actual_q(self) -> np.ndarray:
+        ...
+
+    @abc.abstractmethod
+    def actual_tcp_pose(self) -> np.ndarray:
+        ...
+
+    @abc.abstractmethod
+    def samples(self, since_t_s: float | None = None) -> list[RobotSample]:
+        """Timestamped samples of the state stream received since a time (or all buffered)."""
+
+    @abc.abstractmethod
+    def set_tcp(self, tcp_pose) -> None:
+        """Set the controller's tool frame (flange -> TCP) [x, y, z, rx, ry, rz]."""
+
+    @abc.abstractmethod
+    def tcp(self) -> np.ndarray:
+        """The controller's current tool frame."""
+
+    @abc.abstractmethod
+    def state(self) -> RobotState:
+        ...
+
+    def close(self) -> None:
+        """Release connections; idempotent."""
+
+
+class Edge(enum.Enum):
+    BLOCKED = "blocked"  # beam interrupted / contact made
+    CLEARED = "cleared"  # beam free again / contact released
+
+
+@dataclass(frozen=True)
+class TriggerEvent:
+    t_s: float  # the source's own timestamp where the device has one, else arrival time
+    channel: int  # beam or input number
+    edge: Edge
+    device_time: bool  # True when t_s is the device's clock, False when it is arrival time
+
+
+class TriggerInput(abc.ABC):
+    """Timestamped edge events from a light barrier or touch trigger."""
+
+    name = "trigger"
+
+    @abc.abstractmethod
+    def events(self, timeout_s: float = 0.0) -> list[TriggerEvent]:
+        """Events since the last call, waiting up to timeout_s for the first one."""
+
+    def close(self) -> None:
+        """Release the port/connection; idempotent."""
+
+
+@dataclass(frozen=True)
+class TrackerMeasurement:
+    t_s: float
+    position_m: np.ndarray  # (3,) in the instrument frame
+    orientation: np.ndarray | None  # (4,) qw, qx, qy, qz for 6-DoF targets
+    status: str  # "ok", or the instrument's reason the value is doubtful
+    quality: float  # instrument's own figure (e.g. expected std, m); nan if unknown
+
+
+class Tracker(abc.ABC):
+    """A laser tracker (or other 3-D/6-D instrument) that measures one target on request."""
+
+    name = "tracker"
+
+    @abc.abstractmethod
+    def measure(self, target: str = "smr1", timeout_s: float = 5.0) -> TrackerMeasurement:
+        ...
+
+    def close(self) -> None:
+        """Release the connection; idempotent."""
+
+
+class OperatorPanel(abc.ABC):
+    """Start/abort buttons, routine selector, lamps and result code (spec: panel.md)."""
+
+    name = "panel"
+
+    @abc.abstractmethod
+    def start_requested(self) -> bool:
+        """True once per press; the request is cleared when read."""
+
+    @abc.abstractmethod
+    def abort_requested(self) -> bool:
+        """True once per press; the request is cleared when read."""
+
+    @abc.abstractmethod
+    def routine_selector(self) -> int:
+        ...
+
+    @abc.abstractmethod
+    def set_lamps(self, *, busy: bool | None = None, done: bool | None = None,
+                  fault: bool | None = None) -> None:
+        ...
+
+    @abc.abstractmethod
+    def set_result(self, code: int, increment_counter: bool = True) -> None:
+        ...
+
+    def close(self) -> None:
+        """Release the connection; idempotent."""
