@@ -8,6 +8,7 @@ lazily, so a cell that does not use CAN never imports python-can.
 from __future__ import annotations
 
 import importlib
+import inspect
 from typing import Callable
 
 KINDS = ("robot", "trigger", "tracker", "panel")
@@ -43,7 +44,9 @@ def create(kind: str, name: str, **options):
             raise DriverConfigError(f"no {kind} driver named {name!r} (available: {', '.join(available(kind))})")
         module, _, attr = _BUILTIN[key].partition(":")
         _FACTORIES[key] = getattr(importlib.import_module(module), attr)
+    factory = _FACTORIES[key]
     try:
-        return _FACTORIES[key](**options)
-    except TypeError as exc:
+        inspect.signature(factory).bind(**options)
+    except TypeError as exc:  # an option the driver does not take, or one it needs is missing
         raise DriverConfigError(f"{kind} driver {name!r}: {exc}") from None
+    return factory(**options)
