@@ -76,7 +76,7 @@ def forward(chain: Chain, params: np.ndarray, q: np.ndarray, keep_frames: bool =
     """End frames of the chain for every pose.
 
     Returns (rot (..., N, 3, 3), org (..., N, 3)) and, with keep_frames, the list of
-    frames *before* each element (needed for Jacobians).
+    frames *before* each element plus the frame after the last one (before ``end``).
     """
     q = np.atleast_2d(np.asarray(q, dtype=float))
     params = np.asarray(params, dtype=float)
@@ -88,6 +88,8 @@ def forward(chain: Chain, params: np.ndarray, q: np.ndarray, keep_frames: bool =
         if keep_frames:
             frames.append((rot, org))
         rot, org = _apply(rot, org, el, v)
+    if keep_frames:
+        frames.append((rot, org))
     end = chain.end
     org = org + rot @ end[:3, 3]
     rot = rot @ end[:3, :3]

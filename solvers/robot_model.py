@@ -52,6 +52,10 @@ class KinematicModel:
     links: tuple[Link, ...] = ()
     gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
     source: str = "<memory>"
+    # in the default chain: index of each joint's rotation element, and the element
+    # count after which each link's own frame (the frame its centre of mass is given in) stands
+    joint_elements: tuple[int, ...] = ()
+    link_ends: tuple[int, ...] = ()
 
     @property
     def n_params(self) -> int:
@@ -112,6 +116,7 @@ def model_from_mapping(doc, source: str = "<memory>") -> KinematicModel:
         _fail(source, "joint_coupling", "fanuc_j2_j3 needs at least three joints")
 
     names, nominal, is_angle, elements = [], [], [], []
+    joint_elements, link_ends = [], []
 
     def param(pname, value, angle):
         names.append(pname)
@@ -144,14 +149,17 @@ def model_from_mapping(doc, source: str = "<memory>") -> KinematicModel:
         ia = param(f"a{j}", a, False)
         ial = param(f"alpha{j}", alpha, True)
         if convention == "dh":
+            joint_elements.append(len(elements))
             elements += [Element("rz", it, joints=coupled), Element("tz", idd),
                          Element("tx", ia), Element("rx", ial)]
         else:
-            elements += [Element("rx", ial), Element("tx", ia),
-                         Element("rz", it, joints=coupled), Element("tz", idd)]
+            elements += [Element("rx", ial), Element("tx", ia)]
+            joint_elements.append(len(elements))
+            elements += [Element("rz", it, joints=coupled), Element("tz", idd)]
             if "beta" in row:
                 ib = param(f"beta{j}", _number(source, f"{key}.beta", row["beta"]) * au, True)
                 elements.append(Element("ry", ib))
+        link_ends.append(len(elements))
 
     limits = None
     if "joint_limits" in doc:
@@ -200,4 +208,6 @@ def model_from_mapping(doc, source: str = "<memory>") -> KinematicModel:
         links=links,
         gravity=gravity,
         source=source,
+        joint_elements=tuple(joint_elements),
+        link_ends=tuple(link_ends),
     )
