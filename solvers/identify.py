@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from . import identifiability, se3
+from . import crossval, identifiability, se3
 from .chain import forward
 from .measurement_model import Layout, Observations, jacobian, predict, predict_base
 from .robot_model import KinematicModel
@@ -171,18 +171,6 @@ def initial_base_and_targets(layout: Layout, obs: Observations, x: np.ndarray | 
     return x
 
 
-def _fold_ids(obs: Observations, folds: int, seed: int) -> np.ndarray:
-    """Fold of each row; rows at the same joint configuration share a fold."""
-    key = np.round(obs.q, 6)
-    _, group = np.unique(key, axis=0, return_inverse=True)
-    group = np.asarray(group).ravel()
-    n_groups = group.max() + 1
-    order = np.random.default_rng(seed).permutation(n_groups)
-    fold_of_group = np.empty(n_groups, dtype=int)
-    fold_of_group[order] = np.arange(n_groups) % folds
-    return fold_of_group[group]
-
-
 def _std(layout, obs, x, free, lam, scale) -> tuple[np.ndarray, float]:
     """Standard deviations from the final Jacobian and the residual variance
     (sandwich form, so a prior shrinks them only as far as it really does)."""
@@ -286,24 +274,14 @@ def _choose_lambda(layout, obs, first: Fit, j_scaled, free, scale, options, say)
     solution to second order, and the whole grid costs a few small solves per
     fold instead of one nonlinear fit per fold and lambda.
     """
-    folds = _fold_ids(obs, options.folds, options.seed)
+    folds = crossval.fold_ids(obs.q, options.folds, options.seed)
     grid = sorted(set([0.0, *options.lambdas]))
     idx = np.flatnonzero(free)
     j = j_scaled[:, idx].reshape(len(obs), 3, len(idx))
-    r = first.residuals
     # the prior acts on kinematic parameters only, in scaled units (mm at the target)
     prior = (idx < layout.n_kin).astype(float)
     dev = prior * (first.x[idx] - layout.initial()[idx]) / scale[idx]
-    errs = np.empty((len(grid), len(obs)))
-    for f in range(options.folds):
-        train = folds != f
-        jt = j[train].reshape(-1, len(idx))
-        normal = jt.T @ jt
-        grad = jt.T @ r[train].ravel()
-        for g, lam in enumerate(grid):
-            step = -np.linalg.lstsq(normal + lam * np.diag(prior), grad + lam * dev, rcond=None)[0]
-            pred = r[~train] + np.einsum("nij,j->ni", j[~train], step)
-            errs[g, ~train] = np.linalg.norm(pred, axis=1)
+    errs = crossval.one_step_heldout(j, first.residuals, folds, prior, dev, grid)
     curve = [(float(lam), float(e)) for lam, e in zip(grid, errs.mean(axis=1))]
     best = min(curve, key=lambda c: c[1])
     say(f"cross-validation: lambda {best[0]:.3g}, held-out mean {best[1]:.3f} mm")

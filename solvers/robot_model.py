@@ -9,7 +9,7 @@ MDH joints whose file gives a Hayati beta), numbered from 1 at the base.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -210,4 +210,40 @@ def model_from_mapping(doc, source: str = "<memory>") -> KinematicModel:
         source=source,
         joint_elements=tuple(joint_elements),
         link_ends=tuple(link_ends),
+    )
+
+
+PARALLEL_TOL_RAD = np.deg2rad(1.0)
+
+
+def parallel_joint_pairs(model: KinematicModel) -> list[int]:
+    """Joints i (0-based) whose axis is nominally parallel to joint i+1's."""
+    out = []
+    for i in range(model.n_joints - 1):
+        alpha = model.nominal[model.index(f"alpha{i + (1 if model.convention == 'dh' else 2)}")]
+        if abs(np.sin(alpha)) < np.sin(PARALLEL_TOL_RAD):
+            out.append(i)
+    return out
+
+
+def with_hayati_beta(model: KinematicModel, joint: int) -> KinematicModel:
+    """The same model with a Hayati beta (rotation about y) closing joint `joint` (0-based).
+
+    That tilt between nominally parallel axes is what classic DH cannot represent.
+    """
+    name = f"beta{joint + 1}"
+    if name in model.param_names:
+        raise ValueError(f"{model.name}: already has {name}")
+    at = model.link_ends[joint]
+    chain = model.chains[model.default_chain]
+    elements = list(chain.elements)
+    elements.insert(at, Element("ry", model.n_params))
+    return replace(
+        model,
+        param_names=model.param_names + (name,),
+        nominal=np.append(model.nominal, 0.0),
+        param_is_angle=np.append(model.param_is_angle, True),
+        chains={**model.chains, model.default_chain: Chain(tuple(elements), chain.end)},
+        joint_elements=tuple(e + (e >= at) for e in model.joint_elements),
+        link_ends=tuple(e + (e >= at) if i != joint else e + 1 for i, e in enumerate(model.link_ends)),
     )

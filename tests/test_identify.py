@@ -146,12 +146,12 @@ def test_d_optimal_pose_design_beats_random_choice():
 
 
 def test_linearised_cross_validation_matches_refitting_every_fold():
-    from cellcal.solvers.identify import _fold_ids
+    from cellcal.solvers.crossval import fold_ids
 
     model, arm, cal, _ = _seed004_cell(0)  # the small-volume case, where the prior matters most
     options = IdentifyOptions(regularize="cv")
     result = identify(model, cal, options)
-    folds = _fold_ids(cal, options.folds, options.seed)
+    folds = fold_ids(cal.q, options.folds, options.seed)
     for lam, curve_err in result.cv_curve[::5]:
         errs = np.empty(len(cal))
         for f in range(options.folds):

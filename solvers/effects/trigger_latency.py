@@ -1,0 +1,24 @@
+"""trigger_latency: a light barrier or touch trigger reports late.
+
+The joint values recorded at the report are those of a moment tau after the real
+event, so the position at the event is q - tau * dq/dt: one unknown, seen in data
+that carries the joint velocity at each trigger (columns dq1_rad_s ... dqN_rad_s).
+Trigger positions then move with sweep speed and flip with sweep direction.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .base import Cause, Term
+
+
+class TriggerLatency(Cause):
+    id = "trigger_latency"
+
+    def terms(self, model, layout, x, obs, ctx):
+        if ctx.dq_rad_s is None or not np.any(ctx.dq_rad_s):
+            return []
+        return [Term(self.id, {}, ("tau",), joint_basis=-ctx.dq_rad_s[:, :, None], units=("s",))]
+
+    def magnitude(self, term, theta, joint_delta):
+        return {"latency_ms": float(theta[0]) * 1e3}
