@@ -49,15 +49,19 @@ def one_step_heldout(j: np.ndarray, r: np.ndarray, folds: np.ndarray, penalty: n
     n, _, p = j.shape
     penalty = np.zeros(p) if penalty is None else penalty
     deviation = np.zeros(p) if deviation is None else deviation
+    flat = j.reshape(n * 3, p)
+    rows3 = np.repeat(folds, 3)
+    normal_all = flat.T @ flat
+    grad_all = flat.T @ r.ravel()
     errs = np.empty((len(lams), n))
     for f in np.unique(folds):
-        train = folds != f
-        jt = j[train].reshape(-1, p)
-        normal = jt.T @ jt
-        grad = jt.T @ r[train].ravel()
+        held = folds == f
+        jh = flat[rows3 == f]
+        normal = normal_all - jh.T @ jh  # training rows only
+        grad = grad_all - jh.T @ r[held].ravel()
         for g, lam in enumerate(lams):
             step = -np.linalg.lstsq(normal + lam * np.diag(penalty), grad + lam * penalty * deviation,
                                     rcond=None)[0]
-            pred = r[~train] + np.einsum("nij,j->ni", j[~train], step)
-            errs[g, ~train] = np.linalg.norm(pred, axis=1)
+            pred = r[held] + (jh @ step).reshape(-1, 3)
+            errs[g, held] = np.linalg.norm(pred, axis=1)
     return errs

@@ -28,50 +28,62 @@ class Identifiability:
     condition: float  # of the kept scaled Jacobian
 
 
-def _select(block: np.ndarray, rank: int) -> np.ndarray:
-    """Indices of `rank` columns of block that best span its dominant subspace."""
+def _select(vt: np.ndarray, rank: int) -> np.ndarray:
+    """Indices of `rank` columns that best span the dominant subspace (rows of vt)."""
     if rank == 0:
         return np.array([], dtype=int)
-    _, _, vt = np.linalg.svd(block, full_matrices=False)
     _, _, piv = qr(vt[:rank], pivoting=True, mode="economic")
     return np.sort(piv[:rank])
 
 
+def nuisance_basis(j_scaled: np.ndarray, nuisance: np.ndarray):
+    """Orthonormal basis of the nuisance columns' span, and which of them are independent.
+
+    Computed once, it lets many candidate column sets be analysed against the same
+    nuisance block (as the discrepancy analysis does for every candidate effect).
+    """
+    idx = np.flatnonzero(nuisance)
+    ok_cols = np.zeros(len(nuisance), bool)
+    if not len(idx):
+        return np.zeros((j_scaled.shape[0], 0)), ok_cols
+    qb, rb, pb = qr(j_scaled[:, idx], pivoting=True, mode="economic")
+    diag = np.abs(np.diag(rb))
+    ok = diag > STRUCTURAL_RTOL * max(diag[0], 1e-300)
+    ok_cols[idx[pb[ok]]] = True
+    return qb[:, ok], ok_cols
+
+
 def analyse(j_scaled: np.ndarray, nuisance: np.ndarray, candidates: np.ndarray,
-            noise_mm: float | None = None, prior_mm: float = 1.0) -> Identifiability:
+            noise_mm: float | None = None, prior_mm: float = 1.0, basis=None,
+            with_condition: bool = True) -> Identifiability:
     """Decide which candidate columns to estimate.
 
     j_scaled: (m, n) scaled Jacobian; nuisance: bool mask of columns always kept
     (base, targets); candidates: bool mask of kinematic columns that may be kept.
     With noise_mm, a direction whose estimate would scatter more than prior_mm
     (its singular value below noise_mm / prior_mm) counts as not identifiable:
-    estimating it would add more error than it removes.
+    estimating it would add more error than it removes. basis: a precomputed
+    ``nuisance_basis`` of the same nuisance columns.
     """
-    keep = nuisance.copy()
-    b = j_scaled[:, nuisance]
-    # nuisance columns that are themselves degenerate (e.g. one orientation only) are dropped
-    if b.shape[1]:
-        qb, rb, pb = qr(b, pivoting=True, mode="economic")
-        diag = np.abs(np.diag(rb))
-        ok = diag > STRUCTURAL_RTOL * max(diag[0], 1e-300)
-        idx = np.flatnonzero(nuisance)
-        keep[idx[pb[~ok]]] = False
-        qb = qb[:, ok]
-    else:
-        qb = np.zeros((j_scaled.shape[0], 0))
+    qb, keep = nuisance_basis(j_scaled, nuisance) if basis is None else basis
+    keep = keep.copy()
     cand = np.flatnonzero(candidates & ~nuisance)
     k = j_scaled[:, cand]
     k = k - qb @ (qb.T @ k)
-    s = np.linalg.svd(k, compute_uv=False) if k.size else np.zeros(0)
+    if k.size:  # singular values and right vectors of the tall block via its small R factor
+        _, s, vt = np.linalg.svd(qr(k, mode="r")[0][: k.shape[1]], full_matrices=False)
+    else:
+        s, vt = np.zeros(0), np.zeros((0, 0))
     top = s[0] if len(s) else 0.0
     structural = int(np.sum(s > STRUCTURAL_RTOL * top * np.sqrt(k.shape[0]))) if top > 0 else 0
     rank = structural
     if noise_mm is not None and rank:
         rank = min(rank, int(np.sum(s >= noise_mm / prior_mm)))
-    chosen = cand[_select(k, rank)]
+    chosen = cand[_select(vt, rank)]
     keep[chosen] = True
-    kept = j_scaled[:, keep]
-    sv = np.linalg.svd(kept, compute_uv=False)
-    cond = float(sv[0] / sv[-1]) if len(sv) and sv[-1] > 0 else float("inf")
+    cond = float("nan")
+    if with_condition:
+        sv = np.linalg.svd(j_scaled[:, keep], compute_uv=False)
+        cond = float(sv[0] / sv[-1]) if len(sv) and sv[-1] > 0 else float("inf")
     return Identifiability(keep=keep, singular_values=s, rank=rank, structural_rank=structural,
                            condition=cond)

@@ -1,0 +1,388 @@
+"""A fake UR e-Series controller that the unmodified ur_rtde client accepts over loopback.
+
+It serves RTDE (30004), the dashboard server (29999) and the script port (30003) on one
+address, runs a 500 Hz control cycle with a joint-space model of a UR arm built from our
+own robot model file, and executes the ur_rtde control script's register protocol
+natively (:mod:`.fake_ur_script`). A fake-only JSON port (30199) lets tests read the
+true arm state and inject faults: a protective or emergency stop, optionally once the
+arm has been moving for a given time, dropped connections, or a stalled controller.
+
+The ur_rtde constructors hold Python's GIL while they wait for the controller, so the
+fake must live in another process; the ports are fixed, so parallel fakes need distinct
+loopback addresses (any 127.x.y.z works on Linux). Start one with
+``python -m cellcal.sims.fake_ur --host 127.0.7.1`` or :class:`.fake_ur_process.FakeUrProcess`.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import re
+import signal
+import socket
+import sys
+import threading
+import time
+from collections import deque
+
+import numpy as np
+
+from ..daemon.robot_files import load_robot
+from . import fake_ur_rtde as rtde
+from .fake_ur_arm import ArmKinematics, FakeArm, MotionFault, StopMotion
+from .fake_ur_cell import cell_from_spec
+from .fake_ur_script import ControlScript
+from .fake_ur_sessions import ControlSession, DashboardSession, RtdeSession, ScriptSession
+
+DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT = 29999, 30003, 30004
+CONTROL_PORT = 30199  # fake only: inspection and fault injection
+HOME_Q = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
+PROGRAM_STOP_DECEL_RAD_S2 = 4.0
+
+ROBOT_MODE_RUNNING = 7
+SAFETY_MODES = {"normal": 1, "protective_stop": 3, "emergency_stop": 7}
+SAFETY_STATUS_BITS = {"normal": 1 << 0, "protective_stop": 1 << 2, "emergency_stop": (1 << 6) | (1 << 7)}
+RUNTIME_STOPPED, RUNTIME_PLAYING = 1, 2
+FAULT_KINDS = ("protective_stop", "emergency_stop", "drop", "stall", "resume", "exit")
+
+
+def _zero(kind: str):
+    if kind.startswith("VECTOR"):
+        return (0,) * (3 if kind == "VECTOR3D" else 6)
+    return False if kind == "BOOL" else 0
+
+
+class FakeUrController:
+    def __init__(self, host: str = "127.0.0.1", *, robot: str = "ur10e", q0=HOME_Q, cell: dict | None = None,
+                 version=(5, 15, 0, 11908), serial: str = "20235500001", control_port: int = CONTROL_PORT,
+                 frequency_hz: float = 500.0, verbose: bool = False):
+        self.host, self.version, self.serial = host, tuple(version), serial
+        self.control_port, self.frequency_hz, self.verbose = control_port, frequency_hz, verbose
+        self.lock = threading.RLock()
+        self.cell = cell_from_spec(cell)
+        self.arm = FakeArm(ArmKinematics(load_robot(robot)), q0, 1.0 / frequency_hz, contact=self.cell.touching)
+        self.model_name = robot.upper()
+        self.inputs: dict = {}
+        self.outputs: dict = {name: _zero(kind) for name, kind in rtde.OUTPUT_TYPES.items()
+                              if name.startswith("output_") and "register" in name}
+        self.script: ControlScript | None = None
+        self.safety = "normal"
+        self.digital_inputs = self.digital_outputs = 0
+        self.t_s, self.cycle = 0.0, 0
+        self.stalled = self.closing = False
+        self.faults: list[dict] = []
+        self.messages: deque = deque(maxlen=500)
+        self._input_owners: dict[str, object] = {}
+        self._static = {name: _zero(kind) for name, kind in rtde.OUTPUT_TYPES.items()}
+        self._static.update(robot_mode=ROBOT_MODE_RUNNING, joint_mode=(253,) * 6, speed_scaling=1.0,
+                            target_speed_fraction=1.0, joint_temperatures=(31.0,) * 6,
+                            actual_main_voltage=48.0, actual_robot_voltage=48.0, actual_robot_current=0.6,
+                            actual_joint_voltage=(47.9,) * 6, actual_tool_accelerometer=(0.0, 0.0, 9.81),
+                            actual_execution_time=0.35, tool_temperature=33.0, payload=0.0)
+        self.snapshot = self._snapshot()
+        self._cycle_cond = threading.Condition()
+        self._sockets: set[socket.socket] = set()
+        self._listeners: list[socket.socket] = []
+        self._stopped = threading.Event()
+
+    # the control cycle
+    def run_cycle(self) -> None:
+        with self.lock:
+            self._fire_faults()
+            if self.script is not None:
+                self.script.tick()
+                if not self.script.running and self.arm.motion is not None \
+                        and not isinstance(self.arm.motion, StopMotion):
+                    self.arm.stop_joint(PROGRAM_STOP_DECEL_RAD_S2)  # a program that ends stops the arm
+            try:
+                self.arm.step()
+            except MotionFault as exc:
+                if self.script is not None:
+                    self.script.terminate(str(exc))
+            self.cycle += 1
+            self.t_s = self.cycle / self.frequency_hz
+            self.digital_inputs = self.cell.input_bits(self.arm.tcp_pose, self.t_s)
+            snapshot = self._snapshot()
+        with self._cycle_cond:
+            self.snapshot = snapshot
+            self._cycle_cond.notify_all()
+
+    def wait_cycle(self, seen: int, timeout_s: float = 0.1):
+        """(cycle, snapshot) once a cycle after ``seen`` has run (or after the timeout)."""
+        with self._cycle_cond:
+            self._cycle_cond.wait_for(lambda: self.cycle != seen or self.closing, timeout_s)
+            return self.cycle, self.snapshot
+
+    def _snapshot(self) -> dict:
+        arm, running = self.arm, self.program_running
+        snap = dict(self._static)
+        q, qd, pose, speed = tuple(arm.q), tuple(arm.qd), tuple(arm.tcp_pose), tuple(arm.tcp_speed)
+        snap.update(timestamp=self.t_s, actual_q=q, target_q=q, actual_qd=qd, target_qd=qd,
+                    actual_TCP_pose=pose, target_TCP_pose=pose, actual_TCP_speed=speed, target_TCP_speed=speed,
+                    actual_digital_input_bits=self.digital_inputs,
+                    actual_digital_output_bits=self.digital_outputs,
+                    safety_mode=SAFETY_MODES[self.safety], safety_status=SAFETY_MODES[self.safety],
+                    safety_status_bits=SAFETY_STATUS_BITS[self.safety],
+                    runtime_state=RUNTIME_PLAYING if running else RUNTIME_STOPPED,
+                    robot_status_bits=1 | (2 if running else 0))
+        snap.update(self.outputs)
+        snap.update((k, v) for k, v in self.inputs.items() if k in self._static)
+        return snap
+
+    @property
+    def program_running(self) -> bool:
+        return self.script is not None and self.script.running
+
+    # what sessions call
+    def log(self, text: str) -> None:
+        self.messages.append(f"{self.t_s:.3f} {text}")
+        if self.verbose:
+            print(f"fake_ur {self.host}: {text}", file=sys.stderr, flush=True)
+
+    def claim_inputs(self, session, payload: bytes, recipe_id: int) -> rtde.Recipe:
+        with self.lock:
+            taken = {n for n, owner in self._input_owners.items() if owner is not session}
+            recipe = rtde.parse_input_setup(payload, recipe_id, taken)
+            if recipe.valid:
+                self._input_owners.update((n, session) for n in recipe.names)
+            return recipe
+
+    def release_inputs(self, session) -> None:
+        with self.lock:
+            for name in [n for n, owner in self._input_owners.items() if owner is session]:
+                del self._input_owners[name]
+
+    def write_inputs(self, values: dict) -> None:
+        with self.lock:
+            self.inputs.update(values)
+            for prefix, shift in (("standard", 0), ("configurable", 8)):
+                mask = values.get(f"{prefix}_digital_output_mask", 0)
+                if mask:
+                    level = values.get(f"{prefix}_digital_output", 0)
+                    self.digital_outputs = (self.digital_outputs & ~(mask << shift)) | ((level & mask) << shift)
+
+    def load_program(self, text: str) -> None:
+        with self.lock:
+            if self.safety != "normal":
+                self.log(f"program rejected: robot is in {self.safety.replace('_', ' ')}")
+                return
+            if self.script is not None:
+                self.script.terminate()
+            if "signal_ready" not in text:  # e.g. sendCustomScriptFunction: apply its register writes
+                for reg, offset, value in re.findall(
+                        r"write_output_integer_register\((\d+)\s*\+?\s*(\d*)\s*,\s*(-?\d+)\)", text):
+                    self.outputs[f"output_int_register_{int(reg) + int(offset or 0)}"] = int(value)
+                self.log("custom program run (register writes only)")
+                return
+            offsets = [int(m) if m else 0 for m in (
+                _first(r"reg_offset_int\s*=\s*(\d+)", text), _first(r"reg_offset_float\s*=\s*(\d+)", text))]
+            self.script = ControlScript(self.arm, self.inputs, self.outputs, int_offset=offsets[0],
+                                        float_offset=offsets[1], protective_stop=self.protective_stop,
+                                        log=self.log)
+            self.log(f"control script started (register offsets {offsets[0]}/{offsets[1]})")
+
+    def protective_stop(self, why: str) -> None:
+        self._safety_stop("protective_stop", why)
+
+    def _safety_stop(self, safety: str, why: str) -> None:
+        with self.lock:
+            self.safety = safety
+            self.arm.halt()
+            if self.script is not None:
+                self.script.terminate(why)
+            self.log(f"{safety.replace('_', ' ')}: {why}")
+
+    def dashboard(self, command: str) -> str:
+        with self.lock:
+            running = self.program_running
+            safety = self.safety.upper()
+            if command == "PolyscopeVersion":
+                return "URSoftware {}.{}.{}.{} (Mar 01 2024)".format(*self.version)
+            if command == "get serial number":
+                return self.serial
+            if command == "is in remote control":
+                return "true"
+            if command == "robotmode":
+                return "Robotmode: RUNNING"
+            if command in ("safetystatus", "safetymode"):
+                return f"{command.capitalize()}: {'ROBOT_EMERGENCY_STOP' if safety == 'EMERGENCY_STOP' else safety}"
+            if command == "running":
+                return f"Program running: {str(running).lower()}"
+            if command == "programState":
+                return "PLAYING rtde_control" if running else "STOPPED <unnamed>"
+            if command == "stop":
+                if not running:
+                    return "Failed to execute: stop"
+                self.script.terminate()
+                return "Stopped"
+            if command == "unlock protective stop":
+                if self.safety == "protective_stop":
+                    self.safety = "normal"
+                return "Protective stop releasing"
+            if command == "restart safety":
+                self.safety = "normal"
+                return "Restarting safety"
+            if command == "get robot model":
+                return self.model_name[:4]
+            replies = {"close safety popup": "closing safety popup", "close popup": "closing popup",
+                       "power on": "Powering on", "power off": "Powering off", "brake release": "Brake releasing",
+                       "get loaded program": "No program loaded", "isProgramSaved": "false <unnamed>",
+                       "quit": "Disconnected", "play": "Failed to execute: play", "pause": "Failed to execute: pause"}
+            if command in replies:
+                return replies[command]
+            if command.startswith(("popup ", "addToLog ")):
+                return "showing popup" if command.startswith("popup") else "Added log message"
+            return f"could not understand: '{command}'"
+
+    def control(self, request: dict) -> dict:
+        """The fake-only port: inspect the truth, add cell models, inject faults."""
+        cmd = request.get("cmd")
+        with self.lock:
+            if cmd == "state":
+                arm = self.arm
+                return {"ok": True, "t_s": self.t_s, "q": arm.q.tolist(), "qd": arm.qd.tolist(),
+                        "tcp_pose": arm.tcp_pose.tolist(), "tcp_offset": arm.tcp_offset.tolist(),
+                        "moving": arm.moving, "safety": self.safety, "program_running": self.program_running,
+                        "digital_inputs": self.digital_inputs, "digital_outputs": self.digital_outputs,
+                        "stalled": self.stalled, "messages": list(self.messages)[-20:]}
+            if cmd == "fault":
+                kind = request.get("kind")
+                if kind not in FAULT_KINDS:
+                    return {"ok": False, "error": f"unknown fault {kind!r} (kinds: {', '.join(FAULT_KINDS)})"}
+                self.faults.append(dict(request))
+                self._fire_faults()
+                return {"ok": True}
+            if cmd == "add_model":
+                self.cell.add(request["model"])
+                return {"ok": True}
+            if cmd == "set_q":
+                if self.arm.moving:
+                    return {"ok": False, "error": "the arm is moving"}
+                self.arm.q = np.array(request["q"], dtype=float)
+                self.arm.set_tcp(self.arm.tcp_offset)
+                return {"ok": True}
+        return {"ok": False, "error": f"unknown command {cmd!r} (state, fault, add_model, set_q)"}
+
+    def _fire_faults(self) -> None:
+        for fault in list(self.faults):
+            after = fault.get("after_motion_s")
+            if after is not None and self.arm.moving_s < float(after):
+                continue
+            self.faults.remove(fault)
+            kind = fault["kind"]
+            if kind in ("protective_stop", "emergency_stop"):
+                self._safety_stop(kind, fault.get("why", "injected fault"))
+            elif kind in ("stall", "resume"):
+                self.stalled = kind == "stall"
+            elif kind == "drop":
+                self._close_clients()
+            elif kind == "exit":
+                self._stopped.set()
+
+    # servers
+    def start(self) -> "FakeUrController":
+        for port, session in ((RTDE_PORT, RtdeSession), (DASHBOARD_PORT, DashboardSession),
+                              (SCRIPT_PORT, ScriptSession), (self.control_port, ControlSession)):
+            self._listen(port, session)
+        threading.Thread(target=self._cycle_loop, daemon=True, name="control-cycle").start()
+        return self
+
+    def _listen(self, port: int, session_class) -> None:
+        server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            server.bind((self.host, port))
+        except OSError as exc:
+            server.close()
+            raise OSError(f"fake UR controller cannot listen on {self.host}:{port}: {exc}") from None
+        server.listen(16)
+        self._listeners.append(server)
+        threading.Thread(target=self._accept, args=(server, session_class), daemon=True,
+                         name=f"accept-{port}").start()
+
+    def _accept(self, server: socket.socket, session_class) -> None:
+        while not self.closing:
+            try:
+                sock, _ = server.accept()
+            except OSError:
+                return
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            if session_class is not ControlSession:
+                self._sockets.add(sock)
+            threading.Thread(target=self._serve, args=(session_class(self, sock), sock), daemon=True).start()
+
+    def _serve(self, session, sock: socket.socket) -> None:
+        try:
+            session.serve()
+        finally:
+            self._sockets.discard(sock)
+            sock.close()
+
+    def _close_clients(self) -> None:
+        for sock in list(self._sockets):
+            try:
+                sock.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+        self.log("dropped every client connection")
+
+    def _cycle_loop(self) -> None:
+        period = 1.0 / self.frequency_hz
+        next_t = time.perf_counter()
+        while not self.closing:
+            self.run_cycle()
+            next_t += period
+            delay = next_t - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            elif delay < -0.05:  # far behind (machine overloaded): resynchronise instead of bursting
+                next_t = time.perf_counter()
+
+    def wait(self) -> None:
+        self._stopped.wait()
+
+    def close(self) -> None:
+        self.closing = True
+        self._stopped.set()
+        for sock in self._listeners:
+            sock.close()
+        self._close_clients()
+        with self._cycle_cond:
+            self._cycle_cond.notify_all()
+
+
+def _first(pattern: str, text: str) -> str | None:
+    match = re.search(pattern, text)
+    return match.group(1) if match else None
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m cellcal.sims.fake_ur", description=__doc__.split("\n")[0])
+    parser.add_argument("--host", default="127.0.0.1", help="loopback address to serve on (127.x.y.z)")
+    parser.add_argument("--robot", default="ur10e", help="robot model file or shipped name (ur5e, ur10e)")
+    parser.add_argument("--q0", help="initial joints, rad, comma separated")
+    parser.add_argument("--cell", help="cell models as JSON: {\"models\": [{\"kind\": \"beam\", ...}]}")
+    parser.add_argument("--plugin", action="append", default=[],
+                        help="module:factory called with the controller, e.g. to add input sources")
+    parser.add_argument("--control-port", type=int, default=CONTROL_PORT)
+    parser.add_argument("--verbose", action="store_true", help="log controller messages to stderr")
+    args = parser.parse_args(argv)
+    q0 = HOME_Q if args.q0 is None else [float(v) for v in args.q0.split(",")]
+    controller = FakeUrController(args.host, robot=args.robot, q0=q0, cell=json.loads(args.cell or "{}"),
+                                  control_port=args.control_port, verbose=args.verbose)
+    for plugin in args.plugin:
+        module, _, attr = plugin.partition(":")
+        getattr(importlib.import_module(module), attr)(controller)
+    signal.signal(signal.SIGTERM, lambda *_: controller.close())
+    controller.start()
+    print(f"READY {args.host}", flush=True)
+    try:
+        controller.wait()
+    except KeyboardInterrupt:
+        pass
+    controller.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

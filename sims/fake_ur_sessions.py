@@ -1,0 +1,184 @@
+"""The fake UR controller's network faces: one session class per port.
+
+* ``RtdeSession`` (30004): recipes, start/pause, a sender thread streaming data packages
+  at the recipe's frequency, input data packages written into the controller's inputs;
+* ``DashboardSession`` (29999): the dashboard server's line protocol, answered the way
+  PolyScope 5 answers (only what a client reads is imitated, e.g. ``true`` in remote);
+* ``ScriptSession`` (30003): collects uploaded program text until a top-level ``end``;
+* ``ControlSession`` (fake only): JSON lines for tests to inspect the arm and inject
+  faults, which a real controller has no port for.
+
+Sessions hold no robot state; they call the controller under its lock.
+"""
+from __future__ import annotations
+
+import json
+import socket
+import struct
+import threading
+
+from . import fake_ur_rtde as rtde
+
+
+def recv_exact(sock: socket.socket, n: int) -> bytes:
+    data = b""
+    while len(data) < n:
+        chunk = sock.recv(n - len(data))
+        if not chunk:
+            raise ConnectionError("peer closed the connection")
+        data += chunk
+    return data
+
+
+class RtdeSession:
+    def __init__(self, controller, sock: socket.socket):
+        self.controller, self.sock = controller, sock
+        self.outputs: list[rtde.Recipe] = []
+        self.inputs: dict[int, rtde.Recipe] = {}
+        self.started = False
+        self.send_lock = threading.Lock()
+
+    def serve(self) -> None:
+        try:
+            while True:
+                size, kind = rtde.HEADER.unpack(recv_exact(self.sock, rtde.HEADER.size))
+                payload = recv_exact(self.sock, size - rtde.HEADER.size)
+                if not self.controller.stalled:
+                    self._handle(kind, payload)
+        except (ConnectionError, OSError):
+            pass
+        finally:
+            self.started = False
+            self.controller.release_inputs(self)
+
+    def _send(self, data: bytes) -> None:
+        with self.send_lock:
+            self.sock.sendall(data)
+
+    def _handle(self, kind: int, payload: bytes) -> None:
+        c = self.controller
+        if kind == rtde.REQUEST_PROTOCOL_VERSION:
+            (version,) = struct.unpack(">H", payload[:2])
+            self._send(rtde.packet(kind, bytes([1 if version in (1, 2) else 0])))
+        elif kind == rtde.GET_URCONTROL_VERSION:
+            self._send(rtde.packet(kind, struct.pack(">IIII", *c.version)))
+        elif kind == rtde.SETUP_OUTPUTS:
+            recipe = rtde.parse_output_setup(payload, len(self.outputs) + 1)
+            if recipe.valid:
+                self.outputs.append(recipe)
+            self._send(rtde.packet(kind, recipe.type_reply()))
+        elif kind == rtde.SETUP_INPUTS:
+            recipe = c.claim_inputs(self, payload, len(self.inputs) + 1)
+            if recipe.valid:
+                self.inputs[recipe.recipe_id] = recipe
+            self._send(rtde.packet(kind, recipe.type_reply()))
+        elif kind == rtde.START:
+            ok = bool(self.outputs) or bool(self.inputs)
+            self._send(rtde.packet(kind, bytes([1 if ok else 0])))
+            if ok and not self.started:
+                self.started = True
+                threading.Thread(target=self._stream, daemon=True, name="rtde-sender").start()
+        elif kind == rtde.PAUSE:
+            self.started = False
+            self._send(rtde.packet(kind, bytes([1])))
+        elif kind == rtde.DATA_PACKAGE and payload:
+            recipe = self.inputs.get(payload[0])
+            if recipe is not None:
+                c.write_inputs(recipe.unpack(payload))
+
+    def _stream(self) -> None:
+        """Send every output recipe at its frequency, paced by the controller's cycle."""
+        c = self.controller
+        decimation = [max(1, round(c.frequency_hz / r.frequency_hz)) if r.frequency_hz > 0 else 1
+                      for r in self.outputs]
+        seen = c.cycle
+        try:
+            while self.started and not c.closing:
+                cycle, snapshot = c.wait_cycle(seen)
+                if cycle == seen or c.stalled:
+                    seen = cycle
+                    continue
+                due = [r for r, k in zip(self.outputs, decimation)
+                       if cycle // k != seen // k]  # a multiple of k passed since the last send
+                seen = cycle
+                data = b"".join(r.pack(snapshot) for r in due)
+                if data:
+                    self._send(data)
+        except OSError:
+            pass
+
+
+class DashboardSession:
+    BANNER = "Connected: Universal Robots Dashboard Server"
+
+    def __init__(self, controller, sock: socket.socket):
+        self.controller, self.sock = controller, sock
+
+    def serve(self) -> None:
+        try:
+            reader = self.sock.makefile("r", encoding="utf-8", newline="\n")
+            self.sock.sendall((self.BANNER + "\n").encode())
+            for line in reader:
+                command = line.strip()
+                if self.controller.stalled:
+                    continue
+                reply = self.controller.dashboard(command)
+                self.sock.sendall((reply + "\n").encode())
+                if command == "quit":
+                    break
+        except (OSError, ValueError):
+            pass
+        finally:
+            self.sock.close()
+
+
+class ScriptSession:
+    """Program text arrives in chunks; a program is complete at a top-level ``end`` line."""
+
+    def __init__(self, controller, sock: socket.socket):
+        self.controller, self.sock = controller, sock
+
+    def serve(self) -> None:
+        pending = ""
+        try:
+            while chunk := self.sock.recv(65536):
+                pending += chunk.decode("utf-8", errors="replace")
+                pending = self._take_programs(pending)
+        except OSError:
+            pass
+        finally:
+            self.sock.close()
+
+    def _take_programs(self, text: str) -> str:
+        lines = text.split("\n")
+        start = None
+        for i, line in enumerate(lines[:-1]):  # the last piece may be an unfinished line
+            if start is None and (line.startswith("def ") or line.startswith("sec ")):
+                start = i
+            elif start is not None and line.rstrip() == "end":
+                self.controller.load_program("\n".join(lines[start:i + 1]) + "\n")
+                return self._take_programs("\n".join(lines[i + 1:]))
+            elif start is None and line.strip():
+                self.controller.log(f"script statement outside a program ignored: {line.strip()[:60]}")
+        if start is None:
+            return lines[-1]
+        return "\n".join(lines[start:])
+
+
+class ControlSession:
+    def __init__(self, controller, sock: socket.socket):
+        self.controller, self.sock = controller, sock
+
+    def serve(self) -> None:
+        try:
+            reader = self.sock.makefile("r", encoding="utf-8", newline="\n")
+            for line in reader:
+                try:
+                    reply = self.controller.control(json.loads(line))
+                except Exception as exc:  # a bad request must not kill the fake
+                    reply = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+                self.sock.sendall((json.dumps(reply) + "\n").encode())
+        except (OSError, ValueError):
+            pass
+        finally:
+            self.sock.close()
