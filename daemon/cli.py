@@ -112,9 +112,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=cmd_identify)
 
+    from .analyze_cmd import add_parser as add_analyze
     from .sim_campaign import add_parser as add_sim_campaign
+    from .sim_campaign import add_sim_data_parser
 
+    add_analyze(sub)
     add_sim_campaign(sub)
+    add_sim_data_parser(sub)
     return parser
 
 

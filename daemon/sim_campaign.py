@@ -109,3 +109,46 @@ def run(args) -> int:
     print(f"datasets: {out / 'cal.csv'}, {out / 'val.csv'} -- re-run offline with\n"
           f"  cellcal identify --robot {args.robot} --data {out / 'cal.csv'} --validate {out / 'val.csv'}")
     return 0
+
+
+def add_sim_data_parser(sub):
+    p = sub.add_parser("sim-data", help="write a measurement CSV from the simulated cell, with hidden effects",
+                       description="Measure random poses with the simulated arm and tracker, with physical "
+                                   "effects of hidden size switched on, and write the measurement CSV "
+                                   "(rows in measured order, approach directions implied). The effect's "
+                                   "true size goes to a separate truth file, never into the CSV.")
+    p.add_argument("--robot", default="ur10e")
+    p.add_argument("--poses", type=int, default=300)
+    p.add_argument("--effect", action="append", default=[], metavar="CAUSE[:JOINT]",
+                   help="hidden effect, e.g. joint_compliance:2 or thermal_drift (joint 1-based); repeatable")
+    p.add_argument("--rms-mm", type=float, default=0.3, help="TCP displacement of each effect, rms (default 0.3)")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("-o", "--out", required=True, metavar="OUT.csv")
+    p.set_defaults(func=run_sim_data)
+
+
+def run_sim_data(args) -> int:
+    from ..sims.physical_arm import CAUSE_IDS, HiddenEffect, PhysicalArm
+    from .cli import UsageError
+
+    effects = []
+    for spec in args.effect:
+        cause, _, joint = spec.partition(":")
+        if cause not in CAUSE_IDS or cause == "trigger_latency":
+            raise UsageError(f"--effect {spec}: cause must be one of "
+                             f"{', '.join(c for c in CAUSE_IDS if c != 'trigger_latency')}")
+        if cause != "thermal_drift" and not joint.isdigit():
+            raise UsageError(f"--effect {spec}: give the joint, e.g. {cause}:2")
+        effects.append(HiddenEffect(cause, int(joint) - 1 if joint else None, rms_mm=args.rms_mm))
+    model = load_robot(args.robot)
+    rng = np.random.default_rng(args.seed)
+    arm = PhysicalArm(model, rng, effects)
+    run = arm.campaign(full_workspace(model, args.poses, rng))
+    write_measurements(args.out, q_rad=run.obs.q, xyz_mm=run.obs.xyz, t_s=run.ctx.t_s, temp_c=run.ctx.temp_c,
+                       comment=f"{model.name}, simulated, seed {args.seed}")
+    truth = {e.cause: {"joint": None if e.joint is None else e.joint + 1, "size": arm.hidden_size(e)}
+             for e in effects}
+    Path(str(args.out) + ".truth.json").write_text(json.dumps(truth, indent=1) + "\n")
+    print(f"cellcal: wrote {args.out} ({args.poses} rows); hidden truth in {args.out}.truth.json",
+          file=sys.stderr)
+    return 0

@@ -288,3 +288,25 @@ def write_table(path, table: MeasurementTable, comment: str | None = None) -> No
         payload_kg=table.payload_kg, split=table.split, quat=table.quat, extra=table.extra,
         comment=comment, joint_unit=table.joint_unit,
     )
+
+
+def joint_velocities(table: MeasurementTable) -> np.ndarray | None:
+    """Joint velocities at each sample from optional ``dq1_rad_s`` ... ``dqN_rad_s`` (or
+    ``_deg_s``) columns, as trigger data carries them; None when the file has none.
+
+    All joints or none, one unit; bad values are refused like every other column.
+    """
+    n = table.q_rad.shape[1]
+    for unit, factor in (("rad_s", 1.0), ("deg_s", np.pi / 180.0)):
+        names = [f"dq{j}_{unit}" for j in range(1, n + 1)]
+        present = [c for c in names if c in table.extra]
+        if not present:
+            continue
+        if len(present) != n:
+            missing = next(c for c in names if c not in table.extra)
+            raise DatasetError(f"{table.path}: column {missing!r} missing: joint velocities need "
+                               f"all of {names[0]} .. {names[-1]}")
+        cols = [_numbers([(f"{table.path}:{line}", c, text) for line, text in zip(table.line, table.extra[c])])
+                for c in names]
+        return np.stack(cols, axis=1) * factor
+    return None

@@ -49,6 +49,9 @@ class Scored:
     magnitude: dict
     x: np.ndarray
     terms: tuple[Term, ...] = ()
+    residuals: np.ndarray | None = None  # (N, 3) in-sample, predicted - measured, mm
+    effect_mm: np.ndarray | None = None  # (N, 3) what the terms move each target by, mm
+    joint_delta: np.ndarray | None = None  # (N, nj) joint-space part of the terms, rad
 
     @property
     def heldout_mean_mm(self) -> float:
@@ -211,7 +214,7 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
         return errors
 
     baseline_errors = linear_score(())
-    baseline = Scored("geometry only", "none", {}, baseline_errors, np.zeros(0), {}, geo.x)
+    baseline = Scored("geometry only", "none", {}, baseline_errors, np.zeros(0), {}, geo.x, (), r0)
     say(f"held-out mean, geometry only: {baseline.heldout_mean_mm:.3f} mm")
 
     terms = [t for cid in options.causes for t in CAUSES[cid].terms(model, geo.layout, geo.x, obs, ctx)]
@@ -278,4 +281,11 @@ def _full_fit(model, geo, obs, folds, terms: tuple[Term, ...], noise, options, l
         size[t.cause] = CAUSES[t.cause].magnitude(t, th, delta)
         col += t.size
     magnitude = size[terms[0].cause] if len(terms) == 1 else size
-    return Scored(label, terms[0].cause, terms[0].where, errors, theta, magnitude, xf, terms)
+    # what the terms do at the targets: the fitted model with and without them
+    without = xf.copy()
+    for t in structural:
+        without[model.n_params: t.model.n_params] = 0.0
+    plain = predict(layout, without, obs)
+    effect = (r + obs.xyz) - plain
+    return Scored(label, terms[0].cause, terms[0].where, errors, theta, magnitude, xf, terms, r, effect,
+                  np.einsum("njm,m->nj", fitted.jb, theta))

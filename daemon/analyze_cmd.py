@@ -1,0 +1,114 @@
+"""``cellcal analyze``: what is the rigid model getting wrong?"""
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+
+from ..routines.dataset import joint_velocities, read_measurements
+from ..solvers.analyze import AnalyzeOptions, Finding, Scored, analyze
+from ..solvers.effects import CAUSES, Context, approach_directions
+from .robot_files import load_robot
+
+
+def add_parser(sub):
+    p = sub.add_parser(
+        "analyze", help="find, name and size the effect the rigid model misses",
+        description="Compare measured data with the rigid kinematic model (geometry calibrated), "
+                    "rank the named causes by held-out error, and name one only when it wins clearly; "
+                    "otherwise the answer is 'none'.")
+    p.add_argument("--robot", required=True, help="robot model file (YAML) or shipped name")
+    p.add_argument("--data", required=True, metavar="DATA.csv", help="measurement CSV, rows in measured order")
+    p.add_argument("--report", metavar="DIR", help="write plots and a readable page of the finding here")
+    p.add_argument("--causes", nargs="+", choices=tuple(CAUSES), default=tuple(CAUSES),
+                   help="candidate causes to consider (default: all)")
+    p.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.set_defaults(func=run)
+
+
+def _context(table) -> Context:
+    return Context(direction=approach_directions(table.q_rad), t_s=table.t_s, temp_c=table.temp_c,
+                   payload_kg=table.payload_kg, dq_rad_s=joint_velocities(table))
+
+
+def _scored(s: Scored) -> dict:
+    return {"cause": s.cause, "where": s.where, "label": s.label, "heldout_mean_mm": s.heldout_mean_mm}
+
+
+def finding_json(f: Finding, n: int) -> dict:
+    out = {
+        "cause": f.cause,
+        "where": f.where,
+        "magnitude": f.magnitude,
+        "baseline": {"heldout_mean_mm": f.baseline.heldout_mean_mm},
+        "extended": {"heldout_mean_mm": f.extended.heldout_mean_mm},
+        "gain_pct": f.gain_pct,
+        "margin_pct": 100.0 * f.margin,
+        "candidates": [_scored(c) for c in f.candidates],
+        "notes": list(f.notes),
+        "n": n,
+        "seconds": f.seconds,
+    }
+    if f.second is not None:
+        out["second"] = _scored(f.second)
+        out["both"] = {"label": f.both.label, "heldout_mean_mm": f.both.heldout_mean_mm,
+                       "magnitude": f.both.magnitude}
+    return out
+
+
+def finding_text(f: Finding, robot: str, n: int) -> str:
+    lines = [f"cellcal analyze: {robot}, {n} measurements", ""]
+    if f.cause == "none":
+        lines.append("finding: none -- no candidate beats the geometric model clearly on held-out data")
+    else:
+        where = ", ".join(f"{k} {v}" for k, v in f.where.items())
+        lines.append(f"finding: {f.cause} ({where})")
+        for k, v in f.magnitude.items():
+            lines.append(f"  {k:32s} {v:.6g}")
+    lines.append(f"held-out mean error: geometry only {f.baseline.heldout_mean_mm:.4f} mm, "
+                 f"with the effect {f.extended.heldout_mean_mm:.4f} mm (gain {f.gain_pct:.1f}%)")
+    if f.second is not None:
+        lines.append(f"second effect: {f.second.label}; both fitted: {f.both.heldout_mean_mm:.4f} mm")
+    lines += [f"  note: {note}" for note in f.notes]
+    lines += ["", "candidates (held-out mean error, mm):"]
+    for c in f.candidates[:10]:
+        lines.append(f"  {c.heldout_mean_mm:8.4f}  {c.label}")
+    if len(f.candidates) > 10:
+        lines.append(f"  ... {len(f.candidates) - 10} more (--json lists all)")
+    lines.append(f"\n{f.seconds:.1f} s")
+    return "\n".join(lines)
+
+
+def run(args) -> int:
+    from .cli import UsageError
+
+    say = lambda msg: print(f"cellcal: {msg}", file=sys.stderr, flush=True)  # noqa: E731
+    if args.folds < 2:
+        raise UsageError(f"--folds must be at least 2, got {args.folds}")
+    model = load_robot(args.robot)
+    table = read_measurements(args.data, model.n_joints)
+    if len(table) < 30:
+        raise UsageError(f"{args.data}: {len(table)} measurements; the analysis needs at least 30")
+    obs = table.observations()
+    finding = analyze(model, obs, _context(table), AnalyzeOptions(folds=args.folds, causes=tuple(args.causes)),
+                      progress=say)
+    if args.report:
+        from .analysis_report import write_report
+
+        page = write_report(args.report, model, obs, finding, finding_text(finding, model.name, len(obs)))
+        say(f"report written to {page}")
+    if args.json:
+        print(json.dumps(finding_json(finding, len(obs)), default=_jsonable))
+    else:
+        print(finding_text(finding, model.name, len(obs)))
+    return 0
+
+
+def _jsonable(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
