@@ -26,6 +26,7 @@ from .measurement_model import Layout, Observations, jacobian, predict
 
 MIN_GAIN = 0.10  # held-out mean error must drop by 10% against geometry alone
 MIN_MARGIN = 0.08  # ... and the best other cause must stay 8% above the named one
+MULTI_GAIN = 0.10  # a several-joint term must beat its cause's best single joint by this much
 NEIGHBOUR_RAD = np.deg2rad(2.0)  # configurations this close share a fold
 
 
@@ -221,6 +222,15 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     candidates = [Scored(t.label(), t.cause, t.where, linear_score((t,)), np.zeros(t.size), {}, geo.x, (t,))
                   for t in terms]
     candidates.sort(key=lambda s: s.heldout_mean_mm)
+    if candidates:
+        # parsimony: a term spanning several joints must beat the best single-place term of its
+        # cause clearly; otherwise the single place is the answer (it says *where*)
+        best = candidates[0]
+        singles = [c for c in candidates if c.cause == best.cause and not c.terms[0].multi]
+        if singles and singles[0] is not best and \
+                best.heldout_mean_mm > (1.0 - MULTI_GAIN) * singles[0].heldout_mean_mm:
+            candidates.remove(singles[0])
+            candidates.insert(0, singles[0])
     say(f"scored {len(candidates)} candidates")
     e0 = baseline.heldout_mean_mm
     notes = []
@@ -235,8 +245,15 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
             notes.append(f"best candidate {best.label} gains {100 * gain:.1f}% on held-out data, "
                          f"below the {100 * MIN_GAIN:.0f}% needed to name it")
         elif margin < MIN_MARGIN:
-            notes.append(f"{best.label} and {others[0].label} explain the data about equally well "
-                         f"(held-out errors {100 * margin:.1f}% apart, {100 * MIN_MARGIN:.0f}% needed)")
+            # two causes explain about as much: the same structure (ambiguous), or two effects?
+            pair = linear_score((best.terms + others[0].terms)).mean()
+            if pair < (1.0 - MIN_GAIN) * min(best.heldout_mean_mm, others[0].heldout_mean_mm):
+                named = best
+                notes.append(f"{best.label} and {others[0].label} are both present: together they "
+                             f"reach {pair:.4f} mm held-out")
+            else:
+                notes.append(f"{best.label} and {others[0].label} explain the data about equally well "
+                             f"(held-out errors {100 * margin:.1f}% apart, {100 * MIN_MARGIN:.0f}% needed)")
         else:
             named = best
     second = both = None

@@ -26,7 +26,7 @@ class Backlash(Cause):
             basis = np.concatenate([t.joint_basis for t in out], axis=2)
             out.append(Term(self.id, {"joints": [t.where["joint"] for t in out]},
                             tuple(t.names[0] for t in out), joint_basis=basis,
-                            units=("rad",) * len(out)))
+                            units=("rad",) * len(out), multi=True))
         return out
 
     def magnitude(self, term, theta, joint_delta):

@@ -59,6 +59,7 @@ class Term:
     cart_basis: np.ndarray | None = None  # (N, 3, m)
     model: KinematicModel | None = None  # a structurally different rigid model (parallel_axis_tilt)
     units: tuple[str, ...] = ()  # physical unit of each theta entry
+    multi: bool = False  # the same cause at several places at once (e.g. every joint)
     extra: dict = field(default_factory=dict)
 
     @property

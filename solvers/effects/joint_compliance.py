@@ -57,7 +57,7 @@ class JointCompliance(Cause):
             basis = np.concatenate(all_cols, axis=2)
             names = tuple(n for t in out for n in t.names)
             out.append(Term(self.id, {"joints": all_joints}, names, joint_basis=basis,
-                            units=tuple(u for t in out for u in t.units)))
+                            units=tuple(u for t in out for u in t.units), multi=True))
         return out
 
     def magnitude(self, term, theta, joint_delta):
