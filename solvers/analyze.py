@@ -28,6 +28,7 @@ MIN_GAIN = 0.10  # held-out mean error must drop by 10% against geometry alone
 MIN_MARGIN = 0.08  # ... and the best other cause must stay 8% above the named one
 MULTI_GAIN = 0.10  # a several-joint term must beat its cause's best single joint by this much
 NEIGHBOUR_RAD = np.deg2rad(2.0)  # configurations this close share a fold
+NESTED_RTOL = 0.02  # one term's columns lie in another's span to this relative residual (2%)
 
 
 @dataclass(frozen=True)
@@ -214,6 +215,15 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
         errors = crossval.one_step_heldout(j[:, :, keep], r0, folds)[0]
         return errors
 
+    def nested(inner: Term, outer: Term) -> bool:
+        """Does geometry + outer span every column of inner? (Then outer explains nothing
+        that inner cannot, wherever the two tie.)"""
+        a = np.concatenate([jx, _linear_columns(outer, jq, model, geo, obs)], axis=2)
+        a = a.reshape(-1, a.shape[2])
+        b = _linear_columns(inner, jq, model, geo, obs).reshape(len(a), -1)
+        coef = np.linalg.lstsq(a, b, rcond=None)[0]
+        return bool(np.linalg.norm(a @ coef - b) <= NESTED_RTOL * np.linalg.norm(b))
+
     baseline_errors = linear_score(())
     baseline = Scored("geometry only", "none", {}, baseline_errors, np.zeros(0), {}, geo.x, (), r0)
     say(f"held-out mean, geometry only: {baseline.heldout_mean_mm:.3f} mm")
@@ -222,15 +232,7 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     candidates = [Scored(t.label(), t.cause, t.where, linear_score((t,)), np.zeros(t.size), {}, geo.x, (t,))
                   for t in terms]
     candidates.sort(key=lambda s: s.heldout_mean_mm)
-    if candidates:
-        # parsimony: a term spanning several joints must beat the best single-place term of its
-        # cause clearly; otherwise the single place is the answer (it says *where*)
-        best = candidates[0]
-        singles = [c for c in candidates if c.cause == best.cause and not c.terms[0].multi]
-        if singles and singles[0] is not best and \
-                best.heldout_mean_mm > (1.0 - MULTI_GAIN) * singles[0].heldout_mean_mm:
-            candidates.remove(singles[0])
-            candidates.insert(0, singles[0])
+    _prefer_single(candidates, lambda c: c.heldout_mean_mm, lambda c: c.terms[0])
     say(f"scored {len(candidates)} candidates")
     e0 = baseline.heldout_mean_mm
     notes = []
@@ -245,9 +247,17 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
             notes.append(f"best candidate {best.label} gains {100 * gain:.1f}% on held-out data, "
                          f"below the {100 * MIN_GAIN:.0f}% needed to name it")
         elif margin < MIN_MARGIN:
-            # two causes explain about as much: the same structure (ambiguous), or two effects?
+            # two causes explain about as much: the same structure (ambiguous), two effects, or
+            # one explanation contained in the other (then the smaller one is the answer)?
             pair = linear_score((best.terms + others[0].terms)).mean()
-            if pair < (1.0 - MIN_GAIN) * min(best.heldout_mean_mm, others[0].heldout_mean_mm):
+            small, large = sorted((best, others[0]), key=lambda c: sum(t.size for t in c.terms))
+            if (1.0 - small.heldout_mean_mm / e0 >= MIN_GAIN and small.terms[0].size < large.terms[0].size
+                    and nested(small.terms[0], large.terms[0])):
+                named = small
+                candidates.insert(0, candidates.pop(candidates.index(small)))
+                notes.append(f"{large.label} fits about as well only through terms that are the same as "
+                             f"{small.label}; the simpler explanation is named")
+            elif pair < (1.0 - MIN_GAIN) * min(best.heldout_mean_mm, others[0].heldout_mean_mm):
                 named = best
                 notes.append(f"{best.label} and {others[0].label} are both present: together they "
                              f"reach {pair:.4f} mm held-out")
@@ -261,6 +271,7 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
         # with the named effect in the model, is there a second one?
         pairs = [(linear_score(named.terms + (t,)), t) for t in terms if t.cause != named.cause]
         pairs.sort(key=lambda p: p[0].mean())
+        _prefer_single(pairs, lambda p: p[0].mean(), lambda p: p[1])
         if pairs and pairs[0][0].mean() < (1.0 - MIN_GAIN) * named.heldout_mean_mm:
             second = next(c for c in candidates if c.terms == (pairs[0][1],))
             both = _full_fit(model, geo, obs, folds, named.terms + second.terms, noise, options,
@@ -273,6 +284,17 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
         magnitude=named.magnitude if named else {}, baseline=baseline, extended=extended,
         candidates=tuple(candidates), margin=float(margin), second=second, both=both,
         seconds=time.perf_counter() - t0, notes=tuple(notes))
+
+
+def _prefer_single(ranked: list, error, term) -> None:
+    """Parsimony, in place: a term spanning several joints must beat the best single-place
+    term of its cause by MULTI_GAIN, else the single place goes first (it says *where*)."""
+    if not ranked:
+        return
+    best = ranked[0]
+    singles = [i for i, r in enumerate(ranked) if term(r).cause == term(best).cause and not term(r).multi]
+    if singles and singles[0] != 0 and error(best) > (1.0 - MULTI_GAIN) * error(ranked[singles[0]]):
+        ranked.insert(0, ranked.pop(singles[0]))
 
 
 def _full_fit(model, geo, obs, folds, terms: tuple[Term, ...], noise, options, label) -> Scored:

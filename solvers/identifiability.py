@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import qr
+from scipy.linalg import qr, svd
 
 STRUCTURAL_RTOL = 1e-7
 
@@ -26,6 +26,16 @@ class Identifiability:
     rank: int
     structural_rank: int
     condition: float  # of the kept scaled Jacobian
+
+
+def _svd(a: np.ndarray):
+    """Singular values and right vectors; LAPACK's fast divide-and-conquer driver can fail
+    to converge on nearly rank-deficient triangles, the QR-iteration driver does not."""
+    try:
+        _, s, vt = np.linalg.svd(a, full_matrices=False)
+    except np.linalg.LinAlgError:
+        _, s, vt = svd(a, full_matrices=False, lapack_driver="gesvd")
+    return s, vt
 
 
 def _select(vt: np.ndarray, rank: int) -> np.ndarray:
@@ -71,7 +81,7 @@ def analyse(j_scaled: np.ndarray, nuisance: np.ndarray, candidates: np.ndarray,
     k = j_scaled[:, cand]
     k = k - qb @ (qb.T @ k)
     if k.size:  # singular values and right vectors of the tall block via its small R factor
-        _, s, vt = np.linalg.svd(qr(k, mode="r")[0][: k.shape[1]], full_matrices=False)
+        s, vt = _svd(qr(k, mode="r")[0][: k.shape[1]])
     else:
         s, vt = np.zeros(0), np.zeros((0, 0))
     top = s[0] if len(s) else 0.0
