@@ -14,7 +14,13 @@ from typing import Callable
 KINDS = ("robot", "trigger", "tracker", "panel")
 
 # (kind, name) -> "module:factory", imported on first use
-_BUILTIN: dict[tuple[str, str], str] = {}
+_BUILTIN: dict[tuple[str, str], str] = {
+    ("panel", "modbus"): "cellcal.drivers.modbus_panel:ModbusPanel",
+    ("trigger", "modbus"): "cellcal.drivers.modbus_trigger:ModbusTrigger",
+    ("trigger", "serial"): "cellcal.drivers.serial_trigger:SerialTrigger",
+    ("trigger", "can"): "cellcal.drivers.can_trigger:CanTrigger",
+    ("tracker", "socket"): "cellcal.drivers.tracker_socket:TrackerSocket",
+}
 _FACTORIES: dict[tuple[str, str], Callable] = {}
 
 

@@ -4,7 +4,7 @@ A pymodbus TCP server on loopback, run by its own asyncio loop in a background
 thread, so the real pymodbus client in :mod:`cellcal.drivers.modbus_panel` and
 :mod:`cellcal.drivers.modbus_trigger` talks Modbus to it exactly as to a PLC.
 Tests and the simulated cell play the operator and the light barrier through
-the helper methods: press buttons, read lamps, record edges.
+the methods below: press buttons, read lamps, record edges.
 
 The tables are separate (coils, discrete inputs, holding and input registers,
 as on most IO modules); an address outside them gets exception response 2.
@@ -15,8 +15,7 @@ import asyncio
 import threading
 
 from pymodbus.server import ModbusTcpServer
-from pymodbus.simulator import SimData, SimDevice
-from pymodbus.simulator.simutils import DataType
+from pymodbus.simulator import DataType, SimData, SimDevice
 
 from ..drivers.interfaces import Edge
 from ..drivers.modbus_panel import PanelMap
@@ -25,7 +24,7 @@ from ..drivers.modbus_trigger import (HEADER_REGISTERS, LAYOUT_VERSION, MAX_RING
 from ..drivers.trigger_stream import EDGE_CODES
 
 READ_COILS, WRITE_COIL, READ_HOLDING, WRITE_REGISTER, READ_INPUT = 1, 5, 3, 6, 4
-HELPER_TIMEOUT_S = 5.0
+SERVER_CALL_TIMEOUT_S = 5.0
 
 
 class ModbusCellServer:
@@ -94,7 +93,7 @@ class ModbusCellServer:
         self._thread = threading.Thread(target=run, name=f"modbus-server-{self.port}",
                                         daemon=True)
         self._thread.start()
-        if not started.wait(HELPER_TIMEOUT_S) or failure:
+        if not started.wait(SERVER_CALL_TIMEOUT_S) or failure:
             self._thread = None
             raise RuntimeError(f"Modbus cell server did not start on {self.host}:{self.port}: "
                                f"{failure[0] if failure else 'timeout'}")
@@ -107,10 +106,10 @@ class ModbusCellServer:
         loop = self._loop
         try:
             asyncio.run_coroutine_threadsafe(self._server.shutdown(), loop).result(
-                HELPER_TIMEOUT_S)
+                SERVER_CALL_TIMEOUT_S)
         finally:
             loop.call_soon_threadsafe(loop.stop)
-            self._thread.join(HELPER_TIMEOUT_S)
+            self._thread.join(SERVER_CALL_TIMEOUT_S)
             self._thread = None
             loop.close()
 
@@ -183,4 +182,4 @@ class ModbusCellServer:
         if self._thread is None:
             coroutine.close()
             raise RuntimeError("Modbus cell server is not running")
-        return asyncio.run_coroutine_threadsafe(coroutine, self._loop).result(HELPER_TIMEOUT_S)
+        return asyncio.run_coroutine_threadsafe(coroutine, self._loop).result(SERVER_CALL_TIMEOUT_S)
