@@ -11,6 +11,7 @@ import json
 import sys
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from ..routines.dataset import DatasetError, MeasurementTable, read_measurements
 from ..solvers.identify import LOSSES, IdentifyOptions, identify
@@ -116,7 +117,10 @@ def build_parser() -> argparse.ArgumentParser:
     from .sim_campaign import add_parser as add_sim_campaign
     from .sim_campaign import add_sim_data_parser
 
+    from .importers import add_parser as add_import
+
     add_analyze(sub)
+    add_import(sub)
     add_sim_campaign(sub)
     add_sim_data_parser(sub)
     return parser
@@ -125,6 +129,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    # the solvers' matrices are small: BLAS threads only contend (several times slower on 2 cores)
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _run(args)
+
+
+def _run(args) -> int:
     try:
         return args.func(args)
     except (DatasetError, ModelError, UsageError) as exc:

@@ -9,6 +9,7 @@ import re
 import yaml
 
 from ..solvers.robot_model import KinematicModel, ModelError, model_from_mapping
+from ..solvers.tree_model import tree_from_mapping
 
 
 class _StrictLoader(yaml.SafeLoader):
@@ -72,4 +73,6 @@ def load_robot(name_or_path: str | Path) -> KinematicModel:
         mark = getattr(exc, "problem_mark", None)
         where = f":{mark.line + 1}" if mark is not None else ""
         raise ModelError(f"{path}{where}: not valid YAML: {getattr(exc, 'problem', exc)}") from None
+    if isinstance(doc, dict) and "branches" in doc:
+        return tree_from_mapping(doc, source=str(path))
     return model_from_mapping(doc, source=str(path))

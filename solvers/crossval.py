@@ -60,8 +60,16 @@ def one_step_heldout(j: np.ndarray, r: np.ndarray, folds: np.ndarray, penalty: n
         normal = normal_all - jh.T @ jh  # training rows only
         grad = grad_all - jh.T @ r[held].ravel()
         for g, lam in enumerate(lams):
-            step = -np.linalg.lstsq(normal + lam * np.diag(penalty), grad + lam * penalty * deviation,
-                                    rcond=None)[0]
+            step = -_solve(normal + lam * np.diag(penalty), grad + lam * penalty * deviation)
             pred = r[held] + (jh @ step).reshape(-1, 3)
             errs[g, held] = np.linalg.norm(pred, axis=1)
     return errs
+
+
+def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Normal equations: Cholesky when positive definite, least squares when (near) singular."""
+    try:
+        c = np.linalg.cholesky(a)
+        return np.linalg.solve(c.T, np.linalg.solve(c, b))
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(a, b, rcond=None)[0]

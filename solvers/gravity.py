@@ -79,3 +79,44 @@ def torque_regressors(model: KinematicModel, params: np.ndarray, q: np.ndarray, 
         for a in range(3):
             cols.append(np.einsum("ni,ni->n", z, np.cross(link_rot[:, k, :, a], g)))
     return np.stack(cols, axis=1)
+
+
+def tree_sites(model: KinematicModel, params: np.ndarray, q: np.ndarray):
+    """Joints of any model (trees, coupled and passive joints) with what hangs below them.
+
+    Returns a list, one entry per distinct joint rotation, of dicts:
+    ``theta`` (parameter index of the rotation), ``bend`` (parameter index of the next
+    rotation about x, the joint's bending axis, or -1), ``chain``, ``element``, ``axis``,
+    ``bend_axis``, ``origin``, ``bend_origin`` (N, 3) and ``points``: the downstream link
+    points (N, 3) mm, each counted once however many chains carry it.
+    """
+    sites: dict[int, dict] = {}
+    for name, chain in model.chains.items():
+        _, end, frames = forward(chain, params, q, keep_frames=True)
+        els = chain.elements
+        points = []  # (key, position) along this chain
+        for e, el in enumerate(els):
+            if not (el.kind == "rz" and el.joints and el.param >= 0):
+                continue
+            after = e + 2 if e + 1 < len(els) and els[e + 1].kind == "tz" else e + 1
+            points.append((id(el), e, frames[after][1]))
+        points.append((("end", name), len(els), end))
+        for key, e, _ in points[:-1]:
+            el = els[e]
+            site = sites.setdefault(key, {"theta": el.param, "chain": name, "element": e,
+                                          "axis": frames[e][0][..., :, 2], "origin": frames[e][1],
+                                          "bend": -1, "points": {}})
+            nxt = e + 2
+            if nxt < len(els) and els[nxt].kind == "rx" and els[nxt].param >= 0:
+                site.update(bend=els[nxt].param, bend_axis=frames[nxt][0][..., :, 0],
+                            bend_origin=frames[nxt][1])
+            for pkey, pe, p in points:
+                if pe > e:
+                    site["points"][pkey] = p
+    return [dict(s, points=list(s["points"].values())) for s in sites.values()]
+
+
+def point_mass_regressors(axis: np.ndarray, origin: np.ndarray, points, gravity) -> np.ndarray:
+    """Gravity torque about an axis per unit mass at each point (N, len(points)), N m / kg."""
+    g = np.asarray(gravity, dtype=float)
+    return np.stack([np.einsum("ni,ni->n", axis, np.cross((p - origin) * 1e-3, g)) for p in points], axis=1)

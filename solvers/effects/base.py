@@ -5,6 +5,7 @@ extra physical parameters theta; all terms here act linearly:
 
 - joint-space terms:   q_model = q_reported + B(q, context) @ theta     (B: N x joints x m)
 - Cartesian terms:     p_model = p_rigid + C(q, context) @ theta        (C: N x 3 x m)
+- parameter terms:     k_model = k + P(q, context) @ theta, row by row  (to first order)
 
 so an extended fit needs only the rigid model's Jacobians (d p / d q maps B to
 the measurement space). Structural changes of the rigid model itself (a Hayati
@@ -58,6 +59,9 @@ class Term:
     joint_basis: np.ndarray | None = None  # (N, nj, m)
     cart_basis: np.ndarray | None = None  # (N, 3, m)
     model: KinematicModel | None = None  # a structurally different rigid model (parallel_axis_tilt)
+    # parameter-space terms: parameter index -> (N, m); the term moves that parameter (a frame's
+    # rotation, a bending axis) by basis @ theta, row by row (trees, coupled and passive joints)
+    param_basis: dict | None = None
     units: tuple[str, ...] = ()  # physical unit of each theta entry
     multi: bool = False  # the same cause at several places at once (e.g. every joint)
     extra: dict = field(default_factory=dict)

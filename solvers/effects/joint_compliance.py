@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..gravity import gravity_torques, torque_regressors
+from ..gravity import gravity_torques, point_mass_regressors, torque_regressors, tree_sites
 from .base import Cause, Term
 
 MIN_TORQUE_SPREAD = 1e-6  # a joint whose gravity torque never changes (vertical axis) has no candidate
@@ -38,9 +38,56 @@ class JointCompliance(Cause):
             names += [f"payload_moment{i}" for i in range(4)]
         return cols, tuple(names), ("rad",) * len(names)
 
+    def _tree_terms(self, model, layout, x, obs):
+        """Trees (and coupled or passive joints): each joint's rotation and its bending axis
+        deflect by point-mass gravity torques of everything downstream (masses unknown)."""
+        k = x[: layout.n_kin]
+        by_chain: dict[str, dict] = {}
+        for site in tree_sites(model, k, obs.q):
+            if not site["points"]:
+                continue
+            basis = {}
+            names = []
+            for axis_key, origin_key, param in (("axis", "origin", site["theta"]),
+                                               ("bend_axis", "bend_origin", site["bend"])):
+                if param < 0:
+                    continue
+                cols = point_mass_regressors(site[axis_key], site[origin_key], site["points"], model.gravity)
+                keep = np.ptp(cols, axis=0) > MIN_TORQUE_SPREAD
+                if keep.any():
+                    basis[param] = cols[:, keep]
+                    names += [f"{model.param_names[param]}.m{i}" for i in range(int(keep.sum()))]
+            if basis:
+                group = by_chain.setdefault(model.param_names[site["theta"]].split(".")[0], {"basis": [], "names": []})
+                group["basis"].append(basis)
+                group["names"] += names
+        out = []
+        for where, group in by_chain.items():
+            out.append(self._param_term(model, {"branch": where}, group["basis"], group["names"], len(obs)))
+        if len(out) > 1:
+            out.append(self._param_term(model, {"branches": list(by_chain)},
+                                        [b for g in by_chain.values() for b in g["basis"]],
+                                        [n for g in by_chain.values() for n in g["names"]], len(obs), multi=True))
+        return out
+
+    def _param_term(self, model, where, bases, names, n_rows, multi=False):
+        m = len(names)
+        param_basis: dict[int, np.ndarray] = {}
+        col = 0
+        for basis in bases:
+            for p, cols in basis.items():
+                block = param_basis.setdefault(p, np.zeros((n_rows, m)))
+                block[:, col: col + cols.shape[1]] = cols
+                col += cols.shape[1]
+        # what each moved parameter is called, for the report: torso.theta2 -> torso.joint2
+        labels = {p: model.param_names[p].replace("theta", "joint").replace("alpha", "bend_before")
+                  for p in param_basis}
+        return Term(self.id, where, tuple(names), param_basis=param_basis, units=("rad",) * m, multi=multi,
+                    extra={"labels": labels})
+
     def terms(self, model, layout, x, obs, ctx):
         if not model.joint_elements:
-            return []
+            return self._tree_terms(model, layout, x, obs)
         k = x[: layout.n_kin]
         out, all_cols, all_joints = [], [], []
         for j in range(model.n_joints):
@@ -61,6 +108,14 @@ class JointCompliance(Cause):
         return out
 
     def magnitude(self, term, theta, joint_delta):
+        if term.param_basis:  # tree: the deflection of each frame rotation / bending axis
+            out = {}
+            for p, basis in term.param_basis.items():
+                d = np.rad2deg(basis @ theta)
+                if np.any(d):
+                    out[f"{term.extra['labels'][p]}_deflection_rms_deg"] = float(np.sqrt(np.mean(d**2)))
+            out["deflection_rms_deg"] = max(out.values()) if out else 0.0
+            return out
         joints = [term.where["joint"]] if "joint" in term.where else term.where["joints"]
         out = {}
         for j in joints:
