@@ -31,7 +31,12 @@ def _regressor(model, obs: Observations, f: Finding):
     named = f.extended
     term = named.terms[0]
     layout = Layout(model, obs.target_names)
-    _, _, jq = jacobian(layout, f.baseline.x, obs, with_joints=True)
+    _, jx, jq = jacobian(layout, f.baseline.x, obs, with_joints=True)
+    if term.param_basis:  # trees: the frame rotation that deflects most
+        deltas = {p: basis @ named.theta[: term.size] for p, basis in term.param_basis.items()}
+        p = max(deltas, key=lambda k: np.sqrt(np.mean(deltas[k] ** 2)))
+        return np.rad2deg(deltas[p]), f"fitted gravity deflection of {term.extra['labels'][p]} (deg)", \
+            _unit(jx[:, :, p])
     joint = term.where.get("joint", (term.where.get("joints") or [None])[0])
     if term.cause == "thermal_drift":
         x = term.extra["dT"]

@@ -361,5 +361,12 @@ def _full_fit(model, geo, obs, folds, terms: tuple[Term, ...], noise, options, l
         without[model.n_params: t.model.n_params] = 0.0
     plain = predict(layout, without, obs)
     effect = (r + obs.xyz) - plain
+    if len(terms) == 1:
+        # the size that needs no model to read: how far the effect moves the targets, less what a
+        # geometric calibration absorbs anyway (the part the geometric columns can reproduce)
+        geo_cols = j[:, :, : int(free.sum())].reshape(-1, int(free.sum()))
+        rest = effect.ravel() - geo_cols @ np.linalg.lstsq(geo_cols, effect.ravel(), rcond=None)[0]
+        magnitude = {**magnitude, "effect_beyond_geometry_rms_mm": float(np.sqrt(np.mean(
+            np.sum(rest.reshape(-1, 3) ** 2, axis=1))))}
     return Scored(label, terms[0].cause, terms[0].where, errors, theta, magnitude, xf, terms, r, effect,
                   np.einsum("njm,m->nj", fitted.jb, theta))

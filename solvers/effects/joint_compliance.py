@@ -112,8 +112,8 @@ class JointCompliance(Cause):
             out = {}
             for p, basis in term.param_basis.items():
                 d = np.rad2deg(basis @ theta)
-                if np.any(d):
-                    out[f"{term.extra['labels'][p]}_deflection_rms_deg"] = float(np.sqrt(np.mean(d**2)))
+                if np.any(d):  # the varying part: a constant part is a geometric offset
+                    out[f"{term.extra['labels'][p]}_deflection_std_deg"] = float(np.std(d))
             out["deflection_rms_deg"] = max(out.values()) if out else 0.0
             return out
         joints = [term.where["joint"]] if "joint" in term.where else term.where["joints"]
