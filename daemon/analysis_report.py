@@ -19,6 +19,7 @@ import numpy as np  # noqa: E402
 
 from ..solvers.analyze import Finding  # noqa: E402
 from ..solvers.measurement_model import Layout, Observations, jacobian  # noqa: E402
+from ..solvers.se3 import rotvec_to_matrix  # noqa: E402
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -32,11 +33,12 @@ def _regressor(model, obs: Observations, f: Finding):
     term = named.terms[0]
     layout = Layout(model, obs.target_names)
     _, jx, jq = jacobian(layout, f.baseline.x, obs, with_joints=True)
-    if term.param_basis:  # trees: the frame rotation that deflects most
-        deltas = {p: basis @ named.theta[: term.size] for p, basis in term.param_basis.items()}
-        p = max(deltas, key=lambda k: np.sqrt(np.mean(deltas[k] ** 2)))
-        return np.rad2deg(deltas[p]), f"fitted gravity deflection of {term.extra['labels'][p]} (deg)", \
-            _unit(jx[:, :, p])
+    if term.param_basis:  # trees: many joints sag together; show the sag along gravity
+        b = f.baseline.x[layout.base]
+        down = rotvec_to_matrix(b[3:]) @ model.gravity
+        down = np.broadcast_to(down / np.linalg.norm(down), named.effect_mm.shape)
+        return np.einsum("ni,ni->n", named.effect_mm, down), \
+            "sag along gravity predicted by the elastic model (mm)", down
     joint = term.where.get("joint", (term.where.get("joints") or [None])[0])
     if term.cause == "thermal_drift":
         x = term.extra["dT"]

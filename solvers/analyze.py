@@ -52,7 +52,8 @@ class Scored:
     x: np.ndarray
     terms: tuple[Term, ...] = ()
     residuals: np.ndarray | None = None  # (N, 3) in-sample, predicted - measured, mm
-    effect_mm: np.ndarray | None = None  # (N, 3) what the terms move each target by, mm
+    effect_mm: np.ndarray | None = None  # (N, 3) what the terms move each target by beyond what
+    #                                      geometry absorbs (single terms), mm
     joint_delta: np.ndarray | None = None  # (N, nj) joint-space part of the terms, rad
 
     @property
@@ -366,7 +367,8 @@ def _full_fit(model, geo, obs, folds, terms: tuple[Term, ...], noise, options, l
         # geometric calibration absorbs anyway (the part the geometric columns can reproduce)
         geo_cols = j[:, :, : int(free.sum())].reshape(-1, int(free.sum()))
         rest = effect.ravel() - geo_cols @ np.linalg.lstsq(geo_cols, effect.ravel(), rcond=None)[0]
+        effect = rest.reshape(-1, 3)
         magnitude = {**magnitude, "effect_beyond_geometry_rms_mm": float(np.sqrt(np.mean(
-            np.sum(rest.reshape(-1, 3) ** 2, axis=1))))}
+            np.sum(effect**2, axis=1))))}
     return Scored(label, terms[0].cause, terms[0].where, errors, theta, magnitude, xf, terms, r, effect,
                   np.einsum("njm,m->nj", fitted.jb, theta))
