@@ -95,15 +95,19 @@ def _combine(terms: tuple[Term, ...], n_rows: int, n_joints: int):
         for p, basis in (t.param_basis or {}).items():
             pb.setdefault(p, np.zeros((n_rows, m)))[:, col: col + t.size] += basis
         col += t.size
-    return jb, cb, pb
+    return jb, cb, _stack(pb) if pb else None
 
 
-def _param_columns(jx_full: np.ndarray, pb: dict) -> np.ndarray:
+def _stack(pb: dict):
+    """Parameter bases as (parameter indices, (N, P, m)) for one matrix product."""
+    params = list(pb)
+    return params, np.stack([pb[p] for p in params], axis=1)
+
+
+def _param_columns(jx_full: np.ndarray, stacked) -> np.ndarray:
     """d p / d theta of parameter-space terms: sum_p (d p / d k_p) * basis_p."""
-    out = 0.0
-    for p, basis in pb.items():
-        out = out + jx_full[:, :, p, None] * basis[:, None, :]
-    return out
+    params, basis = stacked
+    return np.matmul(jx_full[:, :, params], basis)
 
 
 class _Extended:
@@ -189,7 +193,7 @@ def _linear_columns(term: Term, jq: np.ndarray, model, geo, obs, jx_full=None) -
     if term.cart_basis is not None:
         cols += term.cart_basis
     if term.param_basis:
-        cols += _param_columns(jx_full, term.param_basis)
+        cols += _param_columns(jx_full, _stack(term.param_basis))
     return cols
 
 
@@ -220,8 +224,15 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
                                                np.ones(jx.shape[2], bool))
     say(f"geometric model: {len(obs)} measurements, residual {np.linalg.norm(r0, axis=1).mean():.3f} mm mean")
 
+    column_cache: dict[int, np.ndarray] = {}
+
+    def columns(term: Term) -> np.ndarray:
+        if id(term) not in column_cache:
+            column_cache[id(term)] = _linear_columns(term, jq, model, geo, obs, jx_full)
+        return column_cache[id(term)]
+
     def linear_score(terms: tuple[Term, ...]):
-        cols = [_linear_columns(t, jq, model, geo, obs, jx_full) for t in terms]
+        cols = [columns(t) for t in terms]
         jt = np.concatenate(cols, axis=2) if cols else np.zeros((len(obs), 3, 0))
         j = np.concatenate([jx, jt], axis=2)
         flat = j.reshape(-1, j.shape[2])
@@ -238,9 +249,9 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     def nested(inner: Term, outer: Term) -> bool:
         """Does geometry + outer span every column of inner? (Then outer explains nothing
         that inner cannot, wherever the two tie.)"""
-        a = np.concatenate([jx, _linear_columns(outer, jq, model, geo, obs, jx_full)], axis=2)
+        a = np.concatenate([jx, columns(outer)], axis=2)
         a = a.reshape(-1, a.shape[2])
-        b = _linear_columns(inner, jq, model, geo, obs, jx_full).reshape(len(a), -1)
+        b = columns(inner).reshape(len(a), -1)
         coef = np.linalg.lstsq(a, b, rcond=None)[0]
         return bool(np.linalg.norm(a @ coef - b) <= NESTED_RTOL * np.linalg.norm(b))
 

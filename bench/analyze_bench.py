@@ -1,0 +1,112 @@
+"""Bench: discrepancy analysis of 500 poses with every candidate, time per candidate.
+
+    python -m bench.analyze_bench [--poses 500] [--seed 0]
+
+For each robot, one data set with a hidden effect (compliance at the elbow, 4x the
+noise): total analysis time, the number of candidates scored, seconds per candidate,
+and the naive alternative measured in the same run: every candidate refitted with
+nonlinear least squares in every cross-validation fold (what the linearised scoring
+replaces), extrapolated from a timed sample of candidates.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from cellcal.daemon.robot_files import load_robot
+from cellcal.sims.hidden_cases import make_case
+from cellcal.sims.physical_arm import HiddenEffect
+from cellcal.solvers import crossval
+from cellcal.solvers.analyze import NEIGHBOUR_RAD, AnalyzeOptions, _fit_extended, analyze
+from cellcal.solvers.effects import CAUSES
+
+ROBOTS = ("ur10e", "abb-irb4600", "elite-ec66")
+
+
+def naive_seconds_per_candidate(model, case, finding, sample=3):
+    """Refit geometry + term nonlinearly in each of 5 folds for a few candidates."""
+    obs = case.campaign.obs
+    folds = crossval.fold_ids(obs.q, 5, 0, NEIGHBOUR_RAD)
+    geo = finding.baseline
+    from cellcal.solvers.identify import IdentifyOptions, identify
+
+    base = identify(model, obs, IdentifyOptions(regularize="none"))
+    terms = [c.terms[0] for c in finding.candidates if c.terms and c.terms[0].model is None][:sample]
+    t0 = time.perf_counter()
+    for term in terms:
+        for f in range(5):
+            rows = np.flatnonzero(folds != f)
+            sub = obs.subset(rows)
+            sub_term = term.__class__(**{**term.__dict__,
+                                         "joint_basis": None if term.joint_basis is None else term.joint_basis[rows],
+                                         "cart_basis": None if term.cart_basis is None else term.cart_basis[rows],
+                                         "param_basis": None if not term.param_basis else
+                                         {p: b[rows] for p, b in term.param_basis.items()}})
+            _fit_extended(base.layout, sub, geo.x, base.free, (sub_term,), base.noise_mm, 1.0)
+    return (time.perf_counter() - t0) / max(len(terms), 1)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--poses", type=int, default=500)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    rows = []
+    with threadpool_limits(limits=1, user_api="blas"):
+        for i, robot in enumerate(ROBOTS):
+            model = load_robot(robot)
+            case = make_case(model, [HiddenEffect("joint_compliance", 2)], [4.0], n=args.poses, seed=args.seed + i)
+            t0 = time.perf_counter()
+            finding = analyze(model, case.campaign.obs, case.campaign.ctx, AnalyzeOptions())
+            total = time.perf_counter() - t0
+            n = len(finding.candidates)
+            naive = naive_seconds_per_candidate(model, case, finding)
+            rows.append({"robot": model.name, "poses": args.poses, "candidates": n, "seconds": total,
+                         "seconds_per_candidate": total / n, "naive_seconds_per_candidate": naive,
+                         "speedup_per_candidate": naive / (total / n), "finding": finding.cause,
+                         "where": finding.where, "gain_pct": finding.gain_pct})
+            print(f"{model.name:22s} {n:3d} candidates  {total:6.2f} s  {1000 * total / n:7.1f} ms/candidate  "
+                  f"naive {1000 * naive:8.1f} ms/candidate ({naive / (total / n):5.1f}x)  "
+                  f"-> {finding.cause} {finding.where}", file=sys.stderr)
+        justin = Path(__file__).resolve().parents[2] / "shared" / "data" / "dlr-agile-justin" / "measurements.csv"
+        if justin.exists():  # the real data set: 500 poses x 2 markers on a tree
+            from cellcal.daemon.importers import dlr_justin
+            from cellcal.solvers.effects import Context, approach_directions
+            from cellcal.solvers.measurement_model import Observations
+
+            fields = dlr_justin(justin)
+            obs = Observations(fields["q_rad"], fields["xyz_mm"], fields["target"], fields["target_names"])
+            model = load_robot("agile-justin")
+            t0 = time.perf_counter()
+            finding = analyze(model, obs, Context(approach_directions(obs.q)))
+            total = time.perf_counter() - t0
+            n = len(finding.candidates)
+            rows.append({"robot": model.name, "poses": len(obs) // 2, "candidates": n, "seconds": total,
+                         "seconds_per_candidate": total / n, "naive_seconds_per_candidate": float("nan"),
+                         "speedup_per_candidate": float("nan"), "finding": finding.cause,
+                         "where": finding.where, "gain_pct": finding.gain_pct,
+                         "heldout_mean_mm": [finding.baseline.heldout_mean_mm, finding.extended.heldout_mean_mm]})
+            print(f"{model.name:22s} {n:3d} candidates  {total:6.2f} s  held-out "
+                  f"{finding.baseline.heldout_mean_mm:.2f} -> {finding.extended.heldout_mean_mm:.2f} mm",
+                  file=sys.stderr)
+    out = Path(__file__).parent / "results"
+    out.mkdir(exist_ok=True)
+    (out / "analyze.json").write_text(json.dumps(rows, indent=1) + "\n")
+    print(f"{'robot':22s} {'poses':>5s} {'cand.':>5s} {'total s':>8s} {'ms/cand':>8s} {'naive ms':>9s} {'ratio':>6s}")
+    for r in rows:
+        print(f"{r['robot']:22s} {r['poses']:5d} {r['candidates']:5d} {r['seconds']:8.2f} "
+              f"{1000 * r['seconds_per_candidate']:8.1f} {1000 * r['naive_seconds_per_candidate']:9.1f} "
+              f"{r['speedup_per_candidate']:6.1f}")
+    worst = max(r["seconds"] for r in rows)
+    print(f"slowest analysis of {args.poses} poses: {worst:.1f} s (budget 30 s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
