@@ -20,6 +20,8 @@ _BUILTIN: dict[tuple[str, str], str] = {
     ("trigger", "serial"): "cellcal.drivers.serial_trigger:SerialTrigger",
     ("trigger", "can"): "cellcal.drivers.can_trigger:CanTrigger",
     ("tracker", "socket"): "cellcal.drivers.tracker_socket:TrackerSocket",
+    ("robot", "ur_rtde"): "cellcal.drivers.ur_rtde_robot:UrRtdeRobot",
+    ("trigger", "ur_digital_input"): "cellcal.drivers.ur_rtde_trigger:UrDigitalInputTrigger",
 }
 _FACTORIES: dict[tuple[str, str], Callable] = {}
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
 import re
 import signal
 import socket
@@ -53,6 +54,8 @@ def _zero(kind: str):
 
 
 class FakeUrController:
+    """The controller: arm, cell, registers, safety state and the servers around them."""
+
     def __init__(self, host: str = "127.0.0.1", *, robot: str = "ur10e", q0=HOME_Q, cell: dict | None = None,
                  version=(5, 15, 0, 11908), serial: str = "20235500001", control_port: int = CONTROL_PORT,
                  frequency_hz: float = 500.0, verbose: bool = False):
@@ -61,7 +64,8 @@ class FakeUrController:
         self.lock = threading.RLock()
         self.cell = cell_from_spec(cell)
         self.arm = FakeArm(ArmKinematics(load_robot(robot)), q0, 1.0 / frequency_hz, contact=self.cell.touching)
-        self.model_name = robot.upper()
+        model = re.search(r"ur(\d+)", robot.lower())
+        self.model_name = f"UR{model.group(1)}" if model else "UR10"
         self.inputs: dict = {}
         self.outputs: dict = {name: _zero(kind) for name, kind in rtde.OUTPUT_TYPES.items()
                               if name.startswith("output_") and "register" in name}
@@ -79,7 +83,7 @@ class FakeUrController:
                             actual_main_voltage=48.0, actual_robot_voltage=48.0, actual_robot_current=0.6,
                             actual_joint_voltage=(47.9,) * 6, actual_tool_accelerometer=(0.0, 0.0, 9.81),
                             actual_execution_time=0.35, tool_temperature=33.0, payload=0.0)
-        self.snapshot = self._snapshot()
+        self._published: deque = deque([(0, self._snapshot())], maxlen=250)  # recent (cycle, snapshot)
         self._cycle_cond = threading.Condition()
         self._sockets: set[socket.socket] = set()
         self._listeners: list[socket.socket] = []
@@ -102,16 +106,17 @@ class FakeUrController:
             self.cycle += 1
             self.t_s = self.cycle / self.frequency_hz
             self.digital_inputs = self.cell.input_bits(self.arm.tcp_pose, self.t_s)
-            snapshot = self._snapshot()
+            published = (self.cycle, self._snapshot())
         with self._cycle_cond:
-            self.snapshot = snapshot
+            self._published.append(published)
             self._cycle_cond.notify_all()
 
-    def wait_cycle(self, seen: int, timeout_s: float = 0.1):
-        """(cycle, snapshot) once a cycle after ``seen`` has run (or after the timeout)."""
+    def cycles_after(self, seen: int, timeout_s: float = 0.1) -> list[tuple[int, dict]]:
+        """Every (cycle, snapshot) published after ``seen`` that is still kept, waiting for one;
+        a sender that was held up sends them all, as a real controller sends every cycle."""
         with self._cycle_cond:
-            self._cycle_cond.wait_for(lambda: self.cycle != seen or self.closing, timeout_s)
-            return self.cycle, self.snapshot
+            self._cycle_cond.wait_for(lambda: self._published[-1][0] > seen or self.closing, timeout_s)
+            return [entry for entry in self._published if entry[0] > seen]
 
     def _snapshot(self) -> dict:
         arm, running = self.arm, self.program_running
@@ -174,8 +179,10 @@ class FakeUrController:
                     self.outputs[f"output_int_register_{int(reg) + int(offset or 0)}"] = int(value)
                 self.log("custom program run (register writes only)")
                 return
+            # ur_rtde injects the offset after the comment that ends the line: "= # int register offset\n24"
             offsets = [int(m) if m else 0 for m in (
-                _first(r"reg_offset_int\s*=\s*(\d+)", text), _first(r"reg_offset_float\s*=\s*(\d+)", text))]
+                _first(r"reg_offset_int\s*=\s*(?:#[^\n]*\n)?\s*(\d+)", text),
+                _first(r"reg_offset_float\s*=\s*(?:#[^\n]*\n)?\s*(\d+)", text))]
             self.script = ControlScript(self.arm, self.inputs, self.outputs, int_offset=offsets[0],
                                         float_offset=offsets[1], protective_stop=self.protective_stop,
                                         log=self.log)
@@ -191,48 +198,6 @@ class FakeUrController:
             if self.script is not None:
                 self.script.terminate(why)
             self.log(f"{safety.replace('_', ' ')}: {why}")
-
-    def dashboard(self, command: str) -> str:
-        with self.lock:
-            running = self.program_running
-            safety = self.safety.upper()
-            if command == "PolyscopeVersion":
-                return "URSoftware {}.{}.{}.{} (Mar 01 2024)".format(*self.version)
-            if command == "get serial number":
-                return self.serial
-            if command == "is in remote control":
-                return "true"
-            if command == "robotmode":
-                return "Robotmode: RUNNING"
-            if command in ("safetystatus", "safetymode"):
-                return f"{command.capitalize()}: {'ROBOT_EMERGENCY_STOP' if safety == 'EMERGENCY_STOP' else safety}"
-            if command == "running":
-                return f"Program running: {str(running).lower()}"
-            if command == "programState":
-                return "PLAYING rtde_control" if running else "STOPPED <unnamed>"
-            if command == "stop":
-                if not running:
-                    return "Failed to execute: stop"
-                self.script.terminate()
-                return "Stopped"
-            if command == "unlock protective stop":
-                if self.safety == "protective_stop":
-                    self.safety = "normal"
-                return "Protective stop releasing"
-            if command == "restart safety":
-                self.safety = "normal"
-                return "Restarting safety"
-            if command == "get robot model":
-                return self.model_name[:4]
-            replies = {"close safety popup": "closing safety popup", "close popup": "closing popup",
-                       "power on": "Powering on", "power off": "Powering off", "brake release": "Brake releasing",
-                       "get loaded program": "No program loaded", "isProgramSaved": "false <unnamed>",
-                       "quit": "Disconnected", "play": "Failed to execute: play", "pause": "Failed to execute: pause"}
-            if command in replies:
-                return replies[command]
-            if command.startswith(("popup ", "addToLog ")):
-                return "showing popup" if command.startswith("popup") else "Added log message"
-            return f"could not understand: '{command}'"
 
     def control(self, request: dict) -> dict:
         """The fake-only port: inspect the truth, add cell models, inject faults."""
@@ -330,13 +295,26 @@ class FakeUrController:
         period = 1.0 / self.frequency_hz
         next_t = time.perf_counter()
         while not self.closing:
-            self.run_cycle()
+            try:
+                self.run_cycle()
+            except Exception:  # a fake that silently stops cycling would look like a stalled controller
+                self._internal_error()
             next_t += period
             delay = next_t - time.perf_counter()
             if delay > 0:
                 time.sleep(delay)
-            elif delay < -0.05:  # far behind (machine overloaded): resynchronise instead of bursting
+            elif delay < -0.25:  # hopelessly behind: let the clock slip rather than race
                 next_t = time.perf_counter()
+
+    def _internal_error(self) -> None:
+        import traceback
+
+        text = traceback.format_exc()
+        print(f"fake_ur {self.host}: internal error\n{text}", file=sys.stderr, flush=True)
+        with self.lock:
+            self.arm.halt()
+            if self.script is not None:
+                self.script.terminate(f"fake controller internal error: {text.strip().splitlines()[-1]}")
 
     def wait(self) -> None:
         self._stopped.wait()
@@ -356,6 +334,12 @@ def _first(pattern: str, text: str) -> str | None:
     return match.group(1) if match else None
 
 
+def _exit_with_parent(parent_pid: int, controller: FakeUrController) -> None:
+    while os.getppid() == parent_pid:
+        time.sleep(0.5)
+    controller.close()
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m cellcal.sims.fake_ur", description=__doc__.split("\n")[0])
     parser.add_argument("--host", default="127.0.0.1", help="loopback address to serve on (127.x.y.z)")
@@ -364,8 +348,11 @@ def main(argv=None) -> int:
     parser.add_argument("--cell", help="cell models as JSON: {\"models\": [{\"kind\": \"beam\", ...}]}")
     parser.add_argument("--plugin", action="append", default=[],
                         help="module:factory called with the controller, e.g. to add input sources")
+    parser.add_argument("--fault", action="append", default=[], metavar="KIND[@AFTER_MOTION_S]",
+                        help=f"inject a fault at once or after the arm moved that long ({', '.join(FAULT_KINDS)})")
     parser.add_argument("--control-port", type=int, default=CONTROL_PORT)
     parser.add_argument("--verbose", action="store_true", help="log controller messages to stderr")
+    parser.add_argument("--parent-pid", type=int, help="exit when this process ends (no orphans after a crash)")
     args = parser.parse_args(argv)
     q0 = HOME_Q if args.q0 is None else [float(v) for v in args.q0.split(",")]
     controller = FakeUrController(args.host, robot=args.robot, q0=q0, cell=json.loads(args.cell or "{}"),
@@ -373,7 +360,12 @@ def main(argv=None) -> int:
     for plugin in args.plugin:
         module, _, attr = plugin.partition(":")
         getattr(importlib.import_module(module), attr)(controller)
+    for fault in args.fault:
+        kind, _, after = fault.partition("@")
+        controller.control({"cmd": "fault", "kind": kind, **({"after_motion_s": float(after)} if after else {})})
     signal.signal(signal.SIGTERM, lambda *_: controller.close())
+    if args.parent_pid:
+        threading.Thread(target=_exit_with_parent, args=(args.parent_pid, controller), daemon=True).start()
     controller.start()
     print(f"READY {args.host}", flush=True)
     try:

@@ -20,7 +20,6 @@ import numpy as np
 
 from ..solvers.chain import forward
 from ..solvers.robot_model import KinematicModel
-from ..solvers.se3 import matrix_to_rotvec, rotvec_to_matrix
 
 # a pure rotation counts as the path of a point this far from the axis (movel timing)
 ROTATION_RADIUS_M = 0.1
@@ -31,21 +30,48 @@ class MotionFault(RuntimeError):
 
 
 def log_so3(rotation: np.ndarray) -> np.ndarray:
-    """Rotation vector of a rotation matrix, numpy only (hot path of the IK)."""
-    cos = np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0)
-    angle = np.arccos(cos)
-    axis = np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0],
-                     rotation[1, 0] - rotation[0, 1]])
-    if angle < 1e-6:
-        return axis / 2.0
-    if angle > np.pi - 1e-4:  # sin(angle) ~ 0: the skew part no longer carries the axis
-        return matrix_to_rotvec(rotation)
-    return axis * angle / (2.0 * np.sin(angle))
+    """Rotation vector (angle <= pi) of a rotation matrix, via Shepperd's quaternion:
+    stable at every angle, including the pi of UR's home pose. Plain floats: it runs
+    several times per 2 ms cycle."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rotation.tolist()
+    trace = r00 + r11 + r22
+    biggest = max(trace, r00, r11, r22)
+    if biggest == trace:
+        w = math.sqrt(max(1.0 + trace, 0.0)) / 2.0
+        x, y, z = (r21 - r12) / (4 * w), (r02 - r20) / (4 * w), (r10 - r01) / (4 * w)
+    elif biggest == r00:
+        x = math.sqrt(max(1.0 + r00 - r11 - r22, 0.0)) / 2.0
+        w, y, z = (r21 - r12) / (4 * x), (r01 + r10) / (4 * x), (r02 + r20) / (4 * x)
+    elif biggest == r11:
+        y = math.sqrt(max(1.0 - r00 + r11 - r22, 0.0)) / 2.0
+        w, x, z = (r02 - r20) / (4 * y), (r01 + r10) / (4 * y), (r12 + r21) / (4 * y)
+    else:
+        z = math.sqrt(max(1.0 - r00 - r11 + r22, 0.0)) / 2.0
+        w, x, y = (r10 - r01) / (4 * z), (r02 + r20) / (4 * z), (r12 + r21) / (4 * z)
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    sin_half = math.sqrt(x * x + y * y + z * z)
+    scale = 2.0 * math.atan2(sin_half, w) / sin_half if sin_half > 1e-12 else 2.0
+    return np.array([x * scale, y * scale, z * scale])
+
+
+def exp_so3(rotvec) -> np.ndarray:
+    """Rotation matrix of a rotation vector (Rodrigues), for one vector."""
+    x, y, z = (float(v) for v in rotvec)
+    angle = math.sqrt(x * x + y * y + z * z)
+    if angle < 1e-9:
+        return np.array([[1.0, -z, y], [z, 1.0, -x], [-y, x, 1.0]])
+    kx, ky, kz = x / angle, y / angle, z / angle
+    c, s = math.cos(angle), math.sin(angle)
+    v = 1.0 - c
+    return np.array([[c + kx * kx * v, kx * ky * v - kz * s, kx * kz * v + ky * s],
+                     [ky * kx * v + kz * s, c + ky * ky * v, ky * kz * v - kx * s],
+                     [kz * kx * v - ky * s, kz * ky * v + kx * s, c + kz * kz * v]])
 
 
 def pose_to_frame(pose) -> tuple[np.ndarray, np.ndarray]:
     pose = np.asarray(pose, dtype=float)
-    return rotvec_to_matrix(pose[3:]), pose[:3].copy()
+    return exp_so3(pose[3:]), pose[:3].copy()
 
 
 def frame_to_pose(rotation: np.ndarray, position: np.ndarray) -> np.ndarray:
@@ -234,9 +260,9 @@ class LinearMove(Motion):
             self.done = True
             return self.kin.ik(self.r1, self.p1, q, self.tcp)
         s = self.profile.position(self.t) / self.profile.length
-        rotation = rotvec_to_matrix(self.turn * s) @ self.r0
+        rotation = exp_so3(self.turn * s) @ self.r0
         return self.kin.ik(rotation, self.p0 + s * (self.p1 - self.p0), q, self.tcp,
-                           tol=1e-10, max_iter=8)
+                           tol=1e-9, max_iter=8)
 
 
 class SpeedLinear(Motion):
@@ -254,8 +280,8 @@ class SpeedLinear(Motion):
         self.t += dt
         scale = 1.0 if self.t >= self.t_ramp else self.t / self.t_ramp
         self.position = self.position + self.twist[:3] * scale * dt
-        self.rotation = rotvec_to_matrix(self.twist[3:] * scale * dt) @ self.rotation
-        return self.kin.ik(self.rotation, self.position, q, self.tcp, tol=1e-10, max_iter=8)
+        self.rotation = exp_so3(self.twist[3:] * scale * dt) @ self.rotation
+        return self.kin.ik(self.rotation, self.position, q, self.tcp, tol=1e-9, max_iter=8)
 
 
 class StopMotion(Motion):
@@ -268,6 +294,9 @@ class StopMotion(Motion):
         self.done = self.duration <= 0.0
 
     def step(self, q, dt):
+        if self.duration <= 0.0:  # already at rest
+            self.done = True
+            return self.q_from.copy()
         self.t = min(self.t + dt, self.duration)
         self.done = self.t >= self.duration
         return self.q_from + self.qd * (self.t - self.t**2 / (2.0 * self.duration))
@@ -307,12 +336,16 @@ class FakeArm:
             self.moving_s += self.dt
             if self.motion.done:
                 self.motion = None
-        self.qd = (self.q - q_old) / self.dt
-        if self.motion is None and not np.any(self.qd):
+        at_rest = self.q is q_old
+        self.qd = np.zeros_like(self.q) if at_rest else (self.q - q_old) / self.dt
+        if self.motion is None and at_rest:
             self.moving_s = 0.0
-        self._update_tcp()
-        r_new, p_new = self.tcp_frame
-        self.tcp_speed = np.concatenate([(p_new - p_old) / self.dt, log_so3(r_new @ r_old.T) / self.dt])
+        if not at_rest:  # the TCP only moves when the joints do
+            self._update_tcp()
+            r_new, p_new = self.tcp_frame
+            self.tcp_speed = np.concatenate([(p_new - p_old) / self.dt, log_so3(r_new @ r_old.T) / self.dt])
+        else:
+            self.tcp_speed = np.zeros(6)
         self.q_history.append(self.q.copy())
         self.contact_history.append(bool(self.contact(self.tcp_pose[:3])))
 

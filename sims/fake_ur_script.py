@@ -127,8 +127,7 @@ class ControlScript:
         self.fault = fault
         self.main = None
         self.threads.clear()
-        if fault:
-            self.log(f"control script stopped: {fault}")
+        self.log(f"control script stopped: {fault or 'program ended'}")
 
     def _step(self, generator: Iterator, on_finish: Callable[[], None]) -> None:
         try:

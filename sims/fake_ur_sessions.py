@@ -16,8 +16,18 @@ import json
 import socket
 import struct
 import threading
+import time
 
 from . import fake_ur_rtde as rtde
+
+# ur_rtde keeps only the newest of the packages it finds in one read
+CATCH_UP_SPACING_S = 0.0003
+
+DASHBOARD_REPLIES = {  # commands answered without touching the controller's state
+    "close safety popup": "closing safety popup", "close popup": "closing popup", "power on": "Powering on",
+    "power off": "Powering off", "brake release": "Brake releasing", "get loaded program": "No program loaded",
+    "isProgramSaved": "false <unnamed>", "quit": "Disconnected", "play": "Failed to execute: play",
+    "pause": "Failed to execute: pause"}
 
 
 def recv_exact(sock: socket.socket, n: int) -> bytes:
@@ -87,23 +97,22 @@ class RtdeSession:
                 c.write_inputs(recipe.unpack(payload))
 
     def _stream(self) -> None:
-        """Send every output recipe at its frequency, paced by the controller's cycle."""
+        """Send every output recipe at its frequency, one package per due cycle."""
         c = self.controller
         decimation = [max(1, round(c.frequency_hz / r.frequency_hz)) if r.frequency_hz > 0 else 1
                       for r in self.outputs]
-        seen = c.cycle
+        seen = c.cycles_after(-1)[-1][0]
         try:
             while self.started and not c.closing:
-                cycle, snapshot = c.wait_cycle(seen)
-                if cycle == seen or c.stalled:
+                for i, (cycle, snapshot) in enumerate(c.cycles_after(seen)):
                     seen = cycle
-                    continue
-                due = [r for r, k in zip(self.outputs, decimation)
-                       if cycle // k != seen // k]  # a multiple of k passed since the last send
-                seen = cycle
-                data = b"".join(r.pack(snapshot) for r in due)
-                if data:
-                    self._send(data)
+                    if c.stalled:
+                        continue
+                    data = b"".join(r.pack(snapshot) for r, k in zip(self.outputs, decimation) if cycle % k == 0)
+                    if data:
+                        if i:  # catching up: space the packages so a client reads them one by one
+                            time.sleep(CATCH_UP_SPACING_S)
+                        self._send(data)
         except OSError:
             pass
 
@@ -122,7 +131,7 @@ class DashboardSession:
                 command = line.strip()
                 if self.controller.stalled:
                     continue
-                reply = self.controller.dashboard(command)
+                reply = self.reply(command)
                 self.sock.sendall((reply + "\n").encode())
                 if command == "quit":
                     break
@@ -130,6 +139,46 @@ class DashboardSession:
             pass
         finally:
             self.sock.close()
+
+    def reply(self, command: str) -> str:
+        """PolyScope 5's answer to one dashboard command, acting on the controller."""
+        c = self.controller
+        with c.lock:
+            running = c.program_running
+            safety = c.safety.upper()
+            if command == "PolyscopeVersion":
+                return "URSoftware {}.{}.{}.{} (Mar 01 2024)".format(*c.version)
+            if command == "get serial number":
+                return c.serial
+            if command == "is in remote control":
+                return "true"
+            if command == "robotmode":
+                return "Robotmode: RUNNING"
+            if command in ("safetystatus", "safetymode"):
+                return f"{command.capitalize()}: {'ROBOT_EMERGENCY_STOP' if safety == 'EMERGENCY_STOP' else safety}"
+            if command == "running":
+                return f"Program running: {str(running).lower()}"
+            if command == "programState":
+                return "PLAYING rtde_control" if running else "STOPPED <unnamed>"
+            if command == "stop":  # answered "Stopped" whether or not a program ran; clients test for it
+                if running:
+                    c.log("dashboard: stop")
+                    c.script.terminate()
+                return "Stopped"
+            if command == "unlock protective stop":
+                if c.safety == "protective_stop":
+                    c.safety = "normal"
+                return "Protective stop releasing"
+            if command == "restart safety":
+                c.safety = "normal"
+                return "Restarting safety"
+            if command == "get robot model":
+                return c.model_name
+            if command in DASHBOARD_REPLIES:
+                return DASHBOARD_REPLIES[command]
+            if command.startswith(("popup ", "addToLog ")):
+                return "showing popup" if command.startswith("popup") else "Added log message"
+            return f"could not understand: '{command}'"
 
 
 class ScriptSession:

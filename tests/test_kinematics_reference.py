@@ -126,7 +126,7 @@ def rtb_from_file(path):
     return rtb.DHRobot(links, name=doc["name"])
 
 
-@pytest.mark.parametrize("name", sorted(shipped_robots()))
+@pytest.mark.parametrize("name", sorted(n for n in shipped_robots() if n != "agile-justin"))  # serial arms
 def test_shipped_file_matches_rtb_built_from_the_same_rows(name):
     """Our loader (units, convention, beta = 0) and FK agree with the toolbox on every shipped file."""
     path = shipped_robots()[name]
