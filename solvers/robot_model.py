@@ -86,6 +86,19 @@ def _vector(source, key, value, n) -> np.ndarray:
     return np.array([_number(source, f"{key}[{i}]", v) for i, v in enumerate(value)])
 
 
+def _check_mapping(source, key, value, allowed, required=(), what="a mapping"):
+    """A mapping with only known keys and every required one; names the offending key."""
+    if not isinstance(value, dict):
+        _fail(source, key, f"expected {what}, got {value!r}")
+    bad = sorted(set(value) - set(allowed))
+    if bad:
+        _fail(source, f"{key}.{bad[0]}" if key else bad[0], f"unknown key (allowed: {', '.join(sorted(allowed))})")
+    for k in required:
+        if k not in value:
+            _fail(source, f"{key}.{k}" if key else k, "required key is missing")
+    return value
+
+
 def _choice(source, key, value, allowed):
     if value not in allowed:
         _fail(source, key, f"expected one of {', '.join(allowed)}, got {value!r}")
@@ -96,12 +109,7 @@ def model_from_mapping(doc, source: str = "<memory>") -> KinematicModel:
     """Validate a parsed model file and compile it; raises ModelError."""
     if not isinstance(doc, dict):
         raise ModelError(f"{source}: expected a mapping at top level, got {type(doc).__name__}")
-    unknown = sorted(set(doc) - TOP_KEYS)
-    if unknown:
-        _fail(source, unknown[0], f"unknown key (allowed: {', '.join(sorted(TOP_KEYS))})")
-    for key in ("name", "convention", "length_unit", "angle_unit", "joints"):
-        if key not in doc:
-            _fail(source, key, "required key is missing")
+    _check_mapping(source, "", doc, TOP_KEYS, ("name", "convention", "length_unit", "angle_unit", "joints"))
     name = str(doc["name"])
     convention = _choice(source, "convention", doc["convention"], CONVENTIONS)
     lu = LENGTH_UNITS[_choice(source, "length_unit", doc["length_unit"], tuple(LENGTH_UNITS))]
@@ -126,14 +134,8 @@ def model_from_mapping(doc, source: str = "<memory>") -> KinematicModel:
 
     for i, row in enumerate(joints):
         key = f"joints[{i}]"
-        if not isinstance(row, dict):
-            _fail(source, key, f"expected a mapping with keys a, alpha, d, theta, got {row!r}")
-        bad = sorted(set(row) - JOINT_KEYS)
-        if bad:
-            _fail(source, f"{key}.{bad[0]}", f"unknown key (allowed: {', '.join(sorted(JOINT_KEYS))})")
-        for k in ("a", "alpha", "d", "theta"):
-            if k not in row:
-                _fail(source, f"{key}.{k}", "required key is missing")
+        _check_mapping(source, key, row, JOINT_KEYS, ("a", "alpha", "d", "theta"),
+                       "a mapping with keys a, alpha, d, theta")
         if "beta" in row and convention != "mdh":
             _fail(source, f"{key}.beta", "beta (Hayati) is only defined for convention mdh")
         a = _number(source, f"{key}.a", row["a"]) * lu

@@ -30,7 +30,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .chain import Chain, Element
-from .robot_model import (ANGLE_UNITS, CONVENTIONS, LENGTH_UNITS, KinematicModel, ModelError, _choice,
+from .robot_model import (ANGLE_UNITS, CONVENTIONS, LENGTH_UNITS, KinematicModel, _check_mapping, _choice,
                           _fail, _number, _vector)
 from .se3 import orthonormalize
 
@@ -43,11 +43,7 @@ MOUNT_KEYS = {"xyz", "matrix", "fixed"}
 
 def _transform(source, key, spec, lu) -> tuple[np.ndarray, bool]:
     """A fixed transform from {xyz: [...]} or {matrix: 3x4}; returns (4x4 in mm, fixed?)."""
-    if not isinstance(spec, dict):
-        _fail(source, key, "expected a mapping with xyz or matrix")
-    bad = sorted(set(spec) - MOUNT_KEYS)
-    if bad:
-        _fail(source, f"{key}.{bad[0]}", f"unknown key (allowed: {', '.join(sorted(MOUNT_KEYS))})")
+    _check_mapping(source, key, spec, MOUNT_KEYS, what="a mapping with xyz or matrix")
     out = np.eye(4)
     if "matrix" in spec:
         rows = spec["matrix"]
@@ -80,12 +76,8 @@ def _joint_map(source, key, value, n_joints):
 
 
 def tree_from_mapping(doc: dict, source: str = "<memory>") -> KinematicModel:
-    unknown = sorted(set(doc) - TREE_KEYS)
-    if unknown:
-        _fail(source, unknown[0], f"unknown key (allowed: {', '.join(sorted(TREE_KEYS))})")
-    for key in ("name", "convention", "length_unit", "angle_unit", "joint_count", "branches", "targets"):
-        if key not in doc:
-            _fail(source, key, "required key is missing")
+    _check_mapping(source, "", doc, TREE_KEYS,
+                   ("name", "convention", "length_unit", "angle_unit", "joint_count", "branches", "targets"))
     if _choice(source, "convention", doc["convention"], CONVENTIONS) != "mdh":
         _fail(source, "convention", "tree models are written in mdh")
     lu = LENGTH_UNITS[_choice(source, "length_unit", doc["length_unit"], tuple(LENGTH_UNITS))]
@@ -110,11 +102,7 @@ def tree_from_mapping(doc: dict, source: str = "<memory>") -> KinematicModel:
         _fail(source, "branches", "expected a list of branches")
     for b, branch in enumerate(raw):
         key = f"branches[{b}]"
-        if not isinstance(branch, dict):
-            _fail(source, key, "expected a mapping")
-        bad = sorted(set(branch) - BRANCH_KEYS)
-        if bad:
-            _fail(source, f"{key}.{bad[0]}", f"unknown key (allowed: {', '.join(sorted(BRANCH_KEYS))})")
+        _check_mapping(source, key, branch, BRANCH_KEYS)
         name = branch.get("name")
         if not isinstance(name, str) or not name or name in branch_elements:
             _fail(source, f"{key}.name", f"expected a new branch name, got {name!r}")
@@ -138,14 +126,8 @@ def tree_from_mapping(doc: dict, source: str = "<memory>") -> KinematicModel:
             _fail(source, f"{key}.frames", "expected a list of frames")
         for i, row in enumerate(frames):
             fkey = f"{key}.frames[{i}]"
-            if not isinstance(row, dict):
-                _fail(source, fkey, "expected a mapping with a, alpha, theta, d, joint")
-            bad = sorted(set(row) - FRAME_KEYS)
-            if bad:
-                _fail(source, f"{fkey}.{bad[0]}", f"unknown key (allowed: {', '.join(sorted(FRAME_KEYS))})")
-            for k in ("a", "alpha", "d", "theta"):
-                if k not in row:
-                    _fail(source, f"{fkey}.{k}", "required key is missing")
+            _check_mapping(source, fkey, row, FRAME_KEYS, ("a", "alpha", "d", "theta"),
+                           "a mapping with a, alpha, theta, d, joint")
             joints = _joint_map(source, f"{fkey}.joint", row["joint"], n_joints) if "joint" in row else ()
             j = i + 1
             elements += [

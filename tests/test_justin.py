@@ -57,3 +57,55 @@ def test_analyze_names_compliance_and_beats_4mm_held_out(justin_csv, tmp_path, c
     assert doc["baseline"]["heldout_mean_mm"] < 10.6  # published geometric calibration: 10.6 mm
     assert doc["extended"]["heldout_mean_mm"] <= 4.0
     assert (tmp_path / "residual_vs_regressor.png").stat().st_size > 10_000
+
+
+TREE = """name: t
+convention: mdh
+length_unit: m
+angle_unit: rad
+joint_count: 2
+branches:
+  - name: base
+    frames:
+      - {a: 0, alpha: 0, theta: 0, d: 0.1, joint: 1}
+  - name: arm
+    parent: base
+    mount: {xyz: [0.1, 0, 0]}
+    frames:
+      - {a: 0.3, alpha: 0, theta: 0, d: 0, joint: {1: -1, 2: 1}}
+    end: {xyz: [0.05, 0, 0]}
+targets: {tip: arm}
+"""
+
+
+@pytest.mark.parametrize("edit,needles", [
+    (("parent: base", "parent: torso"), ["branches[1].parent", "torso"]),
+    (("joint: 1}", "joint: 3}"), ["branches[0].frames[0].joint", "1..2"]),
+    (("targets: {tip: arm}", "targets: {tip: base}"), ["targets.tip", "leaf"]),
+    (("    mount:", "    mounts:"), ["branches[1].mounts", "unknown key"]),
+    (("{a: 0.3, alpha: 0, theta: 0, d: 0,", "{a: 0.3, alpha: 0, theta: 0,"), ["frames[0].d", "missing"]),
+])
+def test_bad_tree_files_name_the_key(tmp_path, edit, needles):
+    from cellcal.solvers.robot_model import ModelError
+
+    path = tmp_path / "tree.yaml"
+    path.write_text(TREE.replace(*edit))
+    with pytest.raises(ModelError) as err:
+        load_robot(path)
+    for needle in needles:
+        assert needle in str(err.value), str(err.value)
+
+
+def test_a_good_tree_file_loads_with_shared_and_coupled_joints(tmp_path):
+    path = tmp_path / "tree.yaml"
+    path.write_text(TREE)
+    model = load_robot(path)
+    assert model.param_names[:4] == ("base.alpha1", "base.a1", "base.theta1", "base.d1")
+    assert "arm.mount.x" in model.param_names and model.target_chains == {"tip": "arm"}
+    from cellcal.solvers.chain import forward
+
+    # q = (0.5, 0.2): base turns 0.5, mount and a = 0.3 lie along that; the coupled arm joint
+    # turns -0.5 + 0.2, so the 50 mm end offset points at 0.2 rad
+    _, org = forward(model.chains["arm"], model.nominal, np.array([[0.5, 0.2]]))
+    expected = np.array([400 * np.cos(0.5) + 50 * np.cos(0.2), 400 * np.sin(0.5) + 50 * np.sin(0.2), 100])
+    assert org[0] == pytest.approx(expected, abs=1e-9)
