@@ -118,11 +118,13 @@ def build_parser() -> argparse.ArgumentParser:
     from .sim_campaign import add_sim_data_parser
 
     from .importers import add_parser as add_import
+    from .sim_cell import add_parser as add_sim_cell
 
     add_analyze(sub)
     add_import(sub)
     add_sim_campaign(sub)
     add_sim_data_parser(sub)
+    add_sim_cell(sub)
     return parser
 
 

@@ -22,6 +22,10 @@ _BUILTIN: dict[tuple[str, str], str] = {
     ("tracker", "socket"): "cellcal.drivers.tracker_socket:TrackerSocket",
     ("robot", "ur_rtde"): "cellcal.drivers.ur_rtde_robot:UrRtdeRobot",
     ("trigger", "ur_digital_input"): "cellcal.drivers.ur_rtde_trigger:UrDigitalInputTrigger",
+    ("robot", "sim"): "cellcal.sims.sim_devices:SimRobot",
+    ("trigger", "sim"): "cellcal.sims.sim_devices:SimTrigger",
+    ("tracker", "sim"): "cellcal.sims.sim_devices:SimTracker",
+    ("panel", "sim"): "cellcal.sims.sim_devices:SimPanel",
 }
 _FACTORIES: dict[tuple[str, str], Callable] = {}
 
