@@ -24,7 +24,6 @@ from cellcal.sims.hidden_cases import make_case
 from cellcal.sims.physical_arm import HiddenEffect
 from cellcal.solvers import crossval
 from cellcal.solvers.analyze import NEIGHBOUR_RAD, AnalyzeOptions, _fit_extended, analyze
-from cellcal.solvers.effects import CAUSES
 
 ROBOTS = ("ur10e", "abb-irb4600", "elite-ec66")
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..solvers.effects import Context, approach_directions
 from ..solvers.gravity import gravity_torques
-from ..solvers.measurement_model import Layout, Observations, predict
+from ..solvers.measurement_model import Observations, predict
 from ..solvers.robot_model import KinematicModel, with_hayati_beta
 from .kinematic_arm import ArmTruth, SimulatedArm
 from .workspace import full_workspace

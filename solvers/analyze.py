@@ -21,7 +21,7 @@ from scipy.optimize import least_squares
 
 from . import crossval, identifiability
 from .effects import CAUSES, Context, Term
-from .identify import IdentifyOptions, identify, scales
+from .identify import IdentifyOptions, identify
 from .measurement_model import Layout, Observations, jacobian, predict
 
 MIN_GAIN = 0.10  # held-out mean error must drop by 10% against geometry alone
