@@ -25,11 +25,10 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from ..drivers import registry
 from ..solvers.robot_model import ModelError
-from .robot_files import _StrictLoader, load_robot
+from .robot_files import load_robot, read_yaml
 
 
 class CellFileError(ValueError):
@@ -203,25 +202,7 @@ class CellDrivers:
 
 
 def _read(path: Path):
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise CellFileError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CellFileError(f"{path}: cannot read: {exc}") from None
-    try:
-        loader = _StrictLoader(text)
-        loader.name = str(path)
-        try:
-            return loader.get_single_data()
-        finally:
-            loader.dispose()
-    except ModelError as exc:  # a repeated key
-        raise CellFileError(str(exc)) from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f":{mark.line + 1}" if mark is not None else ""
-        raise CellFileError(f"{path}{where}: not valid YAML: {getattr(exc, 'problem', exc)}") from None
+    return read_yaml(path, CellFileError)
 
 
 def resolve_cell(name_or_path: str | Path) -> Path:

@@ -53,26 +53,33 @@ def resolve_robot(name_or_path: str) -> Path:
                      f"(shipped: {', '.join(sorted(shipped))})")
 
 
-def load_robot(name_or_path: str | Path) -> KinematicModel:
-    """Load and validate a robot model; raises ModelError naming file and key."""
-    path = resolve_robot(str(name_or_path))
+def read_yaml(path: Path, error: type[Exception] = ModelError):
+    """Read a hand-written YAML file strictly (see _StrictLoader); every problem is one
+    `error` whose message starts with the file (and line, where YAML knows it)."""
     try:
-        text = path.read_text(encoding="utf-8")
+        text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
-        raise ModelError(f"{path}: no such file") from None
+        raise error(f"{path}: no such file") from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise ModelError(f"{path}: cannot read: {exc}") from None
+        raise error(f"{path}: cannot read: {exc}") from None
+    loader = _StrictLoader(text)
+    loader.name = str(path)
     try:
-        loader = _StrictLoader(text)
-        loader.name = str(path)
-        try:
-            doc = loader.get_single_data()
-        finally:
-            loader.dispose()
+        return loader.get_single_data()
+    except ModelError as exc:  # a repeated key
+        raise error(str(exc)) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f":{mark.line + 1}" if mark is not None else ""
-        raise ModelError(f"{path}{where}: not valid YAML: {getattr(exc, 'problem', exc)}") from None
+        raise error(f"{path}{where}: not valid YAML: {getattr(exc, 'problem', exc)}") from None
+    finally:
+        loader.dispose()
+
+
+def load_robot(name_or_path: str | Path) -> KinematicModel:
+    """Load and validate a robot model; raises ModelError naming file and key."""
+    path = resolve_robot(str(name_or_path))
+    doc = read_yaml(path)
     if isinstance(doc, dict) and "branches" in doc:
         return tree_from_mapping(doc, source=str(path))
     return model_from_mapping(doc, source=str(path))
