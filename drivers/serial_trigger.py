@@ -31,11 +31,11 @@ from __future__ import annotations
 
 import re
 import time
-from functools import reduce
 from typing import Iterator
 
 import serial
 
+from .checksum_lines import checked_body, framed
 from .interfaces import DeviceError, Edge, ProtocolError
 from .trigger_stream import RecordTrigger, TriggerRecord
 
@@ -44,34 +44,19 @@ SEQ_MODULUS = 65536
 EDGE_LETTERS = {"B": Edge.BLOCKED, "C": Edge.CLEARED}
 LETTERS_BY_EDGE = {edge: letter for letter, edge in EDGE_LETTERS.items()}
 _DECIMAL = re.compile(r"[0-9]{1,10}")
-_HEX2 = re.compile(rb"[0-9A-Fa-f]{2}")
-
-
-def sentence_checksum(body: bytes) -> int:
-    """XOR of the bytes between ``$`` and ``*``."""
-    return reduce(lambda a, b: a ^ b, body, 0)
 
 
 def format_trigger_sentence(seq: int, channel: int, edge: Edge, t_us: int) -> bytes:
     """One ``$TRG`` sentence, as the device sends it."""
     body = f"TRG,{seq % SEQ_MODULUS},{channel},{LETTERS_BY_EDGE[edge]},{t_us % 2**32}".encode()
-    return b"$" + body + b"*%02X\r\n" % sentence_checksum(body)
+    return b"$" + framed(body)
 
 
 def parse_trigger_sentence(line: bytes, device: str) -> TriggerRecord | None:
     """A record from one line (without its terminator); None for another sentence type."""
     if not line.startswith(b"$"):
         raise ProtocolError(device, f"line does not start with '$': {line[:24]!r}")
-    star = line.rfind(b"*")
-    if star < 0:
-        raise ProtocolError(device, f"truncated sentence (no checksum): {line[:24]!r}")
-    body, checksum = line[1:star], line[star + 1:]
-    if not _HEX2.fullmatch(checksum):
-        raise ProtocolError(device, f"malformed checksum field {checksum[:8]!r}")
-    computed = sentence_checksum(body)
-    if int(checksum, 16) != computed:
-        raise ProtocolError(device, f"bad checksum: sentence says {checksum.decode()}, "
-                                    f"computed {computed:02X}")
+    body = checked_body(line, 1, device, "sentence", 24)
     try:
         fields = body.decode("ascii").split(",")
     except UnicodeDecodeError:

@@ -40,10 +40,10 @@ import re
 import socket
 import time
 from dataclasses import dataclass
-from functools import reduce
 
 import numpy as np
 
+from .checksum_lines import checked_body, framed
 from .interfaces import DeviceError, DeviceTimeout, ProtocolError, Tracker, TrackerMeasurement
 from .registry import DriverConfigError
 
@@ -66,7 +66,6 @@ TARGET_NAME = re.compile(r"[A-Za-z0-9_.-]{1,32}")
 _NUMBER = re.compile(r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]{1,3})?")
 _SEQ = re.compile(r"[0-9]{1,9}")
 _STATUS = re.compile(r"[a-z_]{1,16}")
-_HEX2 = re.compile(rb"[0-9A-Fa-f]{2}")
 
 
 class TrackerStatusError(DeviceError):
@@ -77,28 +76,14 @@ class TrackerStatusError(DeviceError):
         self.code = code
 
 
-def line_checksum(body: bytes) -> int:
-    return reduce(lambda a, b: a ^ b, body, 0)
-
-
 def with_checksum(body: str) -> bytes:
     """One protocol line: body, ``*XX`` and the terminator."""
-    data = body.encode("ascii")
-    return data + b"*%02X\r\n" % line_checksum(data)
+    return framed(body.encode("ascii"))
 
 
 def strip_checksum(line: bytes, device: str) -> str:
     """The body of a line (without terminator) whose checksum is right."""
-    star = line.rfind(b"*")
-    if star < 0:
-        raise ProtocolError(device, f"truncated line (no checksum): {line[:32]!r}")
-    body, checksum = line[:star], line[star + 1:]
-    if not _HEX2.fullmatch(checksum):
-        raise ProtocolError(device, f"malformed checksum field {checksum[:8]!r}")
-    computed = line_checksum(body)
-    if int(checksum, 16) != computed:
-        raise ProtocolError(device, f"bad checksum: line says {checksum.decode()}, "
-                                    f"computed {computed:02X}")
+    body = checked_body(line, 0, device, "line", 32)
     try:
         return body.decode("ascii")
     except UnicodeDecodeError:

@@ -27,12 +27,13 @@ DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT = 29999, 30003, 30004
 PORT_NAMES = {DASHBOARD_PORT: "dashboard server", SCRIPT_PORT: "script port", RTDE_PORT: "RTDE"}
 
 
-def _recv_exact(sock: socket.socket, n: int) -> bytes:
+def recv_exact(sock: socket.socket, n: int) -> bytes:
+    """Exactly n bytes from a stream socket; ConnectionError when the peer closes."""
     data = b""
     while len(data) < n:
         chunk = sock.recv(n - len(data))
         if not chunk:
-            raise ConnectionError("closed by the controller")
+            raise ConnectionError("peer closed the connection")
         data += chunk
     return data
 
@@ -50,12 +51,12 @@ def probe_controller(host: str, device: str, timeout_s: float, ports=(RTDE_PORT,
                 sock.settimeout(timeout_s)
                 if port == RTDE_PORT:
                     sock.sendall(struct.pack(">HBH", 5, ord("V"), 2))
-                    size, kind = struct.unpack(">HB", _recv_exact(sock, 3))
-                    _recv_exact(sock, size - 3)
+                    size, kind = struct.unpack(">HB", recv_exact(sock, 3))
+                    recv_exact(sock, size - 3)
                     if kind != ord("V"):
                         raise DeviceError(device, f"{what} answered a version request with packet type {kind}")
                 elif port == DASHBOARD_PORT:
-                    _recv_exact(sock, 1)
+                    recv_exact(sock, 1)
         except ConnectionRefusedError:
             raise DeviceError(device, f"connection refused on {what}") from None
         except socket.timeout:

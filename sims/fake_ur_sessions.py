@@ -18,6 +18,7 @@ import struct
 import threading
 import time
 
+from ..drivers.ur_rtde_process import recv_exact
 from . import fake_ur_rtde as rtde
 
 # ur_rtde keeps only the newest of the packages it finds in one read
@@ -28,16 +29,6 @@ DASHBOARD_REPLIES = {  # commands answered without touching the controller's sta
     "power off": "Powering off", "brake release": "Brake releasing", "get loaded program": "No program loaded",
     "isProgramSaved": "false <unnamed>", "quit": "Disconnected", "play": "Failed to execute: play",
     "pause": "Failed to execute: pause"}
-
-
-def recv_exact(sock: socket.socket, n: int) -> bytes:
-    data = b""
-    while len(data) < n:
-        chunk = sock.recv(n - len(data))
-        if not chunk:
-            raise ConnectionError("peer closed the connection")
-        data += chunk
-    return data
 
 
 class RtdeSession:
