@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from cellcal.daemon.robot_files import load_robot
+from cellcal.config.robot_files import load_robot
 from cellcal.sims.hidden_cases import make_case
 from cellcal.sims.physical_arm import HiddenEffect
 from cellcal.solvers import crossval

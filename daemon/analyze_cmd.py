@@ -9,7 +9,7 @@ import numpy as np
 from ..routines.dataset import joint_velocities, read_measurements
 from ..solvers.analyze import AnalyzeOptions, Finding, Scored, analyze
 from ..solvers.effects import CAUSES, Context, approach_directions
-from .robot_files import load_robot
+from ..config.robot_files import load_robot
 
 
 def add_parser(sub):

@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from ..drivers import registry
-from ..solvers.robot_model import ModelError
-from .robot_files import load_robot, read_yaml
+from ..config.reader import read_yaml
+from ..config.robot_files import ModelError, load_robot
 
 
 class CellFileError(ValueError):

@@ -15,9 +15,8 @@ from threadpoolctl import threadpool_limits
 
 from ..routines.dataset import DatasetError, MeasurementTable, read_measurements
 from ..solvers.identify import LOSSES, IdentifyOptions, identify
-from ..solvers.robot_model import ModelError
 from .report import identification_json, identification_text
-from .robot_files import load_robot
+from ..config.robot_files import ModelError, load_robot
 
 
 class UsageError(Exception):

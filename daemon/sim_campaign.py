@@ -22,7 +22,7 @@ from ..solvers.identify import IdentifyOptions, identify
 from ..solvers.measurement_model import Observations, predict
 from ..solvers.pose_design import select_poses
 from .report import error_stats
-from .robot_files import load_robot
+from ..config.robot_files import load_robot
 
 
 def add_parser(sub):

@@ -28,7 +28,7 @@ from collections import deque
 
 import numpy as np
 
-from ..daemon.robot_files import load_robot
+from ..config.robot_files import load_robot
 from . import fake_ur_rtde as rtde
 from .fake_ur_arm import ArmKinematics, FakeArm, MotionFault, StopMotion
 from .fake_ur_cell import cell_from_spec

@@ -23,7 +23,7 @@ MOTION_TIMEOUT_MARGIN_S = 2.0
 
 
 def default_world() -> SimWorld:
-    from ..daemon.robot_files import load_robot
+    from ..config.robot_files import load_robot
     return SimWorld(load_robot("ur10e"))
 
 

@@ -7,7 +7,7 @@ sees only the measured data. Sizes are checked against the simulation's truth.
 import numpy as np
 import pytest
 
-from cellcal.daemon.robot_files import load_robot
+from cellcal.config.robot_files import load_robot
 from cellcal.sims.hidden_cases import make_case
 from cellcal.sims.physical_arm import HiddenEffect
 from cellcal.solvers.analyze import analyze

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cellcal.daemon.cli import main
-from cellcal.daemon.robot_files import load_robot
+from cellcal.config.robot_files import load_robot
 from cellcal.routines.dataset import write_measurements
 from cellcal.sims.kinematic_arm import SimulatedArm
 from cellcal.sims.workspace import full_workspace

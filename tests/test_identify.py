@@ -7,7 +7,7 @@ noisy data, or a fit started from the truth.
 import numpy as np
 import pytest
 
-from cellcal.daemon.robot_files import load_robot
+from cellcal.config.robot_files import load_robot
 from cellcal.sims.kinematic_arm import SimulatedArm, TrackerNoise
 from cellcal.sims.workspace import constrained_volume, full_workspace
 from cellcal.solvers.identify import IdentifyOptions, fit, identify

@@ -15,10 +15,10 @@ below the bound for every column (column norms are >= ~1).
 import numpy as np
 import pytest
 
-from cellcal.daemon.robot_files import load_robot
+from cellcal.config.robot_files import load_robot
 from cellcal.solvers.chain import forward
 from cellcal.solvers.measurement_model import Layout, Observations, jacobian, predict
-from cellcal.solvers.robot_model import model_from_mapping
+from cellcal.config.robot_files import model_from_mapping
 
 REL_TOL = 1e-6
 ABS_FLOOR_MM = 1e-9

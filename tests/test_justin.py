@@ -7,7 +7,7 @@ import pytest
 
 from cellcal.daemon.cli import main
 from cellcal.daemon.importers import dlr_justin
-from cellcal.daemon.robot_files import load_robot
+from cellcal.config.robot_files import load_robot
 from cellcal.routines.dataset import DatasetError, read_measurements
 from cellcal.solvers.identify import IdentifyOptions, identify
 
@@ -86,7 +86,7 @@ targets: {tip: arm}
     (("{a: 0.3, alpha: 0, theta: 0, d: 0,", "{a: 0.3, alpha: 0, theta: 0,"), ["frames[0].d", "missing"]),
 ])
 def test_bad_tree_files_name_the_key(tmp_path, edit, needles):
-    from cellcal.solvers.robot_model import ModelError
+    from cellcal.config.robot_files import ModelError
 
     path = tmp_path / "tree.yaml"
     path.write_text(TREE.replace(*edit))

@@ -15,9 +15,9 @@ import yaml
 
 rtb = pytest.importorskip("roboticstoolbox")
 
-from cellcal.daemon.robot_files import load_robot, shipped_robots  # noqa: E402
+from cellcal.config.robot_files import load_robot, shipped_robots  # noqa: E402
 from cellcal.solvers.chain import forward  # noqa: E402
-from cellcal.solvers.robot_model import model_from_mapping  # noqa: E402
+from cellcal.config.robot_files import model_from_mapping  # noqa: E402
 
 N_CONFIGS = 50
 POS_TOL_M = 1e-9

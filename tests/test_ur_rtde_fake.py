@@ -16,7 +16,7 @@ import pytest
 
 pytest.importorskip("rtde_control", reason="ur_rtde is not installed")
 
-from cellcal.daemon.robot_files import load_robot  # noqa: E402
+from cellcal.config.robot_files import load_robot  # noqa: E402
 from cellcal.drivers.interfaces import DeviceError, Edge, RobotState  # noqa: E402
 from cellcal.drivers.ur_rtde_robot import UrRtdeRobot  # noqa: E402
 from cellcal.drivers.ur_rtde_trigger import UrDigitalInputTrigger  # noqa: E402
