@@ -41,10 +41,10 @@ class ConfigError(ValueError):
         parts.append(self.problem)
         return ": ".join(parts)
 
-    def located(self, source: str, section: str) -> "ConfigError":
-        """The same complaint, placed in `section` of the file `source` (keeps the subclass)."""
+    def located(self, source: str, section: str, error: type["ConfigError"] | None = None) -> "ConfigError":
+        """The same complaint, placed in `section` of the file `source`, as `error` (default: this class)."""
         inner = _join(section, self.section)
-        return type(self)(self.problem, source=source, section=inner, key=self.key)
+        return (error or type(self))(self.problem, source=source, section=inner, key=self.key)
 
 
 def _join(section: str | None, key) -> str:
@@ -70,9 +70,17 @@ class Section:
         self.used: set = set()
 
     @classmethod
-    def of_options(cls, options: dict, error: type[ConfigError] = ConfigError) -> "Section":
-        """Options passed to a driver in code (the cell file places them later)."""
+    def of_options(cls, error: type[ConfigError] = ConfigError, **options) -> "Section":
+        """Options passed to a driver in code, read through the same checks; whoever built
+        the driver from a file places the error there (:meth:`ConfigError.located`)."""
         return cls(None, None, options, error)
+
+    def port(self, key: str = "port") -> int:
+        return self.integer(key, low=1, high=65535)
+
+    def timeout(self, key: str, high: float = 60.0) -> float:
+        """A time in seconds, above 0 and at most `high`."""
+        return self.number(key, above=0.0, high=high)
 
     def expect(self, allowed, required=()) -> "Section":
         """Refuse at once a key outside `allowed` and a missing `required` one (before any

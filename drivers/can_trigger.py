@@ -34,6 +34,7 @@ from typing import Iterator
 import can
 
 from .interfaces import DeviceError, ProtocolError
+from ..config.reader import Section
 from .registry import DriverConfigError
 from .trigger_stream import EDGES_BY_CODE, RecordTrigger, TriggerRecord
 
@@ -68,14 +69,21 @@ class CanTrigger(RecordTrigger):
     ``channel`` is python-can's (``can0``), not the barrier's input number.
     """
 
+    @staticmethod
+    def check_options(**options) -> None:
+        """Refuse an option out of range, naming it (also run by the registry at cell load)."""
+        o = Section.of_options(DriverConfigError, **options)
+        o.text("channel")
+        o.text("interface")
+        extended = o.flag("extended_id", False)
+        o.integer("arbitration_id", low=0, high=0x1FFFFFFF if extended else 0x7FF)
+
     def __init__(self, channel: str = "can0", *, interface: str = "socketcan",
                  arbitration_id: int = DEFAULT_ARBITRATION_ID, extended_id: bool = False,
                  bitrate: int | None = None, name: str = "trigger"):
         id_max = 0x1FFFFFFF if extended_id else 0x7FF
-        if isinstance(arbitration_id, bool) or not isinstance(arbitration_id, int) \
-                or not 0 <= arbitration_id <= id_max:
-            raise DriverConfigError(f"can trigger driver option 'arbitration_id': "
-                                    f"{arbitration_id!r} is not an identifier in 0..{id_max:#x}")
+        self.check_options(channel=channel, interface=interface, arbitration_id=arbitration_id,
+                           extended_id=extended_id)
         self.name = name
         super().__init__(f"{name} (CAN {interface} {channel}, id {arbitration_id:#x})",
                          SEQ_MODULUS)

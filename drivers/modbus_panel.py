@@ -10,12 +10,14 @@ exceptions into the cell's errors; the Modbus trigger uses it too.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
 from pymodbus.client import ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 
+from ..config.reader import Section
 from .interfaces import DeviceError, DeviceTimeout, OperatorPanel, ProtocolError
 from .registry import DriverConfigError
 
@@ -41,21 +43,6 @@ class ModbusExceptionResponse(DeviceError):
     def __init__(self, device: str, what: str, exception_code: int):
         super().__init__(device, what)
         self.exception_code = exception_code
-
-
-def check_option(driver: str, option: str, value, low: int, high: int) -> int:
-    """An integer cell-file option within bounds, or a DriverConfigError naming it."""
-    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-        raise DriverConfigError(f"{driver} driver option {option!r}: {value!r} is not an integer "
-                                f"in {low}..{high}")
-    return value
-
-
-def check_timeout(driver: str, option: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 60:
-        raise DriverConfigError(f"{driver} driver option {option!r}: {value!r} is not a time "
-                                f"in (0, 60] s")
-    return float(value)
 
 
 class ModbusLink:
@@ -179,28 +166,32 @@ class ModbusPanel(OperatorPanel):
     connection lost later is re-opened by the next call.
     """
 
+    @staticmethod
+    def check_options(**options) -> None:
+        """Refuse an option out of range, naming it (also run by the registry at cell load)."""
+        o = Section.of_options(DriverConfigError, **options)
+        o.port()
+        o.integer("unit_id", low=0, high=255)
+        o.timeout("timeout_s")
+        addresses = {f.name: o.integer(f.name, low=0, high=REGISTER_MAX) for f in dataclasses.fields(PanelMap)}
+        panel_map = PanelMap(**addresses)
+        if len(set(panel_map.coils())) < 5 or len(set(panel_map.holding_registers())) < 3:
+            o.fail(None, f"two panel signals share an address ({panel_map})")
+
     def __init__(self, host: str = "127.0.0.1", port: int = 502, *, unit_id: int = 1,
                  timeout_s: float = 1.0, name: str = "panel",
                  start_request_coil: int = 0, abort_request_coil: int = 1,
                  busy_lamp_coil: int = 8, done_lamp_coil: int = 9, fault_lamp_coil: int = 10,
                  routine_selector_register: int = 0, result_code_register: int = 1,
                  run_counter_register: int = 2):
-        driver = "panel"
-        check_option(driver, "port", port, 1, 65535)
-        check_option(driver, "unit_id", unit_id, 0, 255)
-        timeout_s = check_timeout(driver, "timeout_s", timeout_s)
         addresses = dict(start_request_coil=start_request_coil,
                          abort_request_coil=abort_request_coil, busy_lamp_coil=busy_lamp_coil,
                          done_lamp_coil=done_lamp_coil, fault_lamp_coil=fault_lamp_coil,
                          routine_selector_register=routine_selector_register,
                          result_code_register=result_code_register,
                          run_counter_register=run_counter_register)
-        for option, address in addresses.items():
-            check_option(driver, option, address, 0, REGISTER_MAX)
+        self.check_options(port=port, unit_id=unit_id, timeout_s=timeout_s, **addresses)
         self.map = PanelMap(**addresses)
-        if len(set(self.map.coils())) < 5 or len(set(self.map.holding_registers())) < 3:
-            raise DriverConfigError(f"{driver} driver: two panel signals share an address "
-                                    f"({self.map})")
         self.name = name
         self.device = f"{name} (Modbus TCP {host}:{port}, unit {unit_id})"
         self._link = ModbusLink(self.device, host, port, unit_id, timeout_s)

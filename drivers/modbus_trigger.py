@@ -39,7 +39,8 @@ import time
 from typing import Iterator
 
 from .interfaces import ProtocolError
-from .modbus_panel import ModbusLink, check_option, check_timeout
+from ..config.reader import Section
+from .modbus_panel import ModbusLink
 from .registry import DriverConfigError
 from .trigger_stream import EDGES_BY_CODE, RecordTrigger, TriggerRecord
 
@@ -60,18 +61,21 @@ def encode_record(seq: int, channel: int, edge_code: int, t_us: int) -> list[int
 class ModbusTrigger(RecordTrigger):
     """Device-timestamped trigger events polled from a Modbus TCP IO module."""
 
+    @staticmethod
+    def check_options(**options) -> None:
+        """Refuse an option out of range, naming it (also run by the registry at cell load)."""
+        o = Section.of_options(DriverConfigError, **options)
+        o.port()
+        o.integer("unit_id", low=0, high=255)
+        o.integer("base_register", low=0, high=0xFFFF - HEADER_REGISTERS)
+        o.timeout("timeout_s")
+        o.timeout("poll_interval_s", high=1.0)
+
     def __init__(self, host: str = "127.0.0.1", port: int = 502, *, unit_id: int = 1,
                  base_register: int = 100, timeout_s: float = 1.0,
                  poll_interval_s: float = 0.005, name: str = "trigger"):
-        driver = "modbus trigger"
-        check_option(driver, "port", port, 1, 65535)
-        check_option(driver, "unit_id", unit_id, 0, 255)
-        check_option(driver, "base_register", base_register, 0, 0xFFFF - HEADER_REGISTERS)
-        timeout_s = check_timeout(driver, "timeout_s", timeout_s)
-        poll_interval_s = check_timeout(driver, "poll_interval_s", poll_interval_s)
-        if poll_interval_s > 1.0:
-            raise DriverConfigError(f"{driver} driver option 'poll_interval_s': "
-                                    f"{poll_interval_s} s is more than 1 s")
+        self.check_options(port=port, unit_id=unit_id, base_register=base_register, timeout_s=timeout_s,
+                           poll_interval_s=poll_interval_s)
         self.name = name
         super().__init__(f"{name} (Modbus TCP {host}:{port}, unit {unit_id})", SEQ_MODULUS)
         self.base_register = base_register

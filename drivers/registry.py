@@ -4,6 +4,12 @@ Each adapter module registers its factory under (kind, name); the cell file says
 e.g. ``robot: {driver: ur_rtde, host: 10.0.0.2}`` and :func:`create` builds it.
 Simulated backends register the same way as hardware ones. Modules are imported
 lazily, so a cell that does not use CAN never imports python-can.
+
+A family of backends that must share one object per cell (the in-process simulated
+devices share one simulated world) registers a *shared* factory under its name: it is
+called once per cell with the cell description, and its result is passed to every
+device of that family as the option ``world``. The cell loader needs to know nothing
+about what a backend family shares.
 """
 from __future__ import annotations
 
@@ -11,7 +17,10 @@ import importlib
 import inspect
 from typing import Callable
 
-KINDS = ("robot", "trigger", "tracker", "panel")
+from ..config.cells import DEVICE_KINDS
+from ..config.reader import ConfigError
+
+KINDS = DEVICE_KINDS
 
 # (kind, name) -> "module:factory", imported on first use
 _BUILTIN: dict[tuple[str, str], str] = {
@@ -28,10 +37,14 @@ _BUILTIN: dict[tuple[str, str], str] = {
     ("panel", "sim"): "cellcal.sims.sim_devices:SimPanel",
 }
 _FACTORIES: dict[tuple[str, str], Callable] = {}
+# backend name -> "module:callable"(cell) building the one object its devices share
+_SHARED: dict[str, str] = {
+    "sim": "cellcal.sims.sim_world:world_of_cell",
+}
 
 
-class DriverConfigError(ValueError):
-    """A cell file names a driver that does not exist or gives it bad options."""
+class DriverConfigError(ConfigError):
+    """A driver that does not exist, or options it cannot take; names the option."""
 
 
 def register(kind: str, name: str, target: str | Callable) -> None:
@@ -48,17 +61,60 @@ def available(kind: str) -> list[str]:
     return sorted({n for k, n in (*_BUILTIN, *_FACTORIES) if k == kind})
 
 
-def create(kind: str, name: str, **options):
-    """Build the driver `name` of `kind` with the cell file's options."""
+def _load(target: str) -> Callable:
+    module, _, attr = target.partition(":")
+    obj = importlib.import_module(module)
+    for part in attr.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def factory(kind: str, name: str) -> Callable:
     key = (kind, name)
     if key not in _FACTORIES:
         if key not in _BUILTIN:
-            raise DriverConfigError(f"no {kind} driver named {name!r} (available: {', '.join(available(kind))})")
-        module, _, attr = _BUILTIN[key].partition(":")
-        _FACTORIES[key] = getattr(importlib.import_module(module), attr)
-    factory = _FACTORIES[key]
-    try:
-        inspect.signature(factory).bind(**options)
-    except TypeError as exc:  # an option the driver does not take, or one it needs is missing
-        raise DriverConfigError(f"{kind} driver {name!r}: {exc}") from None
-    return factory(**options)
+            raise DriverConfigError(f"no {kind} driver named {name!r} (available: {', '.join(available(kind))})",
+                                    key="driver")
+        _FACTORIES[key] = _load(_BUILTIN[key])
+    return _FACTORIES[key]
+
+
+def check(kind: str, name: str, options: dict) -> None:
+    """Refuse an option the driver does not take, or a required one left out, naming it."""
+    parameters = inspect.signature(factory(kind, name)).parameters
+    named = {p: v for p, v in parameters.items()
+             if v.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)}
+    if name in _SHARED:
+        named.pop("world", None)  # comes from the cell, not from the file
+    for option in options:
+        if option not in named:
+            raise DriverConfigError(f"unknown option (options of the {name} {kind} driver: "
+                                    f"{', '.join(sorted(named)) or 'none'})", key=option)
+    for option, p in named.items():
+        if p.default is inspect.Parameter.empty and option not in options:
+            raise DriverConfigError(f"missing (required by the {name} {kind} driver)", key=option)
+    check_values = getattr(factory(kind, name), "check_options", None)
+    if check_values is not None:  # the driver's own range checks, without opening anything
+        check_values(**{p: options.get(p, v.default) for p, v in named.items()})
+
+
+def shared_context(name: str, cell):
+    """The object every device of backend family `name` shares in `cell`, or None."""
+    return _load(_SHARED[name])(cell) if name in _SHARED else None
+
+
+def create(kind: str, name: str, options: dict | None = None, *, shared: dict | None = None, cell=None):
+    """Build the driver `name` of `kind` with the cell file's options.
+
+    `shared` (a dict kept by the caller for one cell) holds the objects of backend
+    families that share one per cell (see the module docstring), built from `cell`.
+    """
+    options = dict(options or {})
+    check(kind, name, options)
+    if name in _SHARED:
+        if shared is None:
+            shared = {}
+        if name not in shared:
+            shared[name] = shared_context(name, cell)
+        options["world"] = shared[name]
+    return factory(kind, name)(**options)

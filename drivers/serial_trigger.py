@@ -35,8 +35,10 @@ from typing import Iterator
 
 import serial
 
+from ..config.reader import Section
 from .checksum_lines import checked_body, framed
 from .interfaces import DeviceError, Edge, ProtocolError
+from .registry import DriverConfigError
 from .trigger_stream import RecordTrigger, TriggerRecord
 
 MAX_SENTENCE_BYTES = 82
@@ -141,9 +143,15 @@ class SentenceFramer:
 class SerialTrigger(RecordTrigger):
     """Device-timestamped trigger events from a serial line (tty path ``port``)."""
 
+    @staticmethod
+    def check_options(**options) -> None:
+        """Refuse an option out of range, naming it (also run by the registry at cell load)."""
+        o = Section.of_options(DriverConfigError, **options)
+        o.text("port")
+        o.integer("baudrate", low=50, high=4_000_000)
+
     def __init__(self, port: str, *, baudrate: int = 115200, name: str = "trigger"):
-        if not isinstance(port, str) or not port:
-            raise ValueError(f"serial trigger: port must be a tty path, got {port!r}")
+        self.check_options(port=port, baudrate=baudrate)
         self.name = name
         super().__init__(f"{name} (serial {port})", SEQ_MODULUS)
         self._framer = SentenceFramer(self.device)

@@ -45,6 +45,7 @@ import numpy as np
 
 from .checksum_lines import checked_body, framed
 from .interfaces import DeviceError, DeviceTimeout, ProtocolError, Tracker, TrackerMeasurement
+from ..config.reader import Section
 from .registry import DriverConfigError
 
 DEFAULT_PORT = 5025
@@ -151,14 +152,17 @@ class TrackerSocket(Tracker):
     Connects at construction so that a wrong host or port fails at start-up.
     """
 
+    @staticmethod
+    def check_options(**options) -> None:
+        """Refuse an option out of range, naming it (also run by the registry at cell load)."""
+        o = Section.of_options(DriverConfigError, **options)
+        o.text("host")
+        o.port()
+        o.timeout("connect_timeout_s")
+
     def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, *,
                  connect_timeout_s: float = 2.0, name: str = "tracker"):
-        if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
-            raise DriverConfigError(f"tracker driver option 'port': {port!r} is not an "
-                                    f"integer in 1..65535")
-        if not isinstance(connect_timeout_s, (int, float)) or not 0 < connect_timeout_s <= 60:
-            raise DriverConfigError(f"tracker driver option 'connect_timeout_s': "
-                                    f"{connect_timeout_s!r} is not a time in (0, 60] s")
+        self.check_options(host=host, port=port, connect_timeout_s=connect_timeout_s)
         self.name = name
         self.device = f"{name} ({host}:{port})"
         self.host = host

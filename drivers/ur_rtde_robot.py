@@ -31,8 +31,11 @@ import threading
 import time
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
+from ..config.reader import Section
 from .interfaces import ContactResult, DeviceError, DeviceTimeout, Robot, RobotSample, RobotState
+from .registry import DriverConfigError
 from .ur_rtde_process import DASHBOARD_PORT, UrRtdeProcess
 from .ur_rtde_state import ROBOT_VARIABLES, UrStateStream
 
@@ -54,6 +57,7 @@ def _vector(value, n: int, what: str, lengths=None) -> np.ndarray:
 
 
 def _limit(value: float, upper: float, what: str) -> float:
+    """A motion argument: positive and within ur_rtde's own bound."""
     value = float(value)
     if not 0.0 < value <= upper:
         raise ValueError(f"{what} must be in (0, {upper}], got {value}")
@@ -68,12 +72,25 @@ def _travel_s(length: float, speed: float, accel: float) -> float:
 
 
 def _rotation_angle(rotvec_a, rotvec_b) -> float:
-    from ..solvers.se3 import matrix_to_rotvec, rotvec_to_matrix
-    relative = rotvec_to_matrix(rotvec_b) @ rotvec_to_matrix(rotvec_a).T
-    return float(np.linalg.norm(matrix_to_rotvec(relative)))
+    relative = Rotation.from_rotvec(rotvec_b) * Rotation.from_rotvec(rotvec_a).inv()
+    return float(relative.magnitude())
 
 
 class UrRtdeRobot(Robot):
+    @staticmethod
+    def check_options(**options) -> None:
+        """Refuse an option out of range, naming it (also run by the registry at cell load)."""
+        o = Section.of_options(DriverConfigError, **options)
+        o.text("host")
+        for key in ("connect_timeout_s", "command_timeout_s", "stale_after_s"):
+            o.timeout(key)
+        o.number("motion_timeout_factor", low=1.0, high=100.0)
+        o.number("motion_timeout_margin_s", low=0.0, high=60.0)
+        o.number("reach_tolerance_rad", above=0.0, high=0.1)
+        o.number("reach_tolerance_m", above=0.0, high=0.1)
+        o.number("contact_accel_m_s2", above=0.0, high=TOOL_ACCEL_MAX)
+        o.number("stop_decel_rad_s2", above=0.0, high=JOINT_ACCEL_MAX)
+
     def __init__(self, host: str, *, frequency_hz: float = -1.0, connect_timeout_s: float = 5.0,
                  command_timeout_s: float = 3.0, stale_after_s: float = 0.5,
                  motion_timeout_factor: float = 2.0, motion_timeout_margin_s: float = 2.0,
@@ -81,11 +98,12 @@ class UrRtdeRobot(Robot):
                  contact_accel_m_s2: float = 0.5, stop_decel_rad_s2: float = 4.0):
         self.host = host
         self.name = f"UR robot at {host}"
-        for what, value in (("connect_timeout_s", connect_timeout_s), ("command_timeout_s", command_timeout_s),
-                            ("stale_after_s", stale_after_s), ("motion_timeout_factor", motion_timeout_factor),
-                            ("reach_tolerance_rad", reach_tolerance_rad), ("reach_tolerance_m", reach_tolerance_m),
-                            ("contact_accel_m_s2", contact_accel_m_s2), ("stop_decel_rad_s2", stop_decel_rad_s2)):
-            _limit(value, math.inf, what)
+        self.check_options(
+            host=host, connect_timeout_s=connect_timeout_s, command_timeout_s=command_timeout_s,
+            stale_after_s=stale_after_s, motion_timeout_factor=motion_timeout_factor,
+            motion_timeout_margin_s=motion_timeout_margin_s, reach_tolerance_rad=reach_tolerance_rad,
+            reach_tolerance_m=reach_tolerance_m, contact_accel_m_s2=contact_accel_m_s2,
+            stop_decel_rad_s2=stop_decel_rad_s2)
         self.command_timeout_s, self.connect_timeout_s = command_timeout_s, connect_timeout_s
         self.motion_timeout_factor, self.motion_timeout_margin_s = motion_timeout_factor, motion_timeout_margin_s
         self.reach_tolerance_rad, self.reach_tolerance_m = reach_tolerance_rad, reach_tolerance_m

@@ -30,8 +30,8 @@ import numpy as np
 
 from ..config.robot_files import load_robot
 from . import fake_ur_rtde as rtde
-from .fake_ur_arm import ArmKinematics, FakeArm, MotionFault, StopMotion
-from .fake_ur_cell import cell_from_spec
+from .arm_motion import ArmKinematics, MovingArm, MotionFault, StopMotion
+from .scene import scene_from_spec
 from .fake_ur_script import ControlScript
 from .fake_ur_sessions import ControlSession, DashboardSession, RtdeSession, ScriptSession
 
@@ -62,8 +62,8 @@ class FakeUrController:
         self.host, self.version, self.serial = host, tuple(version), serial
         self.control_port, self.frequency_hz, self.verbose = control_port, frequency_hz, verbose
         self.lock = threading.RLock()
-        self.cell = cell_from_spec(cell)
-        self.arm = FakeArm(ArmKinematics(load_robot(robot)), q0, 1.0 / frequency_hz, contact=self.cell.touching)
+        self.cell = scene_from_spec(cell)
+        self.arm = MovingArm(ArmKinematics(load_robot(robot)), q0, 1.0 / frequency_hz, contact=self.cell.touching)
         model = re.search(r"ur(\d+)", robot.lower())
         self.model_name = f"UR{model.group(1)}" if model else "UR10"
         self.inputs: dict = {}

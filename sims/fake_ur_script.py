@@ -25,7 +25,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .fake_ur_arm import (FakeArm, JointMove, LinearMove, MotionFault, SpeedLinear, frame_to_pose,
+from .arm_motion import (MovingArm, JointMove, LinearMove, MotionFault, SpeedLinear, frame_to_pose,
                           pose_to_frame)
 
 # ur_rtde RTDE::RobotCommand::Type ids the fake executes
@@ -48,7 +48,7 @@ CONTACT_STOP_DECEL_M_S2 = 3.0
 class ControlScript:
     """One running instance of the control script: registers in, motions out."""
 
-    def __init__(self, arm: FakeArm, inputs: dict, outputs: dict, *, int_offset: int = 0,
+    def __init__(self, arm: MovingArm, inputs: dict, outputs: dict, *, int_offset: int = 0,
                  float_offset: int = 0, protective_stop: Callable[[str], None] = lambda why: None,
                  log: Callable[[str], None] = lambda text: None):
         self.arm, self.inputs, self.outputs = arm, inputs, outputs

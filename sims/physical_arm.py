@@ -13,15 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..solvers.effects import Context, approach_directions
+from ..solvers.effects import CAUSES, Context, approach_directions
 from ..solvers.gravity import gravity_torques
 from ..solvers.measurement_model import Observations, predict
 from ..solvers.robot_model import KinematicModel, with_hayati_beta
 from .kinematic_arm import ArmTruth, SimulatedArm
 from .workspace import full_workspace
 
-CAUSE_IDS = ("joint_compliance", "backlash", "thermal_drift", "cyclic_joint_error", "parallel_axis_tilt",
-             "trigger_latency")
+CAUSE_IDS = tuple(CAUSES)  # every cause analyze can name, and so every effect the arm can hide
 
 
 @dataclass(frozen=True)

@@ -1,9 +1,10 @@
 """In-process simulated cell devices behind the driver interfaces, registered as "sim".
 
 A cell file says ``robot: {driver: sim}`` (and the same for trigger, tracker, panel);
-:meth:`cellcal.daemon.cells.Cell.build_drivers` builds one :class:`~.sim_world.SimWorld`
-and hands it to each, so the trigger fires when the simulated arm crosses the beam and
-the tracker measures where the arm is. Built on their own (no ``world``), each device
+the driver registry builds one :class:`~.sim_world.SimWorld` per cell
+(:func:`~.sim_world.world_of_cell`, the ``sim`` backends' shared object) and hands it
+to each, so the trigger fires when the simulated arm crosses the beam and the tracker
+measures where the arm is. Built on their own (no ``world``), each device
 gets a private world of a UR10e at home, which is enough for unit tests of one device.
 
 Nothing here sleeps: waiting (a motion, ``events(timeout_s)``) advances simulated time.
@@ -12,18 +13,18 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..config.robot_files import load_robot
 from ..drivers.interfaces import (ContactResult, DeviceError, OperatorPanel, Robot, RobotSample,
                                   RobotState, Tracker, TrackerMeasurement, TriggerEvent, TriggerInput)
-from .fake_ur_arm import JointMove, LinearMove, MotionFault, SpeedLinear
-from .fake_ur_cell import model_from_spec
+from .arm_motion import JointMove, LinearMove, MotionFault, SpeedLinear
 from .kinematic_arm import TrackerNoise
+from .scene import model_from_spec
 from .sim_world import SimWorld
 
 MOTION_TIMEOUT_MARGIN_S = 2.0
 
 
 def default_world() -> SimWorld:
-    from ..config.robot_files import load_robot
     return SimWorld(load_robot("ur10e"))
 
 

@@ -5,7 +5,7 @@ The simulated robot, trigger, tracker and panel of :mod:`.sim_devices` all look 
 arm really is. Time is simulated: a motion is integrated in controller cycles as fast as
 the CPU allows, so a routine's sweep takes milliseconds of wall time in tests.
 
-The arm is the fake UR controller's (:class:`~.fake_ur_arm.FakeArm`: our own forward
+The arm is the fake UR controller's (:class:`~.arm_motion.MovingArm`: our own forward
 kinematics of the robot model, trapezoidal joint and linear moves, 2 ms cycle), so the
 in-process cell and the cell behind the real client libraries move the TCP along the
 same path with the same timing.
@@ -22,10 +22,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..config.cells import Cell
+from ..config.robot_files import load_robot
 from ..drivers.interfaces import DeviceError, Edge, RobotSample, RobotState, TriggerEvent
 from ..solvers.robot_model import KinematicModel
-from .fake_ur_arm import ArmKinematics, FakeArm, MotionFault
-from .fake_ur_cell import LightBeam
+from .arm_motion import ArmKinematics, MovingArm, MotionFault
+from .scene import LightBeam, model_from_spec
 
 HOME_Q = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
 SAMPLE_BUFFER_S = 120.0
@@ -90,7 +92,7 @@ class SimWorld:
             raise ValueError(f"q0 has {len(q0)} joints, {model.name} has {model.n_joints}")
         self.model = model
         self.kinematics = ArmKinematics(model)
-        self.arm = FakeArm(self.kinematics, q0, cycle_s)
+        self.arm = MovingArm(self.kinematics, q0, cycle_s)
         self.cycle_s = cycle_s
         self.beams: list[LightBeam] = list(beams)
         self.workspace = workspace
@@ -205,3 +207,11 @@ class SimWorld:
             waited += self.cycle_s
         self._edges = [e for e in self._edges if e.t_s > self.t_s]
         return sorted(ready, key=lambda e: e.t_s)
+
+
+def world_of_cell(cell: Cell) -> SimWorld:
+    """The world the in-process sim devices of `cell` share (the registry's shared object
+    of the ``sim`` backends): its robot at home, its beam, workspace, limits and timing."""
+    return SimWorld(load_robot(cell.robot), q0=cell.home_q_rad, beams=[model_from_spec(cell.beam)],
+                    workspace=Workspace(cell.workspace_min_m, cell.workspace_max_m),
+                    limits=SpeedLimits(**cell.limits), beam_timing=BeamTiming(**cell.trigger_timing))

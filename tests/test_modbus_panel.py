@@ -119,13 +119,13 @@ def test_overridden_addresses_are_the_ones_used():
 
 
 def test_options_out_of_range_are_refused_naming_the_option():
-    with pytest.raises(DriverConfigError, match="'port': 70000"):
+    with pytest.raises(DriverConfigError, match=r"\[port\]: 70000 is out of range"):
         ModbusPanel(port=70000)
-    with pytest.raises(DriverConfigError, match="'busy_lamp_coil': -1"):
+    with pytest.raises(DriverConfigError, match=r"\[busy_lamp_coil\]: -1 is out of range"):
         ModbusPanel(port=502, busy_lamp_coil=-1)
     with pytest.raises(DriverConfigError, match="share an address"):
         ModbusPanel(port=502, done_lamp_coil=8)
-    with pytest.raises(DriverConfigError, match="'timeout_s': 0"):
+    with pytest.raises(DriverConfigError, match=r"\[timeout_s\]: 0 is out of range"):
         ModbusPanel(port=502, timeout_s=0)
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellcal.daemon.cells import CellFileError, load_cell, shipped_cells
+from cellcal.daemon.cells import CellFileError, load_cell, open_drivers, shipped_cells
 from cellcal.daemon.cli import main as cli_main
 from cellcal.drivers.interfaces import DeviceError, Edge, RobotState
 
@@ -109,6 +109,21 @@ def test_load_cell_names_file_section_and_key(tmp_path, old, new, section, key, 
     assert message.startswith(str(path)) and f"[{section}.{key}]" in message and what in message, message
 
 
+@pytest.mark.parametrize("old, new, key, what", [
+    ("port: 5030}", "prot: 5030}", "prot", "unknown option (options of the socket tracker driver: "),
+    ("port: 5030}", "port: 70000}", "port", "70000 is out of range (must be in 1..65535)"),
+    ("port: 5030}", "port: 5030, connect_timeout_s: 0}", "connect_timeout_s", "out of range"),
+])
+def test_load_cell_checks_driver_options_naming_file_section_and_key(tmp_path, old, new, key, what):
+    text = shipped_text("sim-net")
+    line = next(t for t in text.splitlines() if t.startswith("  tracker:"))
+    path = write_cell(tmp_path, text.replace(line, line.replace(old, new)))
+    with pytest.raises(CellFileError) as info:
+        load_cell(path)
+    message = str(info.value)
+    assert message.startswith(str(path)) and f"[drivers.tracker.{key}]" in message and what in message, message
+
+
 def test_load_cell_refuses_a_missing_section_and_a_repeated_key(tmp_path):
     text = shipped_text("sim")
     with pytest.raises(CellFileError, match=r"section \[limits\] is missing"):
@@ -122,7 +137,7 @@ def test_load_cell_refuses_a_missing_section_and_a_repeated_key(tmp_path):
 @pytest.fixture
 def sim_cell():
     cell = load_cell("sim")
-    with cell.build_drivers() as drivers:
+    with open_drivers(cell) as drivers:
         yield cell, drivers
 
 
@@ -188,15 +203,15 @@ def test_sim_panel_and_tracker(sim_cell):
 # -- the same cell over loopback -------------------------------------------------------
 
 def test_sim_net_sweep_matches_the_in_process_cell():
-    from cellcal.daemon.sim_cell import SimCell
+    from cellcal.sims.net_cell import SimCell
 
     in_process = load_cell("sim")
-    with in_process.build_drivers() as drivers:
+    with open_drivers(in_process) as drivers:
         local = [[tcp_at(drivers.robot, e.t_s - in_process.trigger_timing["latency_s"]) for e in events]
                  for events in sweep_through_beam(drivers.robot, drivers.trigger, in_process.beam)]
     net = load_cell("sim-net").on_host(next(_HOSTS))
     with SimCell(net):
-        with net.build_drivers() as drivers:
+        with open_drivers(net) as drivers:
             remote = [[tcp_at(drivers.robot, e.t_s) for e in events]
                       for events in sweep_through_beam(drivers.robot, drivers.trigger, net.beam)]
     for speed, a, b in zip(SPEEDS_M_S, local, remote):

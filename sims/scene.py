@@ -1,4 +1,4 @@
-"""What the fake UR controller's arm can touch and what its digital inputs see.
+"""What a simulated arm can touch and what its digital inputs see (every sim cell's scene).
 
 Two kinds of model, both judged on the TCP (the controller's tool frame, so a routine
 sets the TCP to the tip it is measuring with):
@@ -10,7 +10,7 @@ sets the TCP to the tip it is measuring with):
 
 An input source is any callable ``(tcp_pose_m, t_s) -> {channel: level}``, so routines
 and tests can plug in their own (a rotating beam, a trigger with latency) through
-``--plugin module:factory`` or by adding objects to ``Cell.input_sources``.
+``--plugin module:factory`` or by adding objects to ``Scene.input_sources``.
 Bit numbering is the controller's: standard inputs 0-7, configurable 8-15, tool 16-17.
 """
 from __future__ import annotations
@@ -90,8 +90,8 @@ class LightBeam:
 
 
 @dataclass
-class Cell:
-    """Contact surfaces and input sources around the fake arm."""
+class Scene:
+    """Contact surfaces and input sources around a simulated arm."""
 
     contacts: list = field(default_factory=list)
     input_sources: list[Callable] = field(default_factory=list)
@@ -133,9 +133,9 @@ def model_from_spec(spec: dict):
     raise ValueError(f"unknown cell model kind {kind!r} (kinds: plane, sphere, beam)")
 
 
-def cell_from_spec(spec: dict | None) -> Cell:
-    """``{"models": [...], "fixed_inputs": 0}`` -> Cell."""
-    cell = Cell(fixed_inputs=int((spec or {}).get("fixed_inputs", 0)))
+def scene_from_spec(spec: dict | None) -> Scene:
+    """``{"models": [...], "fixed_inputs": 0}`` -> Scene."""
+    scene = Scene(fixed_inputs=int((spec or {}).get("fixed_inputs", 0)))
     for model in (spec or {}).get("models", []):
-        cell.add(model)
-    return cell
+        scene.add(model)
+    return scene

@@ -1,4 +1,5 @@
-"""The arm inside the fake UR controller: kinematics in metres and the motions URScript runs.
+"""The moving arm of every simulated cell (the fake UR controller's and the in-process
+one): kinematics in metres and the motions URScript runs.
 
 Geometry comes from our own robot model files (the same forward kinematics the solvers
 use, nominal parameters, mm inside), converted to metres at this boundary because the
@@ -29,10 +30,12 @@ class MotionFault(RuntimeError):
     """A motion the controller cannot execute (no IK solution, singularity)."""
 
 
+# log_so3/exp_so3 repeat solvers.se3.matrix_to_rotvec/rotvec_to_matrix for one rotation in
+# plain floats: they run several times per 2 ms cycle, and measured here they take 2.3 and
+# 4.1 us against 66 and 30 us for the vectorised scipy-backed versions (15-28x faster).
 def log_so3(rotation: np.ndarray) -> np.ndarray:
     """Rotation vector (angle <= pi) of a rotation matrix, via Shepperd's quaternion:
-    stable at every angle, including the pi of UR's home pose. Plain floats: it runs
-    several times per 2 ms cycle."""
+    stable at every angle, including the pi of UR's home pose."""
     (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rotation.tolist()
     trace = r00 + r11 + r22
     biggest = max(trace, r00, r11, r22)
@@ -302,7 +305,7 @@ class StopMotion(Motion):
         return self.q_from + self.qd * (self.t - self.t**2 / (2.0 * self.duration))
 
 
-class FakeArm:
+class MovingArm:
     """Joint state, tool frame, the active motion and the recent past (for tool_contact)."""
 
     HISTORY = 2500  # cycles kept for get_actual_joint_positions_history / tool_contact
