@@ -67,10 +67,6 @@ class Cell:
     limits: dict
     trigger_timing: dict
 
-    @property
-    def simulated_in_process(self) -> bool:
-        return any(spec.name == "sim" for spec in self.drivers.values())
-
     def on_host(self, host: str) -> "Cell":
         """The same cell with every networked driver pointed at another address (parallel test cells)."""
         other = copy.deepcopy(self)

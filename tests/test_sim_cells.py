@@ -87,7 +87,8 @@ def test_shipped_cells_load():
     for name in ("sim", "sim-net"):
         cell = load_cell(name)
         assert cell.robot == "ur10e" and len(cell.home_q_rad) == 6
-    assert load_cell("sim").simulated_in_process and not load_cell("sim-net").simulated_in_process
+    assert {spec.name for spec in load_cell("sim").drivers.values()} == {"sim"}
+    assert "sim" not in {spec.name for spec in load_cell("sim-net").drivers.values()}
 
 
 @pytest.mark.parametrize("old, new, section, key, what", [
