@@ -87,7 +87,7 @@ def run_ours(model, cal: Observations, val: Observations, regularize: str, repea
     return {"seconds": float(np.median(times)), "cpu_seconds": float(np.median(cpu)),
             "seconds_runs": times, "cpu_seconds_runs": cpu,
             "validation": stats(res.errors(val)),
-            "calibration": stats(np.linalg.norm(res.residuals, axis=1)),
+            "calibration": stats(np.linalg.norm(res.residuals_mm, axis=1)),
             "lambda": res.lam, "kinematic_estimated": int(res.free[: res.layout.n_kin].sum()),
             "held_at_nominal": list(res.unidentifiable)}
 

@@ -55,7 +55,7 @@ def _arm(model, seed, effects, noise_scale, noise_free=False):
 def _visible(model, arm, q, extras) -> float:
     run = arm.campaign(q, **extras)
     fit = identify(model, run.obs, IdentifyOptions(regularize="none", prior_mm=1e9))
-    return float(np.sqrt(np.mean(np.sum(fit.residuals**2, axis=1))))
+    return float(np.sqrt(np.mean(np.sum(fit.residuals_mm**2, axis=1))))
 
 
 def make_case(model: KinematicModel, effects, visibility, *, n: int, noise_scale: float = 1.0,

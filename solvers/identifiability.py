@@ -8,6 +8,11 @@ projected onto their orthogonal complement, the numerical rank of what remains
 is read off its singular values, and the parameters to keep are chosen by the
 subset selection of Golub, Klema and Stewart (pivoted QR of the leading right
 singular vectors). Everything else is held at nominal and reported by name.
+
+After a fit, the second half judges the estimates themselves from the fit's
+covariance: which lie outside the bounds a person can trust (``failures``), which
+geometric parameter to hold so that they come back inside (``to_hold``), and which
+estimates the data sees only in combination (``correlated_groups``).
 """
 from __future__ import annotations
 
@@ -97,3 +102,153 @@ def analyse(j_scaled: np.ndarray, nuisance: np.ndarray, candidates: np.ndarray,
         cond = float(sv[0] / sv[-1]) if len(sv) and sv[-1] > 0 else float("inf")
     return Identifiability(keep=keep, singular_values=s, rank=rank, structural_rank=structural,
                            condition=cond)
+
+
+# --- after the fit: which estimates can a person trust? ---------------------------------
+#
+# The analysis above judges directions before the fit, against the noise. A cross-validated
+# prior weight of 0 (or plain least squares) still estimates every structurally identifiable
+# direction, and a direction the data hardly sees lets strongly correlated parameters move
+# together by centimetres and degrees while the predicted target positions barely change.
+# The validation error is then fine and the table of values is not: these functions find
+# such estimates from the fit's covariance so that the fit can hold them at nominal.
+
+CORRELATED_R = 0.95  # |r| above which two estimates are reported as one group
+
+
+@dataclass(frozen=True)
+class HeldParameter:
+    """A parameter the fit moved where a person could not trust it, held at nominal instead."""
+
+    name: str
+    reason: str  # in words, with the bound it broke
+    value: float  # what the fit gave before it was held (mm or rad, as x)
+    std: float  # its standard deviation in that fit (mm or rad)
+    nominal: float  # what it is held at (mm or rad)
+    is_angle: bool
+    partners: tuple[str, ...]  # estimates it moved together with (|r| > CORRELATED_R) in that fit
+    rms_rise_mm: float  # how much the calibration rms error rose when it was held
+
+
+@dataclass(frozen=True)
+class CorrelatedGroup:
+    """Estimates the data sees mostly as one combination (|r| > CORRELATED_R between them)."""
+
+    names: tuple[str, ...]
+    max_abs_r: float
+    effect_mm: float  # rms change of the predicted target positions from the group's joint move off nominal
+    single_effect_mm: float  # the same for the member whose move alone changes them most
+
+
+@dataclass(frozen=True)
+class Failure:
+    index: int  # into x
+    ratio: float  # how far past its bound (> 1)
+    reason: str
+    spread: bool  # True: its standard deviation broke the bound; False: its distance from nominal
+
+
+def trust_bounds(is_angle: np.ndarray, scale: np.ndarray, slack_mm: float, max_std_mm: float,
+                 max_std_rad: float, plausible_mm: float, plausible_rad: float):
+    """Per entry of x: bound on its standard deviation and on its distance from nominal.
+
+    slack_mm, the nominal model's own error at the targets, widens the plausible
+    distance: an error of e mm leaves room for a length e mm off, or an angle e / reach
+    off (scale is 1 / reach for angles), so a robot whose drawing is a centimetre off
+    keeps that real finding.
+    """
+    max_std = np.where(is_angle, max_std_rad, max_std_mm)
+    plausible = np.where(is_angle, np.maximum(plausible_rad, slack_mm * scale), max(plausible_mm, slack_mm))
+    return max_std, plausible
+
+
+def human(value: float, is_angle: bool) -> str:
+    return f"{np.rad2deg(value):.3g} deg" if is_angle else f"{value:.3g} mm"
+
+
+def failures(names, is_angle, checked, x, ref, std, max_std, plausible, skip=()) -> list[Failure]:
+    """Checked entries of x outside their bounds (ref: the nominal values), with the reason in words."""
+    out = []
+    for i in np.flatnonzero(checked):
+        if names[i] in skip:
+            continue
+        spread, far = std[i] / max_std[i], abs(x[i] - ref[i]) / plausible[i]
+        if max(spread, far) <= 1.0:
+            continue
+        if spread >= far:
+            reason = (f"standard deviation {human(std[i], is_angle[i])} above the "
+                      f"{human(max_std[i], is_angle[i])} bound")
+        else:
+            reason = (f"{human(abs(x[i] - ref[i]), is_angle[i])} from nominal, beyond the plausible "
+                      f"{human(plausible[i], is_angle[i])}")
+        out.append(Failure(int(i), float(max(spread, far)), reason, bool(spread >= far)))
+    return out
+
+
+def correlation(cov: np.ndarray) -> np.ndarray:
+    d = np.sqrt(np.clip(np.diag(cov), 0, None))
+    d[d == 0] = 1.0
+    return cov / np.outer(d, d)
+
+
+def groups(corr: np.ndarray, threshold: float = CORRELATED_R) -> list[np.ndarray]:
+    """Connected groups (two members or more) of the graph |r| > threshold, as index arrays."""
+    linked = np.abs(corr) > threshold
+    np.fill_diagonal(linked, False)
+    seen = np.zeros(len(corr), bool)
+    out = []
+    for start in range(len(corr)):
+        if seen[start] or not linked[start].any():
+            continue
+        members, todo = [], [start]
+        seen[start] = True
+        while todo:
+            i = todo.pop()
+            members.append(i)
+            for j in np.flatnonzero(linked[i] & ~seen):
+                seen[j] = True
+                todo.append(j)
+        out.append(np.sort(members))
+    return out
+
+
+def to_hold(cov_scaled: np.ndarray, f: int, holdable: np.ndarray, spread: bool) -> int | None:
+    """Which estimate to hold at nominal so that estimate f can be trusted (indices into cov).
+
+    For a spread failure: the eigen-direction of the covariance (in scaled units, mm at
+    the target) that contributes most to f's variance is the direction the data hardly
+    sees; the holdable estimate with the largest share in it is the one to hold, as in
+    subset selection. A well-determined estimate that is merely far from nominal is held
+    itself when it may be. None when no holdable estimate takes part (f stays as it is).
+    """
+    if not spread and holdable[f]:
+        return f
+    lam, vec = np.linalg.eigh(cov_scaled)
+    k = int(np.argmax(np.clip(lam, 0, None) * vec[f] ** 2))
+    share = np.where(holdable, np.abs(vec[:, k]), 0.0)
+    if share.max() < 0.1:  # the weak direction lives in base and target offsets alone
+        return f if holdable[f] else None
+    return int(np.argmax(share))
+
+
+def correlated_groups(names, idx: np.ndarray, cov: np.ndarray, base: np.ndarray,
+                      effect_mm) -> tuple[CorrelatedGroup, ...]:
+    """The groups of ``groups`` over the estimates idx (cov over them), as records.
+
+    base: mask over x of entries a group may not consist of alone (the instrument
+    transform: its correlations say nothing about the robot). effect_mm(members): rms
+    change of the predicted targets when these entries of x go back to nominal.
+    Small against the members' single effects means the data sees only their sum.
+    """
+    corr = correlation(cov)
+    out = []
+    for g in groups(corr):
+        members = idx[g]
+        if base[members].all():
+            continue
+        sub = np.abs(corr[np.ix_(g, g)])
+        np.fill_diagonal(sub, 0.0)
+        out.append(CorrelatedGroup(
+            names=tuple(names[m] for m in members), max_abs_r=float(sub.max()),
+            effect_mm=effect_mm(members), single_effect_mm=max(effect_mm([m]) for m in members)))
+    return tuple(out)

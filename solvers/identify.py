@@ -7,17 +7,29 @@ offsets. Parameters this data cannot separate are held at nominal and reported
 (``identifiability``). ``regularize="cv"`` picks lam by grouped k-fold
 cross-validation (seed 004); ``"none"`` is plain least squares over the
 identifiable parameters.
+
+After the fit every estimated kinematic parameter and target offset must be one a
+person can trust (``_hold_untrustworthy``): a standard deviation within a bound
+per kind and a value within a plausible distance of nominal. A direction the data
+hardly sees can move strongly correlated parameters far while the predicted
+positions barely change (a target near the last joint axis makes d5, alpha5 and
+the offset along that axis nearly one quantity); such parameters are held at
+nominal, one at a time, and the fit repeated, and they are reported by name with
+the values that were rejected. The result reads like scipy's ``OptimizeResult``:
+``x``, ``status``, ``message`` and named fields.
 """
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
 
 from . import crossval, identifiability, se3
 from .chain import forward
+from .identifiability import CorrelatedGroup, HeldParameter
+from .identifiability import human as _human
 from .measurement_model import Layout, Observations, jacobian, predict, predict_base
 from .robot_model import KinematicModel
 
@@ -35,6 +47,14 @@ class IdentifyOptions:
     prior_mm: float = 1.0  # directions that would scatter more than this are not estimated
     fixed: tuple[str, ...] = ()  # parameter names held at nominal by the caller
     seed: int = 0
+    # After the fit, an estimate is reported as identified only within these bounds; beyond them
+    # it is held at nominal (``_hold_untrustworthy``). Standard deviations, 1 sigma:
+    max_std_mm: float = 2.0  # less certain than this, a length cannot tell a mm-size assembly error from none
+    max_std_deg: float = 0.5  # an axis this uncertain moves a target ~9 mm at 1 m reach: no finding
+    # Distance from nominal (target offsets: from the nominal model's own fit of them), widened to
+    # what the nominal model's 95th-percentile error allows (mm; over the reach for angles):
+    plausible_mm: float = 10.0  # a manufactured arm's lengths and offsets are within a few mm of the drawing
+    plausible_deg: float = 2.0  # and its joint axes within tenths of a degree of their nominal directions
 
     def __post_init__(self):
         if self.regularize not in REGULARIZE:
@@ -43,36 +63,69 @@ class IdentifyOptions:
             raise ValueError(f"loss must be one of {LOSSES}, got {self.loss!r}")
         if self.folds < 2:
             raise ValueError("folds must be at least 2")
+        for name in ("max_std_mm", "max_std_deg", "plausible_mm", "plausible_deg"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)
 class Fit:
-    x: np.ndarray
-    residuals: np.ndarray  # (N, 3) predicted - measured, mm
+    x: np.ndarray  # full unknown vector, units as in Identification.x
+    residuals_mm: np.ndarray  # (N, 3) predicted - measured
     nfev: int
+    status: int  # scipy.optimize.least_squares' status: > 0 converged, 0 evaluation limit, < 0 bad input
+    message: str  # its message
 
     @property
     def errors(self) -> np.ndarray:
-        return np.linalg.norm(self.residuals, axis=1)
+        """Distance of each prediction from its measurement, mm."""
+        return np.linalg.norm(self.residuals_mm, axis=1)
+
+    @property
+    def rms_mm(self) -> float:
+        return float(np.sqrt(np.mean(np.sum(self.residuals_mm**2, axis=1))))
 
 
 @dataclass(frozen=True)
 class Identification:
+    """What identify() found, with named fields in the manner of scipy's OptimizeResult."""
+
     layout: Layout
-    x: np.ndarray  # full unknown vector (mm, rad)
+    # full unknown vector as Layout orders it: kinematic parameters (lengths mm, angles rad),
+    # base (mm, rotation vector rad), target offsets (mm); layout.is_angle says which are rad
+    x: np.ndarray
     x_nominal: np.ndarray  # nominal kinematics with base/targets fitted: the "before" model
     free: np.ndarray  # bool mask over x: estimated here
-    std: np.ndarray  # standard deviation of each entry of x (0 where held fixed)
-    unidentifiable: tuple[str, ...]  # kinematic parameters held at nominal by the analysis
+    std: np.ndarray  # standard deviation of each entry of x, in x's units (0 where held)
+    unidentifiable: tuple[str, ...]  # kinematic parameters held at nominal by the analysis before the fit
+    held_implausible: tuple[HeldParameter, ...]  # held at nominal after a fit put them beyond trust
+    uncertain: tuple[str, ...]  # estimated, still beyond the bounds, and nothing left to hold for them
+    correlated: tuple[CorrelatedGroup, ...]  # estimates the data sees mostly in combination
+    weakly_identifiable: tuple[str, ...]  # estimated, below the noise on their own
     fixed: tuple[str, ...]  # parameters held at nominal by request
     lam: float
     cv_curve: tuple[tuple[float, float], ...]  # (lambda, held-out mean error mm)
-    residuals: np.ndarray  # (N, 3) on the calibration data, mm
-    residuals_nominal: np.ndarray  # (N, 3) of the before model
+    residuals_mm: np.ndarray  # (N, 3) on the calibration data, predicted - measured
+    residuals_nominal_mm: np.ndarray  # (N, 3) of the before model
     noise_mm: float  # residual standard deviation per coordinate
+    first_pass_noise_mm: float  # the same from the first fit, which judged the directions against it
+    structural_rank: int  # geometric directions the poses separate at all
+    noise_rank: int  # of those, directions above the noise
     condition: float
+    status: int  # of the final fit, as scipy.optimize.least_squares reports it (> 0: converged)
+    message: str  # in words: how the fit ended, and what was held after it
+    nfev: int  # function evaluations of the final fit
     seconds: float
-    details: dict = field(default_factory=dict)
+
+    @property
+    def success(self) -> bool:
+        return self.status > 0
+
+    @property
+    def held_at_nominal(self) -> tuple[str, ...]:
+        """Every geometric parameter reported at its nominal value, in parameter order."""
+        names = set(self.unidentifiable) | set(self.fixed) | {h.name for h in self.held_implausible}
+        return tuple(n for n in self.layout.model.param_names if n in names)
 
     def predict(self, obs: Observations) -> np.ndarray:
         return predict(self.layout, self.x, obs)
@@ -133,7 +186,8 @@ def fit(layout: Layout, obs: Observations, x_start: np.ndarray, free: np.ndarray
                         xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200 if method == "trf" else None,
                         **kwargs)
     x = unpack(sol.x)
-    return Fit(x=x, residuals=predict(layout, x, obs) - obs.xyz, nfev=int(sol.nfev))
+    return Fit(x=x, residuals_mm=predict(layout, x, obs) - obs.xyz, nfev=int(sol.nfev),
+               status=int(sol.status), message=str(sol.message))
 
 
 def initial_base_and_targets(layout: Layout, obs: Observations, x: np.ndarray | None = None) -> np.ndarray:
@@ -171,9 +225,10 @@ def initial_base_and_targets(layout: Layout, obs: Observations, x: np.ndarray | 
     return x
 
 
-def _std(layout, obs, x, free, lam, scale) -> tuple[np.ndarray, float]:
-    """Standard deviations from the final Jacobian and the residual variance
-    (sandwich form, so a prior shrinks them only as far as it really does)."""
+def _covariance(layout, obs, x, free, lam, scale) -> tuple[np.ndarray, float]:
+    """Covariance of the free entries of x (x's units) from the final Jacobian and the
+    residual variance (sandwich form, so a prior shrinks it only as far as it really does),
+    and the residual standard deviation per coordinate."""
     fun, jac, _ = _residual_fn(layout, obs, x, free, lam, scale)
     z = x[free]
     j = jac(z)
@@ -182,11 +237,9 @@ def _std(layout, obs, x, free, lam, scale) -> tuple[np.ndarray, float]:
     r = fun(z)[:n_data]
     dof = max(n_data - int(free.sum()), 1)
     s2 = float(r @ r) / dof
-    a = j.T @ j
-    cov = np.linalg.pinv(a) @ (jd.T @ jd) @ np.linalg.pinv(a) * s2
-    std = np.zeros(layout.size)
-    std[free] = np.sqrt(np.clip(np.diag(cov), 0, None))
-    return std, float(np.sqrt(s2))
+    a_inv = np.linalg.pinv(j.T @ j)
+    cov = a_inv @ (jd.T @ jd) @ a_inv * s2
+    return cov, float(np.sqrt(s2))
 
 
 def _f_scale(residuals: np.ndarray) -> float:
@@ -224,11 +277,11 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
     _, j0 = jacobian(layout, x0, obs)
     j0 = j0.reshape(-1, layout.size) * scale
     structural = identifiability.analyse(j0, nuisance, candidates)
-    f_scale = _f_scale(before.residuals)
+    f_scale = _f_scale(before.residuals_mm)
     # first pass over every structurally identifiable parameter: a noise estimate
     first = fit(layout, obs, x0, structural.keep, scale=scale, loss=loss, f_scale=f_scale)
     dof = max(3 * len(obs) - int(structural.keep.sum()), 1)
-    resid = first.residuals.ravel()
+    resid = first.residuals_mm.ravel()
     noise = float(np.sqrt(resid @ resid / dof)) if loss == "linear" else 1.4826 * float(
         np.median(np.abs(resid)))
     _, j1 = jacobian(layout, first.x, obs)
@@ -242,26 +295,121 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
     lam = 0.0
     if options.regularize == "none":
         free = noisy.keep
-        final = fit(layout, obs, x0, free, scale=scale, loss=loss, f_scale=f_scale)
     else:
         free = structural.keep
         lam, cv_curve = _choose_lambda(layout, obs, first, j1, free, scale, options, say)
-        final = fit(layout, obs, x0, free, lam=lam, scale=scale, loss=loss, f_scale=f_scale)
-    std, noise_final = _std(layout, obs, final.x, free, lam, scale)
     unident = tuple(n for i, n in enumerate(model.param_names) if candidates[i] and not free[i])
+
+    def refit(mask: np.ndarray) -> Fit:
+        return fit(layout, obs, x0, mask, lam=lam, scale=scale, loss=loss, f_scale=f_scale)
+
+    final = refit(free)
+    trust = _hold_untrustworthy(layout, obs, before, final, free, lam, scale, options, refit, say)
+    final, free = trust.fit, trust.free
+    std = np.zeros(layout.size)
+    std[free] = np.sqrt(np.clip(np.diag(trust.cov), 0, None))
     # estimated, but only as well as the prior allows: below the noise on their own
     weak = tuple(n for i, n in enumerate(model.param_names) if free[i] and not noisy.keep[i])
-    kept = j1[:, free]
-    sv = np.linalg.svd(kept, compute_uv=False)
+    sv = np.linalg.svd(j1[:, free], compute_uv=False)
+    message = final.message.rstrip(".")
+    if trust.held:
+        message += ("; held at nominal after the fit because the data cannot pin them down: "
+                    + ", ".join(h.name for h in trust.held))
+    if trust.uncertain:
+        message += "; beyond the trust bounds with nothing left to hold: " + ", ".join(trust.uncertain)
     return Identification(
         layout=layout, x=final.x, x_nominal=x0, free=free, std=std, unidentifiable=unident,
-        fixed=tuple(options.fixed), lam=float(lam), cv_curve=tuple(cv_curve),
-        residuals=final.residuals, residuals_nominal=before.residuals, noise_mm=noise_final,
+        held_implausible=trust.held, uncertain=trust.uncertain,
+        correlated=_correlated_groups(layout, obs, final.x, x0, free, trust.cov),
+        weakly_identifiable=weak, fixed=tuple(options.fixed), lam=float(lam), cv_curve=tuple(cv_curve),
+        residuals_mm=final.residuals_mm, residuals_nominal_mm=before.residuals_mm, noise_mm=trust.noise_mm,
+        first_pass_noise_mm=noise, structural_rank=structural.rank, noise_rank=noisy.rank,
         condition=float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf"),
-        seconds=time.perf_counter() - t0,
-        details={"structural_rank": structural.rank, "noise_rank": noisy.rank,
-                 "first_pass_noise_mm": noise, "weakly_identifiable": weak},
+        status=final.status, message=message, nfev=final.nfev, seconds=time.perf_counter() - t0,
     )
+
+
+@dataclass(frozen=True)
+class _Trusted:
+    fit: Fit
+    free: np.ndarray
+    cov: np.ndarray  # over the free entries of x
+    noise_mm: float
+    held: tuple[HeldParameter, ...]
+    uncertain: tuple[str, ...]
+
+
+def _hold_untrustworthy(layout, obs, before: Fit, final: Fit, free, lam, scale, options, refit,
+                        say) -> _Trusted:
+    """Hold at nominal, one at a time, the estimates a person could not trust; refit after each.
+
+    A kinematic parameter or target offset fails when its standard deviation exceeds the
+    bound for its kind or its value lies further from nominal than is plausible (target
+    offsets, which have no nominal, are measured from the nominal model's fit of them).
+    The estimate furthest past its bound is dealt with first: the kinematic parameter with
+    the largest share in the direction the data hardly sees (``identifiability.to_hold``) is
+    held and the fit repeated with the same prior weight, until every estimate passes.
+    A direction the data hardly sees is one whose move changes the predictions little at
+    poses like these, so holding it changes the held-out error little (and drops the noise
+    it carried), while the table then says only what the data supports.
+    Target offsets are never held (every calibration needs them); one still failing when
+    no kinematic parameter is left to hold for it is reported as uncertain.
+    """
+    free = free.copy()
+    ref = before.x  # nominal kinematics; base and targets as the nominal model fits them
+    # the plausible distance is widened to what the nominal model's own error allows
+    max_std, plausible = identifiability.trust_bounds(
+        layout.is_angle, scale, float(np.percentile(before.errors, 95)), options.max_std_mm,
+        np.deg2rad(options.max_std_deg), options.plausible_mm, np.deg2rad(options.plausible_deg))
+    checked = np.ones(layout.size, bool)
+    checked[layout.base] = False
+    held: list[HeldParameter] = []
+    uncertain: list[str] = []
+    while True:
+        cov, noise = _covariance(layout, obs, final.x, free, lam, scale)
+        idx = np.flatnonzero(free)
+        std = np.zeros(layout.size)
+        std[idx] = np.sqrt(np.clip(np.diag(cov), 0, None))
+        failing = identifiability.failures(layout.names, layout.is_angle, free & checked, final.x, ref, std,
+                                           max_std, plausible, set(uncertain))
+        if not failing:
+            return _Trusted(final, free, cov, noise, tuple(held), tuple(uncertain))
+        worst = max(failing, key=lambda f: f.ratio)
+        holdable = idx < layout.n_kin
+        f = int(np.searchsorted(idx, worst.index))
+        pick = identifiability.to_hold(cov / np.outer(scale[idx], scale[idx]), f, holdable, worst.spread)
+        if pick is None:
+            uncertain.append(layout.names[worst.index])
+            continue
+        j = int(idx[pick])
+        corr = identifiability.correlation(cov)[pick]
+        partners = tuple(layout.names[k] for n, k in enumerate(idx)
+                         if n != pick and abs(corr[n]) > identifiability.CORRELATED_R)
+        reason = worst.reason if j == worst.index else f"moved with {layout.names[worst.index]}: {worst.reason}"
+        free[j] = False
+        refitted = refit(free)
+        held.append(HeldParameter(
+            name=layout.names[j], reason=reason, value=float(final.x[j]), std=float(std[j]),
+            nominal=float(ref[j]), is_angle=bool(layout.is_angle[j]), partners=partners,
+            rms_rise_mm=refitted.rms_mm - final.rms_mm))
+        say(f"held {layout.names[j]} at nominal (fit gave {_human(final.x[j], layout.is_angle[j])} "
+            f"+- {_human(std[j], layout.is_angle[j])}): {reason}")
+        final = refitted
+
+
+def _correlated_groups(layout, obs, x, ref, free, cov) -> tuple[CorrelatedGroup, ...]:
+    """Estimates with |r| > CORRELATED_R, each group with what its joint move off nominal does
+    at the targets (rms over the calibration poses)."""
+    p = predict(layout, x, obs)
+
+    def effect_mm(members) -> float:
+        moved = x.copy()
+        moved[members] = ref[members]
+        return float(np.sqrt(np.mean(np.sum((p - predict(layout, moved, obs)) ** 2, axis=1))))
+
+    base = np.zeros(layout.size, bool)
+    base[layout.base] = True
+    return identifiability.correlated_groups(layout.names, np.flatnonzero(free), cov, base, effect_mm)
 
 
 def _choose_lambda(layout, obs, first: Fit, j_scaled, free, scale, options, say):
@@ -281,7 +429,7 @@ def _choose_lambda(layout, obs, first: Fit, j_scaled, free, scale, options, say)
     # the prior acts on kinematic parameters only, in scaled units (mm at the target)
     prior = (idx < layout.n_kin).astype(float)
     dev = prior * (first.x[idx] - layout.initial()[idx]) / scale[idx]
-    errs = crossval.one_step_heldout(j, first.residuals, folds, prior, dev, grid)
+    errs = crossval.one_step_heldout(j, first.residuals_mm, folds, prior, dev, grid)
     curve = [(float(lam), float(e)) for lam, e in zip(grid, errs.mean(axis=1))]
     best = min(curve, key=lambda c: c[1])
     say(f"cross-validation: lambda {best[0]:.3g}, held-out mean {best[1]:.3f} mm")

@@ -159,3 +159,22 @@ def test_linearised_cross_validation_matches_refitting_every_fold():
             refit = fit(result.layout, cal.subset(train), result.x_nominal, result.free, lam=lam)
             errs[test] = np.linalg.norm(predict(result.layout, refit.x, cal.subset(test)) - cal.xyz[test], axis=1)
         assert curve_err == pytest.approx(errs.mean(), rel=0.03), lam
+
+
+def test_result_reads_like_scipy_with_units_in_the_names(irb4600):
+    rng = np.random.default_rng(7)
+    arm = SimulatedArm(irb4600, rng)
+    cal = arm.measure(full_workspace(irb4600, 60, rng))
+    result = identify(irb4600, cal, IdentifyOptions(regularize="none"))
+    assert result.status in (1, 2, 3, 4) and result.success
+    assert "termination condition" in result.message
+    assert result.residuals_mm.shape == (60, 3) and result.residuals_nominal_mm.shape == (60, 3)
+    assert np.allclose(np.linalg.norm(result.residuals_mm, axis=1), result.errors(cal))
+    assert result.structural_rank >= result.noise_rank > 0 and result.first_pass_noise_mm > 0
+    assert result.weakly_identifiable == () and result.held_implausible == ()  # a well-posed campaign
+    assert set(result.held_at_nominal) == set(result.unidentifiable)
+    assert not hasattr(result, "details") and not hasattr(result, "residuals")
+    # the fit underneath says the same
+    refit = fit(result.layout, cal, result.x_nominal, result.free)
+    assert refit.status > 0 and refit.message and refit.residuals_mm.shape == (60, 3)
+    assert refit.rms_mm == pytest.approx(np.sqrt(np.mean(refit.errors**2)))
