@@ -47,7 +47,7 @@ def naive_seconds_per_candidate(model, case, finding, sample=3):
                                          "cart_basis": None if term.cart_basis is None else term.cart_basis[rows],
                                          "param_basis": None if not term.param_basis else
                                          {p: b[rows] for p, b in term.param_basis.items()}})
-            _fit_extended(base.layout, sub, geo.x, base.free, (sub_term,), base.noise_mm, 1.0)
+            _fit_extended(base.layout, sub, geo.x, base.free, (sub_term,), prior_mm=1.0)
     return (time.perf_counter() - t0) / max(len(terms), 1)
 
 

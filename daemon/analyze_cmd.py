@@ -2,14 +2,16 @@
 from __future__ import annotations
 
 import json
-import sys
 
 import numpy as np
 
+from ..config.robot_files import load_robot
 from ..routines.dataset import joint_velocities, read_measurements
 from ..solvers.analyze import AnalyzeOptions, Finding, Scored, analyze
 from ..solvers.effects import CAUSES, Context, approach_directions
-from ..config.robot_files import load_robot
+from .cli_common import UsageError, check_folds, print_progress
+
+MIN_MEASUREMENTS = 30
 
 
 def add_parser(sub):
@@ -21,8 +23,8 @@ def add_parser(sub):
     p.add_argument("--robot", required=True, help="robot model file (YAML) or shipped name")
     p.add_argument("--data", required=True, metavar="DATA.csv", help="measurement CSV, rows in measured order")
     p.add_argument("--report", metavar="DIR", help="write plots and a readable page of the finding here")
-    p.add_argument("--causes", nargs="+", choices=tuple(CAUSES), default=tuple(CAUSES),
-                   help="candidate causes to consider (default: all)")
+    p.add_argument("--causes", nargs="+", choices=tuple(CAUSES), default=tuple(CAUSES), metavar="CAUSE",
+                   help=f"candidate causes to consider (default: all of {', '.join(CAUSES)})")
     p.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
@@ -82,23 +84,19 @@ def finding_text(f: Finding, robot: str, n: int) -> str:
 
 
 def run(args) -> int:
-    from .cli import UsageError
-
-    say = lambda msg: print(f"cellcal: {msg}", file=sys.stderr, flush=True)  # noqa: E731
-    if args.folds < 2:
-        raise UsageError(f"--folds must be at least 2, got {args.folds}")
+    check_folds(args.folds)
     model = load_robot(args.robot)
     table = read_measurements(args.data, model.n_joints)
-    if len(table) < 30:
-        raise UsageError(f"{args.data}: {len(table)} measurements; the analysis needs at least 30")
+    if len(table) < MIN_MEASUREMENTS:
+        raise UsageError(f"{args.data}: {len(table)} measurements; the analysis needs at least {MIN_MEASUREMENTS}")
     obs = table.observations()
     finding = analyze(model, obs, _context(table), AnalyzeOptions(folds=args.folds, causes=tuple(args.causes)),
-                      progress=say)
+                      progress=print_progress)
     if args.report:
-        from .analysis_report import write_report
+        from .analysis_report import write_report  # matplotlib loads only when a report is asked for
 
         page = write_report(args.report, model, obs, finding, finding_text(finding, model.name, len(obs)))
-        say(f"report written to {page}")
+        print_progress(f"report written to {page}")
     if args.json:
         print(json.dumps(finding_json(finding, len(obs)), default=_jsonable))
     else:

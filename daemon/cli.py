@@ -13,25 +13,17 @@ import sys
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from ..routines.dataset import DatasetError, MeasurementTable, read_measurements
-from ..solvers.identify import LOSSES, IdentifyOptions, identify
-from .report import identification_json, identification_text
 from ..config.robot_files import ModelError, load_robot
-
-
-class UsageError(Exception):
-    """Bad usage or input detected after parsing; exit status 2."""
+from ..routines.dataset import DatasetError, MeasurementTable, read_measurements
+from ..solvers.identify import LOSSES, REGULARIZE, IdentifyOptions, identify
+from . import analyze_cmd, importers, sim_campaign, sim_cell
+from .cli_common import UsageError, check_folds, print_progress
+from .report import identification_json, identification_text
 
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # argparse's own errors: exit 2 with one line
         self.exit(2, f"{self.prog}: error: {message}\n")
-
-
-def _progress(enabled: bool):
-    if not enabled:
-        return lambda msg: None
-    return lambda msg: print(f"cellcal: {msg}", file=sys.stderr, flush=True)
 
 
 def _split(table: MeasurementTable, validate: MeasurementTable | None, path: str):
@@ -49,7 +41,6 @@ def _split(table: MeasurementTable, validate: MeasurementTable | None, path: str
 
 
 def cmd_identify(args) -> int:
-    say = _progress(True)
     model = load_robot(args.robot)
     table = read_measurements(args.data, model.n_joints)
     validate = read_measurements(args.validate, model.n_joints) if args.validate else None
@@ -59,8 +50,7 @@ def cmd_identify(args) -> int:
         if unknown:
             raise UsageError(f"{args.validate or args.data}: target(s) {', '.join(unknown)} do not occur "
                              "in the calibration rows, so their offsets are unknown")
-    if args.folds < 2:
-        raise UsageError(f"--folds must be at least 2, got {args.folds}")
+    check_folds(args.folds)
     bad = sorted(set(args.fix or ()) - set(model.param_names))
     if bad:
         raise UsageError(f"--fix: {', '.join(bad)} not a parameter of {model.name} "
@@ -79,7 +69,7 @@ def cmd_identify(args) -> int:
         val_obs = type(val_obs)(val_obs.q, val_obs.xyz,
                                 np.array([index[val.target_names[t]] for t in val.target]),
                                 cal.target_names)
-    result = identify(model, obs, options, progress=say)
+    result = identify(model, obs, options, progress=print_progress)
     if args.json:
         print(json.dumps(identification_json(result, obs, val_obs)))
     else:
@@ -99,7 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, metavar="CAL.csv", help="measurement CSV")
     p.add_argument("--validate", metavar="VAL.csv",
                    help="measurements to validate on (default: rows of --data marked split=val, if any)")
-    p.add_argument("--regularize", choices=("cv", "none"), default="cv",
+    p.add_argument("--regularize", choices=REGULARIZE, default="cv",
                    help="cv: L2 prior toward nominal, weight by k-fold cross-validation (default); "
                         "none: least squares over the identifiable parameters")
     p.add_argument("--loss", choices=LOSSES, default="linear",
@@ -112,18 +102,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=cmd_identify)
 
-    from .analyze_cmd import add_parser as add_analyze
-    from .sim_campaign import add_parser as add_sim_campaign
-    from .sim_campaign import add_sim_data_parser
-
-    from .importers import add_parser as add_import
-    from .sim_cell import add_parser as add_sim_cell
-
-    add_analyze(sub)
-    add_import(sub)
-    add_sim_campaign(sub)
-    add_sim_data_parser(sub)
-    add_sim_cell(sub)
+    analyze_cmd.add_parser(sub)
+    importers.add_parser(sub)
+    sim_campaign.add_parser(sub)
+    sim_campaign.add_sim_data_parser(sub)
+    sim_cell.add_parser(sub)
     return parser
 
 

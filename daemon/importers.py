@@ -13,6 +13,7 @@ from typing import Callable
 import numpy as np
 
 from ..routines.dataset import DatasetError, write_measurements
+from .cli_common import print_progress
 
 IMPORTERS: dict[str, tuple[Callable, str]] = {}
 _NUMBERS = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
@@ -69,9 +70,7 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    import sys
-
     fields = IMPORTERS[args.format][0](Path(args.source))
     write_measurements(args.out, comment=f"imported from {args.source} ({args.format})", **fields)
-    print(f"cellcal: wrote {args.out}: {len(fields['q_rad'])} rows", file=sys.stderr)
+    print_progress(f"wrote {args.out}: {len(fields['q_rad'])} rows")
     return 0

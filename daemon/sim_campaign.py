@@ -1,39 +1,54 @@
-"""``cellcal sim-campaign``: a laser-tracker calibration campaign on the simulated cell.
+"""Measurements from the simulated cell: ``cellcal sim-campaign`` and ``cellcal sim-data``.
 
-Plan poses on the nominal model (D-optimal choice from random candidates),
-measure them with the simulated arm and tracker, write the datasets to disk (the
-seam every solver is re-run from), identify from the file as ``cellcal identify``
-would, validate on fresh poses, and score the result against the simulation's
-hidden truth — which only this report reads, after the solver has finished.
+``sim-campaign`` runs a laser-tracker calibration campaign end to end: plan poses
+on the nominal model (D-optimal choice from random candidates), measure them with
+the simulated arm and tracker, write the datasets to disk (the seam every solver is
+re-run from), identify from the file as ``cellcal identify`` would, validate on
+fresh poses, and score the result against the simulation's hidden truth — which
+only this report reads, after the solver has finished.
+
+``sim-data`` writes a measurement CSV with physical effects of hidden size switched
+on (data for ``cellcal analyze``); their true sizes go to a separate truth file,
+never into the CSV.
 """
 from __future__ import annotations
 
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ..config.robot_files import load_robot
 from ..routines.dataset import read_measurements, write_measurements
 from ..sims.kinematic_arm import SimulatedArm
+from ..sims.physical_arm import CAUSE_IDS, HiddenEffect, PhysicalArm
 from ..sims.workspace import full_workspace
-from ..solvers.identify import IdentifyOptions, identify
+from ..solvers.identify import REGULARIZE, IdentifyOptions, identify
 from ..solvers.measurement_model import Observations, predict
 from ..solvers.pose_design import select_poses
+from .cli_common import UsageError, print_progress
 from .report import error_stats
-from ..config.robot_files import load_robot
+
+# trigger latency needs joint velocities at the triggers, which a static pose campaign has not
+SIM_DATA_CAUSES = tuple(c for c in CAUSE_IDS if c != "trigger_latency")
 
 
 def add_parser(sub):
     p = sub.add_parser("sim-campaign", help="simulated tracker campaign: plan, measure, identify, validate",
-                       description=__doc__.split("\n\n")[1].replace("\n", " "))
+                       description="Plan poses on the nominal model (D-optimal choice from random candidates), "
+                                   "measure them with the simulated arm and tracker, write the datasets to disk "
+                                   "(the seam every solver is re-run from), identify from the file as "
+                                   "cellcal identify would, validate on fresh poses, and score the result "
+                                   "against the simulation's hidden truth — which only this report reads, "
+                                   "after the solver has finished.")
     p.add_argument("--robot", default="ur10e", help="robot model file or shipped name (default ur10e)")
     p.add_argument("--poses", type=int, default=60, help="calibration poses to measure (default 60)")
     p.add_argument("--candidates", type=int, default=600,
                    help="random candidate configurations the poses are chosen from (default 600)")
     p.add_argument("--validate-poses", type=int, default=300, help="fresh validation poses (default 300)")
-    p.add_argument("--regularize", choices=("cv", "none"), default="cv")
+    p.add_argument("--regularize", choices=REGULARIZE, default="cv",
+                   help="as for cellcal identify (default cv)")
     p.add_argument("--seed", type=int, default=1, help="seed of the simulated cell's hidden errors and noise")
     p.add_argument("--out", default="out/sim-campaign", help="folder for cal.csv and val.csv")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -46,21 +61,18 @@ def _truth_error(arm: SimulatedArm, layout, x, obs: Observations) -> np.ndarray:
 
 
 def run(args) -> int:
-    say = lambda msg: print(f"cellcal: {msg}", file=sys.stderr, flush=True)  # noqa: E731
     if args.poses < 10 or args.candidates < args.poses or args.validate_poses < 1:
-        from .cli import UsageError
-
         raise UsageError("need --poses >= 10, --candidates >= --poses and --validate-poses >= 1")
     t0 = time.perf_counter()
     model = load_robot(args.robot)
     rng = np.random.default_rng(args.seed)
     arm = SimulatedArm(model, rng, target_offsets=[[0.0, 0.0, 100.0]])
-    say(f"simulated {model.name}: hidden errors up to 0.5 mm / 0.05 deg, tracker 15 um + 6 um/m, "
-        f"repeatability {arm.repeatability_mm} mm")
+    print_progress(f"simulated {model.name}: hidden errors up to 0.5 mm / 0.05 deg, tracker 15 um + 6 um/m, "
+                   f"repeatability {arm.repeatability_mm} mm")
 
     candidates = full_workspace(model, args.candidates, rng)
     design = select_poses(model, candidates, args.poses)
-    say(f"planned {args.poses} of {args.candidates} candidate poses (D-optimal, nominal model)")
+    print_progress(f"planned {args.poses} of {args.candidates} candidate poses (D-optimal, nominal model)")
     cal = arm.measure(candidates[design.chosen])
     val = arm.measure(full_workspace(model, args.validate_poses, rng))
 
@@ -69,11 +81,11 @@ def run(args) -> int:
     for name, obs in (("cal.csv", cal), ("val.csv", val)):
         write_measurements(out / name, q_rad=obs.q, xyz_mm=obs.xyz,
                            comment=f"{model.name}, simulated tracker campaign, seed {args.seed}")
-    say(f"wrote {out / 'cal.csv'} and {out / 'val.csv'}")
+    print_progress(f"wrote {out / 'cal.csv'} and {out / 'val.csv'}")
 
     cal_obs = read_measurements(out / "cal.csv", model.n_joints).observations()
     val_obs = read_measurements(out / "val.csv", model.n_joints).observations()
-    result = identify(model, cal_obs, IdentifyOptions(regularize=args.regularize), progress=say)
+    result = identify(model, cal_obs, IdentifyOptions(regularize=args.regularize), progress=print_progress)
 
     floor = arm.oracle_errors(val_obs)
     rows = {
@@ -117,38 +129,38 @@ def add_sim_data_parser(sub):
                                    "effects of hidden size switched on, and write the measurement CSV "
                                    "(rows in measured order, approach directions implied). The effect's "
                                    "true size goes to a separate truth file, never into the CSV.")
-    p.add_argument("--robot", default="ur10e")
-    p.add_argument("--poses", type=int, default=300)
+    p.add_argument("--robot", default="ur10e", help="robot model file or shipped name (default ur10e)")
+    p.add_argument("--poses", type=int, default=300, help="random poses to measure (default 300)")
     p.add_argument("--effect", action="append", default=[], metavar="CAUSE[:JOINT]",
-                   help="hidden effect, e.g. joint_compliance:2 or thermal_drift (joint 1-based); repeatable")
+                   help="hidden effect, e.g. joint_compliance:2 or thermal_drift (joint 1-based); repeatable; "
+                        f"causes: {', '.join(SIM_DATA_CAUSES)}")
     p.add_argument("--rms-mm", type=float, default=0.3, help="TCP displacement of each effect, rms (default 0.3)")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("-o", "--out", required=True, metavar="OUT.csv")
+    p.add_argument("--seed", type=int, default=1, help="seed of the hidden sizes, poses and noise (default 1)")
+    p.add_argument("-o", "--out", required=True, metavar="OUT.csv",
+                   help="measurement CSV to write; the hidden truth goes beside it, to OUT.csv.truth.json")
     p.set_defaults(func=run_sim_data)
 
 
-def run_sim_data(args) -> int:
-    from ..sims.physical_arm import CAUSE_IDS, HiddenEffect, PhysicalArm
-    from .cli import UsageError
+def _hidden_effect(spec: str, rms_mm: float) -> HiddenEffect:
+    """--effect CAUSE[:JOINT], joint 1-based."""
+    cause, _, joint = spec.partition(":")
+    if cause not in SIM_DATA_CAUSES:
+        raise UsageError(f"--effect {spec}: cause must be one of {', '.join(SIM_DATA_CAUSES)}")
+    if cause != "thermal_drift" and not joint.isdigit():
+        raise UsageError(f"--effect {spec}: give the joint, e.g. {cause}:2")
+    return HiddenEffect(cause, int(joint) - 1 if joint else None, rms_mm=rms_mm)
 
-    effects = []
-    for spec in args.effect:
-        cause, _, joint = spec.partition(":")
-        if cause not in CAUSE_IDS or cause == "trigger_latency":
-            raise UsageError(f"--effect {spec}: cause must be one of "
-                             f"{', '.join(c for c in CAUSE_IDS if c != 'trigger_latency')}")
-        if cause != "thermal_drift" and not joint.isdigit():
-            raise UsageError(f"--effect {spec}: give the joint, e.g. {cause}:2")
-        effects.append(HiddenEffect(cause, int(joint) - 1 if joint else None, rms_mm=args.rms_mm))
+
+def run_sim_data(args) -> int:
+    effects = [_hidden_effect(spec, args.rms_mm) for spec in args.effect]
     model = load_robot(args.robot)
     rng = np.random.default_rng(args.seed)
     arm = PhysicalArm(model, rng, effects)
-    run = arm.campaign(full_workspace(model, args.poses, rng))
-    write_measurements(args.out, q_rad=run.obs.q, xyz_mm=run.obs.xyz, t_s=run.ctx.t_s, temp_c=run.ctx.temp_c,
-                       comment=f"{model.name}, simulated, seed {args.seed}")
+    campaign = arm.campaign(full_workspace(model, args.poses, rng))
+    write_measurements(args.out, q_rad=campaign.obs.q, xyz_mm=campaign.obs.xyz, t_s=campaign.ctx.t_s,
+                       temp_c=campaign.ctx.temp_c, comment=f"{model.name}, simulated, seed {args.seed}")
     truth = {e.cause: {"joint": None if e.joint is None else e.joint + 1, "size": arm.hidden_size(e)}
              for e in effects}
     Path(str(args.out) + ".truth.json").write_text(json.dumps(truth, indent=1) + "\n")
-    print(f"cellcal: wrote {args.out} ({args.poses} rows); hidden truth in {args.out}.truth.json",
-          file=sys.stderr)
+    print_progress(f"wrote {args.out} ({args.poses} rows); hidden truth in {args.out}.truth.json")
     return 0

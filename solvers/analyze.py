@@ -2,26 +2,31 @@
 
 1. Fit the rigid geometric model (``identify``): the baseline.
 2. For every candidate term of every named cause (``effects``), fit geometry and
-   term jointly; the term's parameters are estimated only where the data can
-   separate them from the geometry (same identifiability rule as ``identify``).
+   term jointly, linearised at the geometric fit (``LinearisedScorer``); the
+   term's parameters are estimated only where the data can separate them from
+   the geometry (same identifiability rule as ``identify``).
 3. Score baseline and candidates on held-out data: grouped k-fold
-   cross-validation, neighbouring configurations kept in one fold.
+   cross-validation, neighbouring configurations kept in one fold
+   (``score_candidates``).
 4. Name the best candidate only when it beats the baseline by MIN_GAIN and the
-   best candidate of any other cause by MIN_MARGIN; else ``none``.
-5. With the named term in the model, rank the rest again: a second effect, and a
-   fit of both.
+   best candidate of any other cause by MIN_MARGIN; else ``none``
+   (``name_cause``, which also settles near-ties).
+5. With the named term in the model, rank the rest again: a second effect
+   (``find_second_effect``), and a fit of both. The named term, and the pair,
+   are then fitted in full.
 """
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
 
 from . import crossval, identifiability
 from .effects import CAUSES, Context, Term
-from .identify import IdentifyOptions, identify
+from .identify import Identification, IdentifyOptions, identify
 from .measurement_model import Layout, Observations, jacobian, predict
 
 MIN_GAIN = 0.10  # held-out mean error must drop by 10% against geometry alone
@@ -80,126 +85,14 @@ class Finding:
         return 100.0 * (1.0 - self.extended.heldout_mean_mm / self.baseline.heldout_mean_mm)
 
 
-def _combine(terms: tuple[Term, ...], n_rows: int, n_joints: int):
-    """Stack the bases of several terms into one joint, one Cartesian and one parameter basis."""
-    m = sum(t.size for t in terms)
-    jb = np.zeros((n_rows, n_joints, m))
-    cb = np.zeros((n_rows, 3, m))
-    pb: dict[int, np.ndarray] = {}
-    col = 0
-    for t in terms:
-        if t.joint_basis is not None:
-            jb[:, :, col: col + t.size] = t.joint_basis
-        if t.cart_basis is not None:
-            cb[:, :, col: col + t.size] = t.cart_basis
-        for p, basis in (t.param_basis or {}).items():
-            pb.setdefault(p, np.zeros((n_rows, m)))[:, col: col + t.size] += basis
-        col += t.size
-    return jb, cb, _stack(pb) if pb else None
+@dataclass(frozen=True)
+class Naming:
+    """What the naming rule decided."""
 
-
-def _stack(pb: dict):
-    """Parameter bases as (parameter indices, (N, P, m)) for one matrix product."""
-    params = list(pb)
-    return params, np.stack([pb[p] for p in params], axis=1)
-
-
-def _param_columns(jx_full: np.ndarray, stacked) -> np.ndarray:
-    """d p / d theta of parameter-space terms: sum_p (d p / d k_p) * basis_p."""
-    params, basis = stacked
-    return np.matmul(jx_full[:, :, params], basis)
-
-
-class _Extended:
-    """Geometry (free entries of x) plus linear effect terms, on one layout."""
-
-    def __init__(self, layout: Layout, obs: Observations, x: np.ndarray, free: np.ndarray,
-                 terms: tuple[Term, ...]):
-        self.layout, self.obs, self.x0, self.free, self.terms = layout, obs, x, free, terms
-        self.jb, self.cb, self.pb = _combine(terms, len(obs), layout.model.n_joints)
-        self.m = self.jb.shape[2]
-
-    def _obs(self, theta):
-        q = self.obs.q + np.einsum("njm,m->nj", self.jb, theta)
-        return Observations(q, self.obs.xyz, self.obs.target, self.obs.target_names)
-
-    def unpack(self, z):
-        x = self.x0.copy()
-        x[self.free] = z[: self.free.sum()]
-        return x, z[self.free.sum():]
-
-    def residuals(self, z):
-        x, theta = self.unpack(z)
-        obs = self._obs(theta)
-        p = predict(self.layout, x, obs) + np.einsum("nim,m->ni", self.cb, theta)
-        if self.pb:
-            _, jx = jacobian(self.layout, x, obs)
-            p = p + np.einsum("nim,m->ni", _param_columns(jx, self.pb), theta)
-        return p - self.obs.xyz
-
-    def jac(self, z):
-        x, theta = self.unpack(z)
-        _, jx, jq = jacobian(self.layout, x, self._obs(theta), with_joints=True)
-        jt = np.einsum("nij,njm->nim", jq, self.jb) + self.cb
-        if self.pb:
-            jt = jt + _param_columns(jx, self.pb)
-        return np.concatenate([jx[:, :, self.free], jt], axis=2)
-
-
-def _fit_extended(layout, obs, x, free, terms, noise_mm, prior_mm):
-    """Fit geometry and terms; returns (x, theta (full, 0 where not estimable), J, residuals)."""
-    model = _Extended(layout, obs, x, free, terms)
-    z0 = np.concatenate([x[free], np.zeros(model.m)])
-    j0 = model.jac(z0)
-    # which term parameters can this data separate from the geometry? (scaled: mm per unit)
-    col_norm = np.sqrt(np.mean(j0.reshape(-1, j0.shape[2]) ** 2, axis=0) * 3)
-    col_norm[col_norm == 0] = 1.0
-    nuisance = np.r_[np.ones(int(free.sum()), bool), np.zeros(model.m, bool)]
-    keep = identifiability.analyse(j0.reshape(-1, j0.shape[2]) / col_norm, nuisance, ~nuisance,
-                                   noise_mm=None, prior_mm=prior_mm).keep
-    keep[: int(free.sum())] = True
-    fixed_terms = ~keep[int(free.sum()):]
-
-    def fun(zk):
-        z = z0.copy()
-        z[keep] = zk
-        return model.residuals(z).ravel()
-
-    def jac(zk):
-        z = z0.copy()
-        z[keep] = zk
-        return model.jac(z).reshape(-1, len(z0))[:, keep]
-
-    sol = least_squares(fun, z0[keep], jac=jac, method="lm", x_scale=1.0 / col_norm[keep],
-                        xtol=1e-10, ftol=1e-10)
-    z = z0.copy()
-    z[keep] = sol.x
-    xf, theta = model.unpack(z)
-    theta = np.where(fixed_terms, 0.0, theta)
-    j = model.jac(z)[:, :, keep]
-    return xf, theta, j, model.residuals(z), model
-
-
-def _linear_columns(term: Term, jq: np.ndarray, model, geo, obs, jx_full=None) -> np.ndarray:
-    """d p / d theta of a term at the geometric fit (N, 3, m)."""
-    if term.model is not None:  # one new rigid parameter: its Jacobian column in the new layout
-        layout = Layout(term.model, obs.target_names)
-        x = _embed(geo.x, geo.layout.n_kin, term.model.n_params - model.n_params)
-        _, j = jacobian(layout, x, obs)
-        return j[:, :, model.n_params: term.model.n_params]
-    cols = np.zeros((len(obs), 3, term.size))
-    if term.joint_basis is not None:
-        cols += np.einsum("nij,njm->nim", jq, term.joint_basis)
-    if term.cart_basis is not None:
-        cols += term.cart_basis
-    if term.param_basis:
-        cols += _param_columns(jx_full, _stack(term.param_basis))
-    return cols
-
-
-def _embed(x: np.ndarray, n_kin: int, extra: int, fill=0.0) -> np.ndarray:
-    """x of a layout with `extra` more kinematic parameters appended (set to fill)."""
-    return np.concatenate([x[:n_kin], np.full(extra, fill, dtype=x.dtype), x[n_kin:]])
+    named: Scored | None  # None: the answer is ``none``
+    candidates: tuple[Scored, ...]  # best first; a simpler explanation that wins a tie goes first
+    margin: float  # how much higher (fraction) the best other cause's held-out error is
+    notes: tuple[str, ...] = ()
 
 
 def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = AnalyzeOptions(),
@@ -210,130 +103,182 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     effect here is a small perturbation of it); the named one, and the pair when
     a second effect shows, are then fitted in full.
     """
-    t0 = time.perf_counter()
+    started = time.perf_counter()
     say = progress or (lambda msg: None)
     folds = crossval.fold_ids(obs.q, options.folds, options.seed, NEIGHBOUR_RAD)
-    geo = _geometric_baseline(model, obs, folds, options)
-    noise = geo.noise_mm
-    _, jx_full, jq = jacobian(geo.layout, geo.x, obs, with_joints=True)
-    jx = jx_full[:, :, geo.free]
-    r0 = geo.residuals
-    geo_norm = np.sqrt(np.mean(jx.reshape(-1, jx.shape[2]) ** 2, axis=0) * 3)
-    geo_norm[geo_norm == 0] = 1.0
-    geo_basis = identifiability.nuisance_basis(jx.reshape(-1, jx.shape[2]) / geo_norm,
-                                               np.ones(jx.shape[2], bool))
-    say(f"geometric model: {len(obs)} measurements, residual {np.linalg.norm(r0, axis=1).mean():.3f} mm mean")
+    geometric_fit = _geometric_baseline(model, obs, folds, options)
+    scorer = LinearisedScorer(model, geometric_fit, obs, folds, options.prior_mm)
+    say(f"geometric model: {len(obs)} measurements, residual "
+        f"{np.linalg.norm(scorer.baseline_residuals_mm, axis=1).mean():.3f} mm mean")
 
-    column_cache: dict[int, np.ndarray] = {}
+    baseline = Scored(label="geometry only", cause="none", where={}, heldout_errors=scorer.heldout_errors_mm(()),
+                      theta=np.zeros(0), magnitude={}, x=geometric_fit.x, residuals=scorer.baseline_residuals_mm)
+    say(f"held-out mean, geometry only: {baseline.heldout_mean_mm:.3f} mm")
 
-    def columns(term: Term) -> np.ndarray:
-        if id(term) not in column_cache:
-            column_cache[id(term)] = _linear_columns(term, jq, model, geo, obs, jx_full)
-        return column_cache[id(term)]
+    terms = [term for cause in options.causes
+             for term in CAUSES[cause].terms(model, geometric_fit.layout, geometric_fit.x, obs, ctx)]
+    candidates = score_candidates(terms, scorer)
+    say(f"scored {len(candidates)} candidates")
+    naming = name_cause(candidates, baseline, scorer)
 
-    def linear_score(terms: tuple[Term, ...]):
-        cols = [columns(t) for t in terms]
-        jt = np.concatenate(cols, axis=2) if cols else np.zeros((len(obs), 3, 0))
-        j = np.concatenate([jx, jt], axis=2)
+    extended, second, both = baseline, None, None
+    if naming.named is not None:
+        named = naming.named
+        second = find_second_effect(named, terms, naming.candidates, scorer)
+        if second is not None:
+            both = _fit_in_full(model, geometric_fit, obs, folds, named.terms + second.terms, options.prior_mm,
+                                f"{named.label} + {second.label}")
+        extended = _fit_in_full(model, geometric_fit, obs, folds, named.terms, options.prior_mm, named.label)
+    say(f"analysis done in {time.perf_counter() - started:.1f} s")
+    return Finding(
+        cause=extended.cause, where=extended.where, magnitude=extended.magnitude, baseline=baseline,
+        extended=extended, candidates=naming.candidates, margin=float(naming.margin), second=second, both=both,
+        seconds=time.perf_counter() - started, notes=naming.notes)
+
+
+# -- scoring: held-out errors on the model linearised at the geometric fit ----------------------------------
+
+
+class LinearisedScorer:
+    """Held-out errors of geometry plus effect terms, one Gauss-Newton step from the geometric fit.
+
+    A term's parameters enter only where this data can separate them from the
+    geometry; each term's Jacobian columns are computed once and reused.
+    """
+
+    def __init__(self, model, geometric_fit: Identification, obs: Observations, folds: np.ndarray,
+                 prior_mm: float):
+        self.model, self.geometric_fit, self.obs, self.folds, self.prior_mm = model, geometric_fit, obs, folds, prior_mm
+        self.baseline_residuals_mm = geometric_fit.residuals_mm
+        _, self.jacobian_x, self.jacobian_q = jacobian(geometric_fit.layout, geometric_fit.x, obs, with_joints=True)
+        self.geometry_columns = self.jacobian_x[:, :, geometric_fit.free]
+        flat = self.geometry_columns.reshape(-1, self.n_geometry)
+        self.geometry_basis = identifiability.nuisance_basis(flat / _column_scale(flat),
+                                                             np.ones(self.n_geometry, bool))
+        self._term_columns: dict[int, np.ndarray] = {}
+
+    @property
+    def n_geometry(self) -> int:
+        return self.geometry_columns.shape[2]
+
+    def heldout_errors_mm(self, terms: tuple[Term, ...]) -> np.ndarray:
+        """(N,) held-out error of each measurement with geometry and these terms."""
+        columns = [self.term_columns(t) for t in terms]
+        term_columns = np.concatenate(columns, axis=2) if columns else np.zeros((len(self.obs), 3, 0))
+        n_theta = term_columns.shape[2]
+        j = np.concatenate([self.geometry_columns, term_columns], axis=2)
         flat = j.reshape(-1, j.shape[2])
-        norm = np.sqrt(np.mean(flat**2, axis=0) * 3)
-        norm[norm == 0] = 1.0
-        nuisance = np.r_[np.ones(jx.shape[2], bool), np.zeros(jt.shape[2], bool)]
-        basis = (geo_basis[0], np.r_[geo_basis[1], np.zeros(jt.shape[2], bool)])
-        keep = identifiability.analyse(flat / norm, nuisance, ~nuisance, noise_mm=None,
-                                       prior_mm=options.prior_mm, basis=basis, with_condition=False).keep
-        keep[: jx.shape[2]] = True
-        errors = crossval.one_step_heldout(j[:, :, keep], r0, folds)[0]
-        return errors
+        geometry = np.r_[np.ones(self.n_geometry, bool), np.zeros(n_theta, bool)]
+        basis = (self.geometry_basis[0], np.r_[self.geometry_basis[1], np.zeros(n_theta, bool)])
+        estimated = identifiability.analyse(flat / _column_scale(flat), geometry, ~geometry, noise_mm=None,
+                                            prior_mm=self.prior_mm, basis=basis, with_condition=False).keep
+        estimated[: self.n_geometry] = True
+        return crossval.one_step_heldout(j[:, :, estimated], self.baseline_residuals_mm, self.folds)[0]
 
-    def nested(inner: Term, outer: Term) -> bool:
+    def is_nested(self, inner: Term, outer: Term) -> bool:
         """Does geometry + outer span every column of inner? (Then outer explains nothing
         that inner cannot, wherever the two tie.)"""
-        a = np.concatenate([jx, columns(outer)], axis=2)
+        a = np.concatenate([self.geometry_columns, self.term_columns(outer)], axis=2)
         a = a.reshape(-1, a.shape[2])
-        b = columns(inner).reshape(len(a), -1)
+        b = self.term_columns(inner).reshape(len(a), -1)
         coef = np.linalg.lstsq(a, b, rcond=None)[0]
         return bool(np.linalg.norm(a @ coef - b) <= NESTED_RTOL * np.linalg.norm(b))
 
-    baseline_errors = linear_score(())
-    baseline = Scored("geometry only", "none", {}, baseline_errors, np.zeros(0), {}, geo.x, (), r0)
-    say(f"held-out mean, geometry only: {baseline.heldout_mean_mm:.3f} mm")
+    def term_columns(self, term: Term) -> np.ndarray:
+        """d p / d theta of a term at the geometric fit (N, 3, m)."""
+        if id(term) not in self._term_columns:
+            self._term_columns[id(term)] = self._linear_columns(term)
+        return self._term_columns[id(term)]
 
-    terms = [t for cid in options.causes for t in CAUSES[cid].terms(model, geo.layout, geo.x, obs, ctx)]
-    candidates = [Scored(t.label(), t.cause, t.where, linear_score((t,)), np.zeros(t.size), {}, geo.x, (t,))
-                  for t in terms]
-    candidates.sort(key=lambda s: s.heldout_mean_mm)
-    _prefer_single(candidates, lambda c: c.heldout_mean_mm, lambda c: c.terms[0])
-    say(f"scored {len(candidates)} candidates")
-    e0 = baseline.heldout_mean_mm
-    notes = []
-    margin = 0.0
-    named = None
-    if candidates:
-        best = candidates[0]
-        gain = 1.0 - best.heldout_mean_mm / e0
-        others = [c for c in candidates if c.cause != best.cause]
-        margin = (others[0].heldout_mean_mm / best.heldout_mean_mm - 1.0) if others else 1.0
-        if gain < MIN_GAIN:
-            notes.append(f"best candidate {best.label} gains {100 * gain:.1f}% on held-out data, "
-                         f"below the {100 * MIN_GAIN:.0f}% needed to name it")
-        elif margin < MIN_MARGIN:
-            # two causes explain about as much: the same structure (ambiguous), two effects, or
-            # one explanation contained in the other (then the smaller one is the answer)?
-            pair = linear_score((best.terms + others[0].terms)).mean()
-            small, large = sorted((best, others[0]), key=lambda c: sum(t.size for t in c.terms))
-            if (1.0 - small.heldout_mean_mm / e0 >= MIN_GAIN and small.terms[0].size < large.terms[0].size
-                    and nested(small.terms[0], large.terms[0])):
-                named = small
-                candidates.insert(0, candidates.pop(candidates.index(small)))
-                notes.append(f"{large.label} fits about as well only through terms that are the same as "
-                             f"{small.label}; the simpler explanation is named")
-            elif pair < (1.0 - MIN_GAIN) * min(best.heldout_mean_mm, others[0].heldout_mean_mm):
-                named = best
-                notes.append(f"{best.label} and {others[0].label} are both present: together they "
-                             f"reach {pair:.4f} mm held-out")
-            else:
-                notes.append(f"{best.label} and {others[0].label} explain the data about equally well "
-                             f"(held-out errors {100 * margin:.1f}% apart, {100 * MIN_MARGIN:.0f}% needed)")
-        else:
-            named = best
-    second = both = None
-    if named is not None:
-        # with the named effect in the model, is there a second one?
-        pairs = [(linear_score(named.terms + (t,)), t) for t in terms if t.cause != named.cause]
-        pairs.sort(key=lambda p: p[0].mean())
-        _prefer_single(pairs, lambda p: p[0].mean(), lambda p: p[1])
-        if pairs and pairs[0][0].mean() < (1.0 - MIN_GAIN) * named.heldout_mean_mm:
-            second = next(c for c in candidates if c.terms == (pairs[0][1],))
-            both = _full_fit(model, geo, obs, folds, named.terms + second.terms, noise, options,
-                             f"{named.label} + {second.label}")
-        named = _full_fit(model, geo, obs, folds, named.terms, noise, options, named.label)
-    say(f"analysis done in {time.perf_counter() - t0:.1f} s")
-    extended = named or baseline
-    return Finding(
-        cause=named.cause if named else "none", where=named.where if named else {},
-        magnitude=named.magnitude if named else {}, baseline=baseline, extended=extended,
-        candidates=tuple(candidates), margin=float(margin), second=second, both=both,
-        seconds=time.perf_counter() - t0, notes=tuple(notes))
+    def _linear_columns(self, term: Term) -> np.ndarray:
+        fit, obs = self.geometric_fit, self.obs
+        if term.model is not None:  # one new rigid parameter: its Jacobian column in the new layout
+            layout = Layout(term.model, obs.target_names)
+            x = _embed(fit.x, fit.layout.n_kin, term.model.n_params - self.model.n_params)
+            _, j = jacobian(layout, x, obs)
+            return j[:, :, self.model.n_params: term.model.n_params]
+        columns = np.zeros((len(obs), 3, term.size))
+        if term.joint_basis is not None:
+            columns += np.einsum("nij,njm->nim", self.jacobian_q, term.joint_basis)
+        if term.cart_basis is not None:
+            columns += term.cart_basis
+        if term.param_basis:
+            columns += _param_columns(self.jacobian_x, _stack_param_bases(term.param_basis))
+        return columns
 
 
-def _geometric_baseline(model, obs, folds, options):
-    """The geometric fit to compare against: the parameters above the noise, or every
-    structurally identifiable one, whichever predicts held-out data better. (When an
-    unmodelled effect dominates the residual, the noise criterion is too strict.)"""
-    above_noise = identify(model, obs, IdentifyOptions(regularize="none", prior_mm=options.prior_mm))
-    structural = identify(model, obs, IdentifyOptions(regularize="cv", prior_mm=options.prior_mm))
-    if np.array_equal(above_noise.free, structural.free):
-        return above_noise
-
-    def heldout(result):
-        _, j = jacobian(result.layout, result.x, obs)
-        return crossval.one_step_heldout(j[:, :, result.free], result.residuals, folds)[0].mean()
-
-    return min((above_noise, structural), key=heldout)
+def score_candidates(terms: Sequence[Term], scorer: LinearisedScorer) -> list[Scored]:
+    """Each term scored alone with the geometry; best (lowest held-out mean) first."""
+    x = scorer.geometric_fit.x
+    ranked = [Scored(label=t.label(), cause=t.cause, where=t.where, heldout_errors=scorer.heldout_errors_mm((t,)),
+                     theta=np.zeros(t.size), magnitude={}, x=x, terms=(t,))
+              for t in terms]
+    ranked.sort(key=lambda s: s.heldout_mean_mm)
+    _prefer_single_place(ranked, lambda c: c.heldout_mean_mm, lambda c: c.terms[0])
+    return ranked
 
 
-def _prefer_single(ranked: list, error, term) -> None:
+# -- naming: which cause, if any, the data supports ---------------------------------------------------------
+
+
+def name_cause(candidates: Sequence[Scored], baseline: Scored, scorer: LinearisedScorer) -> Naming:
+    """The naming rule over candidates ranked best first.
+
+    The best candidate is named when it beats geometry alone by MIN_GAIN and the
+    best candidate of every other cause by MIN_MARGIN. Below MIN_GAIN the answer
+    is ``none``; within MIN_MARGIN the tie is settled by ``_settle_tie``.
+    """
+    if not candidates:
+        return Naming(named=None, candidates=(), margin=0.0)
+    best = candidates[0]
+    gain = 1.0 - best.heldout_mean_mm / baseline.heldout_mean_mm
+    others = [c for c in candidates if c.cause != best.cause]
+    margin = (others[0].heldout_mean_mm / best.heldout_mean_mm - 1.0) if others else 1.0
+    if gain < MIN_GAIN:
+        note = (f"best candidate {best.label} gains {100 * gain:.1f}% on held-out data, "
+                f"below the {100 * MIN_GAIN:.0f}% needed to name it")
+        return Naming(named=None, candidates=tuple(candidates), margin=margin, notes=(note,))
+    if margin >= MIN_MARGIN:
+        return Naming(named=best, candidates=tuple(candidates), margin=margin)
+    return _settle_tie(best, others[0], candidates, baseline, margin, scorer)
+
+
+def _settle_tie(best: Scored, runner_up: Scored, candidates: Sequence[Scored], baseline: Scored, margin: float,
+                scorer: LinearisedScorer) -> Naming:
+    """Two causes explain about as much. One explanation contained in the other: the
+    simpler one is named. Two effects (together they beat either by MIN_GAIN): the best
+    is named. Else the same structure, ambiguous: ``none``."""
+    ranked = list(candidates)
+    simpler, larger = sorted((best, runner_up), key=lambda c: sum(t.size for t in c.terms))
+    if (1.0 - simpler.heldout_mean_mm / baseline.heldout_mean_mm >= MIN_GAIN
+            and simpler.terms[0].size < larger.terms[0].size and scorer.is_nested(simpler.terms[0], larger.terms[0])):
+        ranked.insert(0, ranked.pop(ranked.index(simpler)))
+        note = (f"{larger.label} fits about as well only through terms that are the same as "
+                f"{simpler.label}; the simpler explanation is named")
+        return Naming(named=simpler, candidates=tuple(ranked), margin=margin, notes=(note,))
+    pair_mean_mm = scorer.heldout_errors_mm(best.terms + runner_up.terms).mean()
+    if pair_mean_mm < (1.0 - MIN_GAIN) * min(best.heldout_mean_mm, runner_up.heldout_mean_mm):
+        note = (f"{best.label} and {runner_up.label} are both present: together they "
+                f"reach {pair_mean_mm:.4f} mm held-out")
+        return Naming(named=best, candidates=tuple(ranked), margin=margin, notes=(note,))
+    note = (f"{best.label} and {runner_up.label} explain the data about equally well "
+            f"(held-out errors {100 * margin:.1f}% apart, {100 * MIN_MARGIN:.0f}% needed)")
+    return Naming(named=None, candidates=tuple(ranked), margin=margin, notes=(note,))
+
+
+def find_second_effect(named: Scored, terms: Sequence[Term], candidates: Sequence[Scored],
+                       scorer: LinearisedScorer) -> Scored | None:
+    """With the named effect in the model, the candidate of another cause that lowers the
+    held-out mean by MIN_GAIN more, or None."""
+    with_named = [(scorer.heldout_errors_mm(named.terms + (t,)).mean(), t) for t in terms if t.cause != named.cause]
+    with_named.sort(key=lambda pair: pair[0])
+    _prefer_single_place(with_named, lambda pair: pair[0], lambda pair: pair[1])
+    if not with_named or with_named[0][0] >= (1.0 - MIN_GAIN) * named.heldout_mean_mm:
+        return None
+    return next(c for c in candidates if c.terms == (with_named[0][1],))
+
+
+def _prefer_single_place(ranked: list, error, term) -> None:
     """Parsimony, in place: a term spanning several joints must beat the best single-place
     term of its cause by MULTI_GAIN, else the single place goes first (it says *where*)."""
     if not ranked:
@@ -344,42 +289,194 @@ def _prefer_single(ranked: list, error, term) -> None:
         ranked.insert(0, ranked.pop(singles[0]))
 
 
-def _full_fit(model, geo, obs, folds, terms: tuple[Term, ...], noise, options, label) -> Scored:
+# -- fits: the geometric baseline, and geometry plus terms fitted in full -----------------------------------
+
+
+def _geometric_baseline(model, obs, folds, options) -> Identification:
+    """The geometric fit to compare against: the parameters above the noise, or every
+    structurally identifiable one, whichever predicts held-out data better. (When an
+    unmodelled effect dominates the residual, the noise criterion is too strict.)"""
+    above_noise = identify(model, obs, IdentifyOptions(regularize="none", prior_mm=options.prior_mm))
+    structural = identify(model, obs, IdentifyOptions(regularize="cv", prior_mm=options.prior_mm))
+    if np.array_equal(above_noise.free, structural.free):
+        return above_noise
+
+    def heldout_mean_mm(fit: Identification) -> float:
+        _, j = jacobian(fit.layout, fit.x, obs)
+        return crossval.one_step_heldout(j[:, :, fit.free], fit.residuals_mm, folds)[0].mean()
+
+    return min((above_noise, structural), key=heldout_mean_mm)
+
+
+class _TermBases(NamedTuple):
+    """Several terms' bases side by side, one column per term parameter (m in all)."""
+
+    joint: np.ndarray  # (N, nj, m)
+    cartesian: np.ndarray  # (N, 3, m)
+    param: tuple | None  # (kinematic parameter indices, (N, P, m)), or None without parameter-space terms
+
+
+def _combine_bases(terms: tuple[Term, ...], n_rows: int, n_joints: int) -> _TermBases:
+    m = sum(t.size for t in terms)
+    joint = np.zeros((n_rows, n_joints, m))
+    cartesian = np.zeros((n_rows, 3, m))
+    param: dict[int, np.ndarray] = {}
+    col = 0
+    for t in terms:
+        if t.joint_basis is not None:
+            joint[:, :, col: col + t.size] = t.joint_basis
+        if t.cart_basis is not None:
+            cartesian[:, :, col: col + t.size] = t.cart_basis
+        for p, basis in (t.param_basis or {}).items():
+            param.setdefault(p, np.zeros((n_rows, m)))[:, col: col + t.size] += basis
+        col += t.size
+    return _TermBases(joint, cartesian, _stack_param_bases(param) if param else None)
+
+
+def _stack_param_bases(param_bases: dict):
+    """Parameter bases as (parameter indices, (N, P, m)) for one matrix product."""
+    params = list(param_bases)
+    return params, np.stack([param_bases[p] for p in params], axis=1)
+
+
+def _param_columns(jacobian_x: np.ndarray, stacked) -> np.ndarray:
+    """d p / d theta of parameter-space terms: sum_p (d p / d k_p) * basis_p."""
+    params, basis = stacked
+    return np.matmul(jacobian_x[:, :, params], basis)
+
+
+def _column_scale(flat: np.ndarray) -> np.ndarray:
+    """RMS target displacement (mm) per unit of each column; 1 for empty columns."""
+    scale = np.sqrt(np.mean(flat**2, axis=0) * 3)
+    scale[scale == 0] = 1.0
+    return scale
+
+
+class _ExtendedModel:
+    """Geometry (free entries of x) plus linear effect terms, on one layout.
+
+    Unknowns z = (x[free], theta).
+    """
+
+    def __init__(self, layout: Layout, obs: Observations, x: np.ndarray, free: np.ndarray,
+                 terms: tuple[Term, ...]):
+        self.layout, self.obs, self.x_start, self.free = layout, obs, x, free
+        self.bases = _combine_bases(terms, len(obs), layout.model.n_joints)
+        self.n_free = int(free.sum())
+        self.n_theta = self.bases.joint.shape[2]
+
+    def joint_delta(self, theta: np.ndarray) -> np.ndarray:
+        """(N, nj) joint-space part of the terms, rad."""
+        return np.einsum("njm,m->nj", self.bases.joint, theta)
+
+    def _shifted(self, theta) -> Observations:
+        return Observations(self.obs.q + self.joint_delta(theta), self.obs.xyz, self.obs.target,
+                            self.obs.target_names)
+
+    def unpack(self, z):
+        x = self.x_start.copy()
+        x[self.free] = z[: self.n_free]
+        return x, z[self.n_free:]
+
+    def residuals_mm(self, z):
+        x, theta = self.unpack(z)
+        obs = self._shifted(theta)
+        predicted = predict(self.layout, x, obs) + np.einsum("nim,m->ni", self.bases.cartesian, theta)
+        if self.bases.param is not None:
+            _, jacobian_x = jacobian(self.layout, x, obs)
+            predicted = predicted + np.einsum("nim,m->ni", _param_columns(jacobian_x, self.bases.param), theta)
+        return predicted - self.obs.xyz
+
+    def jacobian(self, z):
+        x, theta = self.unpack(z)
+        _, jacobian_x, jacobian_q = jacobian(self.layout, x, self._shifted(theta), with_joints=True)
+        term_columns = np.einsum("nij,njm->nim", jacobian_q, self.bases.joint) + self.bases.cartesian
+        if self.bases.param is not None:
+            term_columns = term_columns + _param_columns(jacobian_x, self.bases.param)
+        return np.concatenate([jacobian_x[:, :, self.free], term_columns], axis=2)
+
+
+class _ExtendedFit(NamedTuple):
+    x: np.ndarray
+    theta: np.ndarray  # 0 where this data cannot separate a term parameter from the geometry
+    jacobian: np.ndarray  # (N, 3, estimated unknowns), geometry columns first
+    residuals_mm: np.ndarray  # (N, 3)
+    model: _ExtendedModel
+
+
+def _fit_extended(layout, obs, x, free, terms, prior_mm) -> _ExtendedFit:
+    """Nonlinear least-squares fit of geometry and terms together."""
+    model = _ExtendedModel(layout, obs, x, free, terms)
+    z_start = np.concatenate([x[free], np.zeros(model.n_theta)])
+    flat = model.jacobian(z_start).reshape(-1, len(z_start))
+    # which term parameters can this data separate from the geometry? (scaled: mm per unit)
+    scale = _column_scale(flat)
+    geometry = np.r_[np.ones(model.n_free, bool), np.zeros(model.n_theta, bool)]
+    estimated = identifiability.analyse(flat / scale, geometry, ~geometry, noise_mm=None, prior_mm=prior_mm).keep
+    estimated[: model.n_free] = True
+
+    def with_estimated(z_estimated):
+        z = z_start.copy()
+        z[estimated] = z_estimated
+        return z
+
+    sol = least_squares(lambda ze: model.residuals_mm(with_estimated(ze)).ravel(), z_start[estimated],
+                        jac=lambda ze: model.jacobian(with_estimated(ze)).reshape(-1, len(z_start))[:, estimated],
+                        method="lm", x_scale=1.0 / scale[estimated], xtol=1e-10, ftol=1e-10)
+    z = with_estimated(sol.x)
+    x_fit, theta = model.unpack(z)
+    theta = np.where(~estimated[model.n_free:], 0.0, theta)
+    return _ExtendedFit(x_fit, theta, model.jacobian(z)[:, :, estimated], model.residuals_mm(z), model)
+
+
+def _embed(x: np.ndarray, n_kin: int, extra: int, fill=0.0) -> np.ndarray:
+    """x of a layout with `extra` more kinematic parameters appended (set to fill)."""
+    return np.concatenate([x[:n_kin], np.full(extra, fill, dtype=x.dtype), x[n_kin:]])
+
+
+def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[Term, ...], prior_mm: float,
+                 label: str) -> Scored:
     """Nonlinear fit of geometry plus terms; held-out errors and physical sizes."""
-    layout, x, free = geo.layout, geo.x, geo.free
+    layout, x, free = geometric_fit.layout, geometric_fit.x, geometric_fit.free
     structural = [t for t in terms if t.model is not None]
     if structural:  # a different rigid model: carry the geometric fit over into its layout
-        ext = structural[-1].model
-        extra = ext.n_params - model.n_params
-        layout = Layout(ext, obs.target_names)
-        x = _embed(geo.x, geo.layout.n_kin, extra)
-        free = _embed(geo.free, geo.layout.n_kin, extra, fill=True)
-    linear = tuple(t for t in terms if t.model is None)
-    xf, theta, j, r, fitted = _fit_extended(layout, obs, x, free, linear, noise, options.prior_mm)
-    errors = crossval.one_step_heldout(j, r, folds)[0]
-    size, col = {}, 0
-    for t in terms:
-        if t.model is not None:
-            size[t.cause] = CAUSES[t.cause].magnitude(t, xf[model.n_params: t.model.n_params], None)
-            continue
-        th = theta[col: col + t.size]
-        delta = np.einsum("njm,m->nj", fitted.jb[:, :, col: col + t.size], th)
-        size[t.cause] = CAUSES[t.cause].magnitude(t, th, delta)
-        col += t.size
-    magnitude = size[terms[0].cause] if len(terms) == 1 else size
+        extended_model = structural[-1].model
+        extra = extended_model.n_params - model.n_params
+        layout = Layout(extended_model, obs.target_names)
+        x = _embed(geometric_fit.x, geometric_fit.layout.n_kin, extra)
+        free = _embed(geometric_fit.free, geometric_fit.layout.n_kin, extra, fill=True)
+    fit = _fit_extended(layout, obs, x, free, tuple(t for t in terms if t.model is None), prior_mm)
+    heldout_errors_mm = crossval.one_step_heldout(fit.jacobian, fit.residuals_mm, folds)[0]
+    sizes = _physical_sizes(model, terms, fit)
+    magnitude = sizes[terms[0].cause] if len(terms) == 1 else sizes
     # what the terms do at the targets: the fitted model with and without them
-    without = xf.copy()
+    without = fit.x.copy()
     for t in structural:
         without[model.n_params: t.model.n_params] = 0.0
-    plain = predict(layout, without, obs)
-    effect = (r + obs.xyz) - plain
+    effect_mm = (fit.residuals_mm + obs.xyz) - predict(layout, without, obs)
     if len(terms) == 1:
         # the size that needs no model to read: how far the effect moves the targets, less what a
         # geometric calibration absorbs anyway (the part the geometric columns can reproduce)
-        geo_cols = j[:, :, : int(free.sum())].reshape(-1, int(free.sum()))
-        rest = effect.ravel() - geo_cols @ np.linalg.lstsq(geo_cols, effect.ravel(), rcond=None)[0]
-        effect = rest.reshape(-1, 3)
+        n_free = int(free.sum())
+        geometry_columns = fit.jacobian[:, :, :n_free].reshape(-1, n_free)
+        absorbed = geometry_columns @ np.linalg.lstsq(geometry_columns, effect_mm.ravel(), rcond=None)[0]
+        effect_mm = (effect_mm.ravel() - absorbed).reshape(-1, 3)
         magnitude = {**magnitude, "effect_beyond_geometry_rms_mm": float(np.sqrt(np.mean(
-            np.sum(effect**2, axis=1))))}
-    return Scored(label, terms[0].cause, terms[0].where, errors, theta, magnitude, xf, terms, r, effect,
-                  np.einsum("njm,m->nj", fitted.jb, theta))
+            np.sum(effect_mm**2, axis=1))))}
+    return Scored(label=label, cause=terms[0].cause, where=terms[0].where, heldout_errors=heldout_errors_mm,
+                  theta=fit.theta, magnitude=magnitude, x=fit.x, terms=terms, residuals=fit.residuals_mm,
+                  effect_mm=effect_mm, joint_delta=fit.model.joint_delta(fit.theta))
+
+
+def _physical_sizes(model, terms: tuple[Term, ...], fit: _ExtendedFit) -> dict:
+    """Each term's size in physical units (its cause's ``magnitude``), by cause."""
+    sizes, col = {}, 0
+    for t in terms:
+        if t.model is not None:
+            sizes[t.cause] = CAUSES[t.cause].magnitude(t, fit.x[model.n_params: t.model.n_params], None)
+            continue
+        theta = fit.theta[col: col + t.size]
+        joint_delta = np.einsum("njm,m->nj", fit.model.bases.joint[:, :, col: col + t.size], theta)
+        sizes[t.cause] = CAUSES[t.cause].magnitude(t, theta, joint_delta)
+        col += t.size
+    return sizes

@@ -10,7 +10,8 @@ import pytest
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.hidden_cases import make_case
 from cellcal.sims.physical_arm import HiddenEffect
-from cellcal.solvers.analyze import analyze
+from cellcal.solvers.analyze import MIN_GAIN, MIN_MARGIN, Scored, analyze, name_cause
+from cellcal.solvers.effects import Term
 from cellcal.solvers.robot_model import parallel_joint_pairs
 
 ROBOTS = ("ur10e", "abb-irb4600", "elite-ec66")
@@ -117,3 +118,60 @@ def test_cyclic_error_is_not_taken_for_compliance_of_the_same_joint(robot):
     finding = analyze(model, case.campaign.obs, case.campaign.ctx)
     assert (finding.cause, finding.where) == ("cyclic_joint_error", {"joint": 2, "order": 1})
     assert finding.gain_pct >= 50.0
+
+
+# -- the naming rule alone, on made-up held-out scores ------------------------------------------------------
+
+
+def scored(cause: str, heldout_mean_mm: float, size: int = 1) -> Scored:
+    term = Term(cause, {"joint": 2}, tuple(f"p{i}" for i in range(size)))
+    return Scored(label=term.label(), cause=cause, where=term.where, heldout_errors=np.full(20, heldout_mean_mm),
+                  theta=np.zeros(size), magnitude={}, x=np.zeros(0), terms=(term,))
+
+
+class StubScorer:
+    """Answers the naming rule's two tie questions with fixed values."""
+
+    def __init__(self, pair_mean_mm: float = 1.0, nested: bool = False):
+        self.pair_mean_mm, self.nested = pair_mean_mm, nested
+
+    def heldout_errors_mm(self, terms):
+        return np.full(20, self.pair_mean_mm)
+
+    def is_nested(self, inner, outer):
+        return self.nested
+
+
+BASELINE = scored("none", 1.0)
+
+
+def test_naming_rule_says_none_when_the_best_gains_too_little():
+    best = scored("backlash", 1.0 - 0.5 * MIN_GAIN)
+    naming = name_cause([best, scored("thermal_drift", 0.99)], BASELINE, StubScorer())
+    assert naming.named is None and "below the 10%" in naming.notes[0]
+
+
+def test_naming_rule_names_a_clear_winner():
+    best, other = scored("backlash", 0.5), scored("thermal_drift", 0.5 * (1.0 + 2 * MIN_MARGIN))
+    naming = name_cause([best, other], BASELINE, StubScorer())
+    assert naming.named is best and naming.notes == ()
+    assert naming.margin == pytest.approx(2 * MIN_MARGIN, rel=1e-12)
+
+
+def test_naming_rule_names_the_best_of_two_causes_that_add_up():
+    best, other = scored("backlash", 0.50), scored("thermal_drift", 0.52)
+    naming = name_cause([best, other], BASELINE, StubScorer(pair_mean_mm=0.30))
+    assert naming.named is best and "both present" in naming.notes[0]
+
+
+def test_naming_rule_says_none_for_two_causes_that_explain_the_same():
+    best, other = scored("backlash", 0.50), scored("thermal_drift", 0.52)
+    naming = name_cause([best, other], BASELINE, StubScorer(pair_mean_mm=0.49))
+    assert naming.named is None and "about equally well" in naming.notes[0]
+
+
+def test_naming_rule_prefers_the_simpler_of_two_nested_explanations():
+    larger, simpler = scored("joint_compliance", 0.50, size=3), scored("cyclic_joint_error", 0.52, size=2)
+    naming = name_cause([larger, simpler], BASELINE, StubScorer(nested=True))
+    assert naming.named is simpler and naming.candidates[:2] == (simpler, larger)
+    assert "simpler explanation" in naming.notes[0]
