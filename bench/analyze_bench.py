@@ -20,10 +20,13 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from cellcal.config.robot_files import load_robot
-from cellcal.sims.hidden_cases import make_case
 from cellcal.sims.physical_arm import HiddenEffect
 from cellcal.solvers import crossval
-from cellcal.solvers.analyze import NEIGHBOUR_RAD, AnalyzeOptions, _fit_extended, analyze
+from cellcal.solvers.analyze import NEIGHBOUR_RAD, AnalyzeOptions, analyze
+from cellcal.solvers.extended_model import fit_extended
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from hidden_cases import make_case  # noqa: E402  (a test fixture, not part of the package)
 
 ROBOTS = ("ur10e", "abb-irb4600", "elite-ec66")
 
@@ -47,7 +50,7 @@ def naive_seconds_per_candidate(model, case, finding, sample=3):
                                          "cart_basis": None if term.cart_basis is None else term.cart_basis[rows],
                                          "param_basis": None if not term.param_basis else
                                          {p: b[rows] for p, b in term.param_basis.items()}})
-            _fit_extended(base.layout, sub, geo.x, base.free, (sub_term,), prior_mm=1.0)
+            fit_extended(base.layout, sub, geo.x, base.free, (sub_term,), prior_mm=1.0)
     return (time.perf_counter() - t0) / max(len(terms), 1)
 
 

@@ -89,14 +89,14 @@ def run_ours(model, cal: Observations, val: Observations, regularize: str, repea
             "validation": stats(res.errors(val)),
             "calibration": stats(np.linalg.norm(res.residuals_mm, axis=1)),
             "lambda": res.lam, "kinematic_estimated": int(res.free[: res.layout.n_kin].sum()),
-            "held_at_nominal": list(res.unidentifiable)}
+            "held_at_nominal": list(res.held_at_nominal)}
 
 
 def run_swarm(layout: Layout, cal: Observations, val: Observations, cfg: PSOConfig) -> dict:
     say(f"PSO: {cfg.particles} particles x {cfg.iterations} iterations")
     res = run_pso(layout, cal, cfg, progress=say)
-    errors = np.linalg.norm(predict(layout, res.x, val) - val.xyz, axis=1)
-    fitted = np.linalg.norm(predict(layout, res.x, cal) - cal.xyz, axis=1)
+    errors = np.linalg.norm(predict(layout, res.x, val) - val.xyz_mm, axis=1)
+    fitted = np.linalg.norm(predict(layout, res.x, cal) - cal.xyz_mm, axis=1)
     return {"seconds": res.seconds, "cpu_seconds": res.cpu_seconds,
             "validation": stats(errors), "calibration": stats(fitted),
             "iterations": res.iterations, "evaluations": res.evaluations,

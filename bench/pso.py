@@ -159,7 +159,7 @@ def run_pso(layout: Layout, obs: Observations, cfg: PSOConfig = PSOConfig(),
     m, d = cfg.particles, len(enc.lo)
 
     def fitness(z):
-        r = batch_predict(layout, enc.decode(z), obs) - obs.xyz
+        r = batch_predict(layout, enc.decode(z), obs) - obs.xyz_mm
         return np.sqrt(np.einsum("mni,mni->m", r, r) / len(obs))
 
     # uniform in the box; one particle at the centre so the swarm starts no worse than

@@ -137,7 +137,7 @@ def run_pybotics(layout: Layout, cal: Observations, val: Observations, x_start: 
     arrays = to_pybotics(layout, x_start, kin_free)
     with tempfile.TemporaryDirectory(prefix="cellcal-pybotics-") as tmp:
         data, out = Path(tmp) / "data.npz", Path(tmp) / "result.json"
-        np.savez(data, q_cal=cal.q, xyz_cal=cal.xyz, q_val=val.q, xyz_val=val.xyz,
+        np.savez(data, q_cal=cal.q, xyz_cal=cal.xyz_mm, q_val=val.q, xyz_val=val.xyz_mm,
                  check_xyz=predict(layout, x_start, cal), **arrays)
         say(f"pybotics: calibrating {int(arrays['kc_mask'].sum())} MDH parameters, tool position "
             f"and world frame on {len(cal)} poses")

@@ -66,7 +66,7 @@ def cmd_identify(args) -> int:
         # validation rows use the calibration's target numbering
         index = {t: i for i, t in enumerate(cal.target_names)}
         val_obs = val.observations()
-        val_obs = type(val_obs)(val_obs.q, val_obs.xyz,
+        val_obs = type(val_obs)(val_obs.q, val_obs.xyz_mm,
                                 np.array([index[val.target_names[t]] for t in val.target]),
                                 cal.target_names)
     result = identify(model, obs, options, progress=print_progress)

@@ -17,7 +17,7 @@ def error_stats(errors: np.ndarray) -> dict:
 
 
 def _errors(result: Identification, x: np.ndarray, obs: Observations) -> np.ndarray:
-    return np.linalg.norm(predict(result.layout, x, obs) - obs.xyz, axis=1)
+    return np.linalg.norm(predict(result.layout, x, obs) - obs.xyz_mm, axis=1)
 
 
 def _human(value: float, is_angle: bool) -> float:

@@ -79,7 +79,7 @@ def run(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for name, obs in (("cal.csv", cal), ("val.csv", val)):
-        write_measurements(out / name, q_rad=obs.q, xyz_mm=obs.xyz,
+        write_measurements(out / name, q_rad=obs.q, xyz_mm=obs.xyz_mm,
                            comment=f"{model.name}, simulated tracker campaign, seed {args.seed}")
     print_progress(f"wrote {out / 'cal.csv'} and {out / 'val.csv'}")
 
@@ -97,7 +97,8 @@ def run(args) -> int:
     }
     summary = {
         "robot": model.name, "seed": args.seed, "poses": args.poses, "regularize": args.regularize,
-        "unidentifiable": list(result.unidentifiable), "lambda": result.lam,
+        "unidentifiable": list(result.unidentifiable), "held_at_nominal": list(result.held_at_nominal),
+        "lambda": result.lam,
         "identify_seconds": result.seconds, "seconds": time.perf_counter() - t0,
         "after_over_floor": rows["validation_measured"]["after"]["mean_mm"] / float(floor.mean()),
         "sim_truth": rows,
@@ -117,7 +118,7 @@ def run(args) -> int:
     print(f"{'  floor: true model vs measured':40s}{'':16s}{vm['true_model']['mean_mm']:8.3f} /"
           f"{vm['true_model']['max_mm']:6.3f}")
     print(f"\nafter / floor = {summary['after_over_floor']:.3f}; identification took {result.seconds:.2f} s; "
-          f"held at nominal (not identifiable): {', '.join(result.unidentifiable) or 'none'}")
+          f"held at nominal (not identifiable, or not trustworthy): {', '.join(result.held_at_nominal) or 'none'}")
     print(f"datasets: {out / 'cal.csv'}, {out / 'val.csv'} -- re-run offline with\n"
           f"  cellcal identify --robot {args.robot} --data {out / 'cal.csv'} --validate {out / 'val.csv'}")
     return 0
@@ -157,7 +158,7 @@ def run_sim_data(args) -> int:
     rng = np.random.default_rng(args.seed)
     arm = PhysicalArm(model, rng, effects)
     campaign = arm.campaign(full_workspace(model, args.poses, rng))
-    write_measurements(args.out, q_rad=campaign.obs.q, xyz_mm=campaign.obs.xyz, t_s=campaign.ctx.t_s,
+    write_measurements(args.out, q_rad=campaign.obs.q, xyz_mm=campaign.obs.xyz_mm, t_s=campaign.ctx.t_s,
                        temp_c=campaign.ctx.temp_c, comment=f"{model.name}, simulated, seed {args.seed}")
     truth = {e.cause: {"joint": None if e.joint is None else e.joint + 1, "size": arm.hidden_size(e)}
              for e in effects}

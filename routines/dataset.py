@@ -75,7 +75,7 @@ class MeasurementTable:
         return MeasurementTable(**picked)
 
     def observations(self) -> Observations:
-        return Observations(q=self.q_rad, xyz=self.xyz_mm, target=self.target, target_names=self.target_names)
+        return Observations(q=self.q_rad, xyz_mm=self.xyz_mm, target=self.target, target_names=self.target_names)
 
 
 def read_measurements(path, n_joints: int) -> MeasurementTable:

@@ -92,4 +92,4 @@ class SimulatedArm:
 
     def oracle_errors(self, obs: Observations) -> np.ndarray:
         """Error of the true model on measured data: the floor any model can reach."""
-        return np.linalg.norm(self.true_positions(obs.q, obs.target) - obs.xyz, axis=1)
+        return np.linalg.norm(self.true_positions(obs.q, obs.target) - obs.xyz_mm, axis=1)

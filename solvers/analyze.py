@@ -19,14 +19,14 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import NamedTuple, Sequence
+from typing import Sequence
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from . import crossval, identifiability
 from .effects import CAUSES, Context, Term
 from .identify import Identification, IdentifyOptions, identify
+from .extended_model import ExtendedFit, column_scale, embed, fit_extended, param_columns, stack_param_bases
 from .measurement_model import Layout, Observations, jacobian, predict
 
 MIN_GAIN = 0.10  # held-out mean error must drop by 10% against geometry alone
@@ -153,7 +153,7 @@ class LinearisedScorer:
         _, self.jacobian_x, self.jacobian_q = jacobian(geometric_fit.layout, geometric_fit.x, obs, with_joints=True)
         self.geometry_columns = self.jacobian_x[:, :, geometric_fit.free]
         flat = self.geometry_columns.reshape(-1, self.n_geometry)
-        self.geometry_basis = identifiability.nuisance_basis(flat / _column_scale(flat),
+        self.geometry_basis = identifiability.nuisance_basis(flat / column_scale(flat),
                                                              np.ones(self.n_geometry, bool))
         self._term_columns: dict[int, np.ndarray] = {}
 
@@ -170,7 +170,7 @@ class LinearisedScorer:
         flat = j.reshape(-1, j.shape[2])
         geometry = np.r_[np.ones(self.n_geometry, bool), np.zeros(n_theta, bool)]
         basis = (self.geometry_basis[0], np.r_[self.geometry_basis[1], np.zeros(n_theta, bool)])
-        estimated = identifiability.analyse(flat / _column_scale(flat), geometry, ~geometry, noise_mm=None,
+        estimated = identifiability.analyse(flat / column_scale(flat), geometry, ~geometry, noise_mm=None,
                                             prior_mm=self.prior_mm, basis=basis, with_condition=False).keep
         estimated[: self.n_geometry] = True
         return crossval.one_step_heldout(j[:, :, estimated], self.baseline_residuals_mm, self.folds)[0]
@@ -194,7 +194,7 @@ class LinearisedScorer:
         fit, obs = self.geometric_fit, self.obs
         if term.model is not None:  # one new rigid parameter: its Jacobian column in the new layout
             layout = Layout(term.model, obs.target_names)
-            x = _embed(fit.x, fit.layout.n_kin, term.model.n_params - self.model.n_params)
+            x = embed(fit.x, fit.layout.n_kin, term.model.n_params - self.model.n_params)
             _, j = jacobian(layout, x, obs)
             return j[:, :, self.model.n_params: term.model.n_params]
         columns = np.zeros((len(obs), 3, term.size))
@@ -203,7 +203,7 @@ class LinearisedScorer:
         if term.cart_basis is not None:
             columns += term.cart_basis
         if term.param_basis:
-            columns += _param_columns(self.jacobian_x, _stack_param_bases(term.param_basis))
+            columns += param_columns(self.jacobian_x, stack_param_bases(term.param_basis))
         return columns
 
 
@@ -308,132 +308,6 @@ def _geometric_baseline(model, obs, folds, options) -> Identification:
     return min((above_noise, structural), key=heldout_mean_mm)
 
 
-class _TermBases(NamedTuple):
-    """Several terms' bases side by side, one column per term parameter (m in all)."""
-
-    joint: np.ndarray  # (N, nj, m)
-    cartesian: np.ndarray  # (N, 3, m)
-    param: tuple | None  # (kinematic parameter indices, (N, P, m)), or None without parameter-space terms
-
-
-def _combine_bases(terms: tuple[Term, ...], n_rows: int, n_joints: int) -> _TermBases:
-    m = sum(t.size for t in terms)
-    joint = np.zeros((n_rows, n_joints, m))
-    cartesian = np.zeros((n_rows, 3, m))
-    param: dict[int, np.ndarray] = {}
-    col = 0
-    for t in terms:
-        if t.joint_basis is not None:
-            joint[:, :, col: col + t.size] = t.joint_basis
-        if t.cart_basis is not None:
-            cartesian[:, :, col: col + t.size] = t.cart_basis
-        for p, basis in (t.param_basis or {}).items():
-            param.setdefault(p, np.zeros((n_rows, m)))[:, col: col + t.size] += basis
-        col += t.size
-    return _TermBases(joint, cartesian, _stack_param_bases(param) if param else None)
-
-
-def _stack_param_bases(param_bases: dict):
-    """Parameter bases as (parameter indices, (N, P, m)) for one matrix product."""
-    params = list(param_bases)
-    return params, np.stack([param_bases[p] for p in params], axis=1)
-
-
-def _param_columns(jacobian_x: np.ndarray, stacked) -> np.ndarray:
-    """d p / d theta of parameter-space terms: sum_p (d p / d k_p) * basis_p."""
-    params, basis = stacked
-    return np.matmul(jacobian_x[:, :, params], basis)
-
-
-def _column_scale(flat: np.ndarray) -> np.ndarray:
-    """RMS target displacement (mm) per unit of each column; 1 for empty columns."""
-    scale = np.sqrt(np.mean(flat**2, axis=0) * 3)
-    scale[scale == 0] = 1.0
-    return scale
-
-
-class _ExtendedModel:
-    """Geometry (free entries of x) plus linear effect terms, on one layout.
-
-    Unknowns z = (x[free], theta).
-    """
-
-    def __init__(self, layout: Layout, obs: Observations, x: np.ndarray, free: np.ndarray,
-                 terms: tuple[Term, ...]):
-        self.layout, self.obs, self.x_start, self.free = layout, obs, x, free
-        self.bases = _combine_bases(terms, len(obs), layout.model.n_joints)
-        self.n_free = int(free.sum())
-        self.n_theta = self.bases.joint.shape[2]
-
-    def joint_delta(self, theta: np.ndarray) -> np.ndarray:
-        """(N, nj) joint-space part of the terms, rad."""
-        return np.einsum("njm,m->nj", self.bases.joint, theta)
-
-    def _shifted(self, theta) -> Observations:
-        return Observations(self.obs.q + self.joint_delta(theta), self.obs.xyz, self.obs.target,
-                            self.obs.target_names)
-
-    def unpack(self, z):
-        x = self.x_start.copy()
-        x[self.free] = z[: self.n_free]
-        return x, z[self.n_free:]
-
-    def residuals_mm(self, z):
-        x, theta = self.unpack(z)
-        obs = self._shifted(theta)
-        predicted = predict(self.layout, x, obs) + np.einsum("nim,m->ni", self.bases.cartesian, theta)
-        if self.bases.param is not None:
-            _, jacobian_x = jacobian(self.layout, x, obs)
-            predicted = predicted + np.einsum("nim,m->ni", _param_columns(jacobian_x, self.bases.param), theta)
-        return predicted - self.obs.xyz
-
-    def jacobian(self, z):
-        x, theta = self.unpack(z)
-        _, jacobian_x, jacobian_q = jacobian(self.layout, x, self._shifted(theta), with_joints=True)
-        term_columns = np.einsum("nij,njm->nim", jacobian_q, self.bases.joint) + self.bases.cartesian
-        if self.bases.param is not None:
-            term_columns = term_columns + _param_columns(jacobian_x, self.bases.param)
-        return np.concatenate([jacobian_x[:, :, self.free], term_columns], axis=2)
-
-
-class _ExtendedFit(NamedTuple):
-    x: np.ndarray
-    theta: np.ndarray  # 0 where this data cannot separate a term parameter from the geometry
-    jacobian: np.ndarray  # (N, 3, estimated unknowns), geometry columns first
-    residuals_mm: np.ndarray  # (N, 3)
-    model: _ExtendedModel
-
-
-def _fit_extended(layout, obs, x, free, terms, prior_mm) -> _ExtendedFit:
-    """Nonlinear least-squares fit of geometry and terms together."""
-    model = _ExtendedModel(layout, obs, x, free, terms)
-    z_start = np.concatenate([x[free], np.zeros(model.n_theta)])
-    flat = model.jacobian(z_start).reshape(-1, len(z_start))
-    # which term parameters can this data separate from the geometry? (scaled: mm per unit)
-    scale = _column_scale(flat)
-    geometry = np.r_[np.ones(model.n_free, bool), np.zeros(model.n_theta, bool)]
-    estimated = identifiability.analyse(flat / scale, geometry, ~geometry, noise_mm=None, prior_mm=prior_mm).keep
-    estimated[: model.n_free] = True
-
-    def with_estimated(z_estimated):
-        z = z_start.copy()
-        z[estimated] = z_estimated
-        return z
-
-    sol = least_squares(lambda ze: model.residuals_mm(with_estimated(ze)).ravel(), z_start[estimated],
-                        jac=lambda ze: model.jacobian(with_estimated(ze)).reshape(-1, len(z_start))[:, estimated],
-                        method="lm", x_scale=1.0 / scale[estimated], xtol=1e-10, ftol=1e-10)
-    z = with_estimated(sol.x)
-    x_fit, theta = model.unpack(z)
-    theta = np.where(~estimated[model.n_free:], 0.0, theta)
-    return _ExtendedFit(x_fit, theta, model.jacobian(z)[:, :, estimated], model.residuals_mm(z), model)
-
-
-def _embed(x: np.ndarray, n_kin: int, extra: int, fill=0.0) -> np.ndarray:
-    """x of a layout with `extra` more kinematic parameters appended (set to fill)."""
-    return np.concatenate([x[:n_kin], np.full(extra, fill, dtype=x.dtype), x[n_kin:]])
-
-
 def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[Term, ...], prior_mm: float,
                  label: str) -> Scored:
     """Nonlinear fit of geometry plus terms; held-out errors and physical sizes."""
@@ -443,9 +317,9 @@ def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[
         extended_model = structural[-1].model
         extra = extended_model.n_params - model.n_params
         layout = Layout(extended_model, obs.target_names)
-        x = _embed(geometric_fit.x, geometric_fit.layout.n_kin, extra)
-        free = _embed(geometric_fit.free, geometric_fit.layout.n_kin, extra, fill=True)
-    fit = _fit_extended(layout, obs, x, free, tuple(t for t in terms if t.model is None), prior_mm)
+        x = embed(geometric_fit.x, geometric_fit.layout.n_kin, extra)
+        free = embed(geometric_fit.free, geometric_fit.layout.n_kin, extra, fill=True)
+    fit = fit_extended(layout, obs, x, free, tuple(t for t in terms if t.model is None), prior_mm)
     heldout_errors_mm = crossval.one_step_heldout(fit.jacobian, fit.residuals_mm, folds)[0]
     sizes = _physical_sizes(model, terms, fit)
     magnitude = sizes[terms[0].cause] if len(terms) == 1 else sizes
@@ -453,7 +327,7 @@ def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[
     without = fit.x.copy()
     for t in structural:
         without[model.n_params: t.model.n_params] = 0.0
-    effect_mm = (fit.residuals_mm + obs.xyz) - predict(layout, without, obs)
+    effect_mm = (fit.residuals_mm + obs.xyz_mm) - predict(layout, without, obs)
     if len(terms) == 1:
         # the size that needs no model to read: how far the effect moves the targets, less what a
         # geometric calibration absorbs anyway (the part the geometric columns can reproduce)
@@ -468,7 +342,7 @@ def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[
                   effect_mm=effect_mm, joint_delta=fit.model.joint_delta(fit.theta))
 
 
-def _physical_sizes(model, terms: tuple[Term, ...], fit: _ExtendedFit) -> dict:
+def _physical_sizes(model, terms: tuple[Term, ...], fit: ExtendedFit) -> dict:
     """Each term's size in physical units (its cause's ``magnitude``), by cause."""
     sizes, col = {}, 0
     for t in terms:

@@ -132,7 +132,7 @@ class Identification:
 
     def errors(self, obs: Observations, nominal: bool = False) -> np.ndarray:
         x = self.x_nominal if nominal else self.x
-        return np.linalg.norm(predict(self.layout, x, obs) - obs.xyz, axis=1)
+        return np.linalg.norm(predict(self.layout, x, obs) - obs.xyz_mm, axis=1)
 
 
 def scales(layout: Layout, x: np.ndarray, obs: Observations) -> np.ndarray:
@@ -155,7 +155,7 @@ def _residual_fn(layout, obs, x_full, free, lam, scale):
 
     def fun(z):
         x = unpack(z)
-        r = (predict(layout, x, obs) - obs.xyz).ravel()
+        r = (predict(layout, x, obs) - obs.xyz_mm).ravel()
         if w is not None:
             r = np.concatenate([r, w * (x[kin] - centre)])
         return r
@@ -186,7 +186,7 @@ def fit(layout: Layout, obs: Observations, x_start: np.ndarray, free: np.ndarray
                         xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200 if method == "trf" else None,
                         **kwargs)
     x = unpack(sol.x)
-    return Fit(x=x, residuals_mm=predict(layout, x, obs) - obs.xyz, nfev=int(sol.nfev),
+    return Fit(x=x, residuals_mm=predict(layout, x, obs) - obs.xyz_mm, nfev=int(sol.nfev),
                status=int(sol.status), message=str(sol.message))
 
 
@@ -203,11 +203,11 @@ def initial_base_and_targets(layout: Layout, obs: Observations, x: np.ndarray | 
         x[layout.target(i)] = 0.0
     for _ in range(20):
         pb = predict_base(layout, x, obs)
-        r, t = se3.rigid_fit(pb, obs.xyz)
+        r, t = se3.rigid_fit(pb, obs.xyz_mm)
         x[layout.base] = np.concatenate([t, se3.matrix_to_rotvec(r)])
         # offsets: R_end @ off = R^T (m - t) - o_end, solved per target
         k = x[: layout.n_kin]
-        local = (obs.xyz - t) @ r
+        local = (obs.xyz_mm - t) @ r
         change = 0.0
         for ti in range(len(layout.target_names)):
             rows = np.flatnonzero(obs.target == ti)
@@ -264,7 +264,7 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
     loss = options.loss
     # before: nominal kinematics, only base and targets estimated
     before = fit(layout, obs, x_start, nuisance, loss=loss, f_scale=1.0 if loss == "linear" else
-                 _f_scale(predict(layout, x_start, obs) - obs.xyz))
+                 _f_scale(predict(layout, x_start, obs) - obs.xyz_mm))
     x0 = before.x
     scale = scales(layout, x0, obs)
     say(f"nominal model: mean error {before.errors.mean():.3f} mm over {len(obs)} measurements")

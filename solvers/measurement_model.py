@@ -23,20 +23,20 @@ class Observations:
     """Measured target positions with the joint values they were taken at."""
 
     q: np.ndarray  # (N, n_joints) rad, as the controller reports them
-    xyz: np.ndarray  # (N, 3) mm, in the instrument frame
+    xyz_mm: np.ndarray  # (N, 3), in the instrument frame
     target: np.ndarray  # (N,) int index into target_names
     target_names: tuple[str, ...] = ("tcp",)
 
     def __post_init__(self):
-        if len(self.q) != len(self.xyz) or len(self.q) != len(self.target):
-            raise ValueError("q, xyz and target must have one row per measurement")
+        if len(self.q) != len(self.xyz_mm) or len(self.q) != len(self.target):
+            raise ValueError("q, xyz_mm and target must have one row per measurement")
 
     def __len__(self) -> int:
         return len(self.q)
 
     def subset(self, rows) -> "Observations":
         rows = np.asarray(rows)
-        return Observations(self.q[rows], self.xyz[rows], self.target[rows], self.target_names)
+        return Observations(self.q[rows], self.xyz_mm[rows], self.target[rows], self.target_names)
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cellcal.config.robot_files import load_robot
-from cellcal.sims.hidden_cases import make_case
+from hidden_cases import make_case  # tests/hidden_cases.py: a fixture, not part of the package
 from cellcal.sims.physical_arm import HiddenEffect
 from cellcal.solvers.analyze import MIN_GAIN, MIN_MARGIN, Scored, analyze, name_cause
 from cellcal.solvers.effects import Term

@@ -22,9 +22,9 @@ def campaign(tmp_path_factory):
     cal = arm.measure(full_workspace(model, 40, rng))
     val = arm.measure(full_workspace(model, 60, rng))
     folder = tmp_path_factory.mktemp("campaign")
-    write_measurements(folder / "cal.csv", q_rad=cal.q, xyz_mm=cal.xyz)
-    write_measurements(folder / "val.csv", q_rad=val.q, xyz_mm=val.xyz)
-    both = np.concatenate([cal.q, val.q]), np.concatenate([cal.xyz, val.xyz])
+    write_measurements(folder / "cal.csv", q_rad=cal.q, xyz_mm=cal.xyz_mm)
+    write_measurements(folder / "val.csv", q_rad=val.q, xyz_mm=val.xyz_mm)
+    both = np.concatenate([cal.q, val.q]), np.concatenate([cal.xyz_mm, val.xyz_mm])
     split = np.array(["cal"] * len(cal) + ["val"] * len(val))
     write_measurements(folder / "split.csv", q_rad=both[0], xyz_mm=both[1], split=split)
     return folder, arm, val

@@ -103,7 +103,7 @@ def test_observations_carry_radians_millimetres_and_targets(tmp_path):
     table = read_measurements(write(tmp_path, f"{Q6_RAD},x_mm,y_mm,z_mm,target\n{ROW},left\n"), 6)
     obs = table.observations()
     assert isinstance(obs, Observations)
-    assert obs.q is table.q_rad and obs.xyz is table.xyz_mm and obs.target_names == ("left",)
+    assert obs.q is table.q_rad and obs.xyz_mm is table.xyz_mm and obs.target_names == ("left",)
 
 
 def _random_table(seed=4, n=25):

@@ -16,7 +16,7 @@ from cellcal.solvers.pose_design import select_poses
 
 
 def mean_error(layout, x, obs):
-    return float(np.linalg.norm(predict(layout, x, obs) - obs.xyz, axis=1).mean())
+    return float(np.linalg.norm(predict(layout, x, obs) - obs.xyz_mm, axis=1).mean())
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +72,7 @@ def _seed004_cell(seed):
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_calibration_in_a_20mm_cube_generalises_to_the_full_workspace(regularize, seed):
     model, arm, cal, val = _seed004_cell(seed)
-    assert np.ptp(cal.xyz, axis=0).max() < 35.0  # the cube (plus the tool's true offset error)
+    assert np.ptp(cal.xyz_mm, axis=0).max() < 35.0  # the cube (plus the tool's true offset error)
     result = identify(model, cal, IdentifyOptions(regularize=regularize))
     before = result.errors(val, nominal=True).mean()
     after = result.errors(val).mean()
@@ -115,7 +115,7 @@ def test_robust_loss_ignores_gross_outliers_with_two_targets():
     q = full_workspace(model, 100, rng)
     cal = arm.measure(np.repeat(q, 2, axis=0), np.tile([0, 1], 100))
     bad = rng.choice(len(cal), 10, replace=False)
-    xyz = cal.xyz.copy()
+    xyz = cal.xyz_mm.copy()
     xyz[bad] += rng.normal(size=(10, 3)) * 3.0  # 5% of the points off by several mm
     spoiled = Observations(cal.q, xyz, cal.target, cal.target_names)
     vq = full_workspace(model, 200, rng)
@@ -157,7 +157,7 @@ def test_linearised_cross_validation_matches_refitting_every_fold():
         for f in range(options.folds):
             train, test = np.flatnonzero(folds != f), np.flatnonzero(folds == f)
             refit = fit(result.layout, cal.subset(train), result.x_nominal, result.free, lam=lam)
-            errs[test] = np.linalg.norm(predict(result.layout, refit.x, cal.subset(test)) - cal.xyz[test], axis=1)
+            errs[test] = np.linalg.norm(predict(result.layout, refit.x, cal.subset(test)) - cal.xyz_mm[test], axis=1)
         assert curve_err == pytest.approx(errs.mean(), rel=0.03), lam
 
 

@@ -69,7 +69,7 @@ def setup(model_key, seed=0, n=40, target_names=("a", "b")):
     x[: layout.n_kin] = perturbed(model, rng)
     q = rng.uniform(-np.pi, np.pi, (n, model.n_joints))
     target = np.arange(n) % len(target_names)
-    obs = Observations(q=q, xyz=np.zeros((n, 3)), target=target, target_names=tuple(target_names))
+    obs = Observations(q=q, xyz_mm=np.zeros((n, 3)), target=target, target_names=tuple(target_names))
     return model, layout, x, obs
 
 
@@ -90,8 +90,8 @@ def fd_wrt_q(layout, x, obs):
         qp, qm = obs.q.copy(), obs.q.copy()
         qp[:, j] += STEP
         qm[:, j] -= STEP
-        op = Observations(qp, obs.xyz, obs.target, obs.target_names)
-        om = Observations(qm, obs.xyz, obs.target, obs.target_names)
+        op = Observations(qp, obs.xyz_mm, obs.target, obs.target_names)
+        om = Observations(qm, obs.xyz_mm, obs.target, obs.target_names)
         out[:, :, j] = (predict(layout, x, op) - predict(layout, x, om)) / (2 * STEP)
     return out
 
@@ -154,7 +154,7 @@ def test_coupling_enters_the_joint_jacobian():
     plain_layout = Layout(plain, layout.target_names)
     q_plain = obs.q.copy()
     q_plain[:, 2] += obs.q[:, 1]
-    plain_obs = Observations(q_plain, obs.xyz, obs.target, obs.target_names)
+    plain_obs = Observations(q_plain, obs.xyz_mm, obs.target, obs.target_names)
     p_c, _, jq_c = jacobian(layout, x, obs, with_joints=True)
     p_u, _, jq_u = jacobian(plain_layout, x, plain_obs, with_joints=True)
     np.testing.assert_allclose(p_c, p_u, rtol=0, atol=1e-9)

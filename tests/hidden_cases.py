@@ -12,12 +12,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..solvers.identify import IdentifyOptions, identify
-from ..solvers.measurement_model import Layout, Observations, jacobian
-from ..solvers.robot_model import KinematicModel
-from .kinematic_arm import TrackerNoise
-from .physical_arm import Campaign, HiddenEffect, PhysicalArm
-from .workspace import full_workspace
+from cellcal.solvers.identify import IdentifyOptions, identify
+from cellcal.solvers.measurement_model import Layout, Observations, jacobian
+from cellcal.solvers.robot_model import KinematicModel
+from cellcal.sims.kinematic_arm import TrackerNoise
+from cellcal.sims.physical_arm import Campaign, HiddenEffect, PhysicalArm
+from cellcal.sims.workspace import full_workspace
 
 BASE_REPEATABILITY_MM = 0.05
 
@@ -72,7 +72,7 @@ def make_case(model: KinematicModel, effects, visibility, *, n: int, noise_scale
         extras["dq_rad_s"] = sweep_velocities(model, q, q_rng)
     noise_arm = _arm(model, seed, (), noise_scale)
     pure = noise_arm.campaign(q, **extras)
-    noise_vec = np.linalg.norm(pure.obs.xyz - noise_arm.true_positions(q, pure.obs.target), axis=1)
+    noise_vec = np.linalg.norm(pure.obs.xyz_mm - noise_arm.true_positions(q, pure.obs.target), axis=1)
     noise = float(np.sqrt(np.mean(noise_vec**2)))
     sized = []
     for e, k in zip(effects, visibility):
