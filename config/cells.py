@@ -5,14 +5,23 @@ completely when read (:mod:`.reader`): the first problem stops the load with one
 message naming the file, the section and the key (an unknown key, a wrong type, a
 value out of range), because a typo in a safety limit must not be silently ignored.
 
-Sections::
+Sections (all lengths in metres, base frame unless said otherwise)::
 
     cell:       name, robot (model file or shipped name), home_q_rad
     drivers:    robot, trigger, tracker, panel: {driver: NAME, ...options}
-    beam:       point_m, direction, radius_m, channel, level_when_blocked
-    workspace:  min_m, max_m (the TCP's box, base frame)
-    limits:     tcp_speed_m_s, tcp_accel_m_s2, joint_speed_rad_s, joint_accel_rad_s2
-    trigger_timing: latency_s, jitter_s (the simulated sensor; ignored by real ones)
+    workspace:  min_m, max_m (the TCP's box)
+    limits:     tcp_speed_m_s, tcp_accel_m_s2, joint_speed_rad_s, joint_accel_rad_s2,
+                contact_travel_m (the longest a contact search may move)
+    tool:       the mounted tool as drawn: tcp_m (flange frame), axis (flange frame, from
+                the flange toward the tip), radius_m, length_m
+    beams:      the light barrier's beams as installed: a list of
+                {point_m, direction, radius_m (half the beam width), channel, level_when_blocked}
+    stylus:     a fixed stylus tip: centre_m, radius_m
+    pivot:      a fixed point the tool tip is seated at: point_m
+    sim_truth:  what a simulated cell really has (see :class:`SimTruthSpec`); real cells
+                have none
+    ROUTINE:    one section per routine (``tcp_laser``, ``tcp_stylus``, ...), read by the
+                routine itself (``cellcal.routines``), kept here as written
 """
 from __future__ import annotations
 
@@ -26,8 +35,10 @@ from .reader import ConfigError, Section, read_yaml, resolve, shipped
 from .robot_files import ModelError, load_robot
 
 DEVICE_KINDS = ("robot", "trigger", "tracker", "panel")
-_SECTIONS = {"cell", "drivers", "beam", "workspace", "limits", "trigger_timing"}
-_REQUIRED = ("cell", "drivers", "beam", "workspace", "limits")
+_SECTIONS = {"cell", "drivers", "workspace", "limits", "tool", "beams", "stylus", "pivot", "sim_truth"}
+_REQUIRED = ("cell", "drivers", "workspace", "limits")
+# sections the routines own; their names are the routines' (``tcp-laser`` -> ``tcp_laser``)
+ROUTINE_SECTIONS = ("tcp_laser", "tcp_stylus", "tcp_npoint", "tcf", "handshake", "tracker")
 
 
 class CellFileError(ConfigError):
@@ -52,6 +63,62 @@ class DriverSpec:
     options: dict = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class ToolSpec:
+    """The mounted tool as drawn: a cylinder (a pin, a grinding tool) ending in its TCP."""
+
+    tcp_m: np.ndarray  # the tip in the flange frame
+    axis: np.ndarray  # unit, flange frame, from the flange toward the tip
+    radius_m: float
+    length_m: float  # of the cylinder behind the tip
+
+    @property
+    def tcp_pose(self) -> np.ndarray:
+        """[x, y, z, rx, ry, rz]: the tool frame whose z is the tool axis (rotation about it
+        by the smallest turn from the flange's z)."""
+        z = np.array([0.0, 0.0, 1.0])
+        axis = self.axis / np.linalg.norm(self.axis)
+        turn = np.cross(z, axis)
+        sin, cos = np.linalg.norm(turn), float(z @ axis)
+        angle = np.arctan2(sin, cos)
+        rotvec = turn / sin * angle if sin > 1e-12 else (np.zeros(3) if cos > 0 else np.array([np.pi, 0, 0]))
+        return np.concatenate([self.tcp_m, rotvec])
+
+
+@dataclass(frozen=True)
+class BeamSpec:
+    point_m: np.ndarray
+    direction: np.ndarray  # unit
+    radius_m: float  # half the beam width
+    channel: int
+    level_when_blocked: bool
+
+    def as_model(self) -> dict:
+        """The scene model form ({"kind": "beam", ...}) the simulated cells take."""
+        return {"kind": "beam", "point_m": self.point_m.tolist(), "direction": self.direction.tolist(),
+                "radius_m": self.radius_m, "channel": self.channel, "level_when_blocked": self.level_when_blocked}
+
+
+@dataclass(frozen=True)
+class SimTruthSpec:
+    """What a simulated cell really has, as the cell file states it or draws it from ``seed``.
+
+    Only simulations and the scoring of their results read it; routines and solvers never.
+    """
+
+    seed: int = 0
+    arm_length_error_mm: float = 0.0  # every length of the arm off its drawing by up to this
+    arm_angle_error_deg: float = 0.0
+    tool_tcp_m: np.ndarray | None = None  # the real tip in the flange frame (else drawn)
+    tool_tcp_error_mm: float = 1.0  # how far the real tip is from the drawing (drawn)
+    tool_axis: np.ndarray | None = None  # the real axis (else drawn)
+    tool_tilt_deg: float = 0.5  # runout: how far the real axis is tilted from the drawing (drawn)
+    fixture_error_mm: float = 0.5  # beams, stylus and pivot this far from where the file says (drawn)
+    repeatability_mm: float = 0.03
+    trigger_latency_s: float = 0.0
+    trigger_jitter_s: float = 0.0
+
+
 @dataclass
 class Cell:
     """A validated cell file."""
@@ -61,11 +128,15 @@ class Cell:
     robot: str
     home_q_rad: tuple
     drivers: dict  # kind -> DriverSpec
-    beam: dict  # the beam in the fake UR controller's model form ({"kind": "beam", ...})
     workspace_min_m: np.ndarray
     workspace_max_m: np.ndarray
     limits: dict
-    trigger_timing: dict
+    tool: ToolSpec | None = None
+    beams: tuple[BeamSpec, ...] = ()
+    stylus: dict | None = None  # {"centre_m": (3,), "radius_m": r}
+    pivot_m: np.ndarray | None = None
+    sim_truth: SimTruthSpec | None = None
+    routines: dict = field(default_factory=dict)  # section name -> mapping as written
 
     def on_host(self, host: str) -> "Cell":
         """The same cell with every networked driver pointed at another address (parallel test cells)."""
@@ -75,12 +146,59 @@ class Cell:
                 spec.options["host"] = host
         return other
 
+    def routine_section(self, name: str, error: type[ConfigError] | None = None) -> Section:
+        """The routine's own section, to read with the same checks (empty when the file has none)."""
+        return Section(self.path, name, self.routines.get(name, {}), error or CellFileError)
+
+
+def _unit(section: Section, key: str, default=None, *, required=False) -> np.ndarray:
+    v = section.vector(key, 3, default, required=required, nonzero=True)
+    return v / np.linalg.norm(v)
+
+
+def _read_tool(s: Section) -> ToolSpec:
+    tool = ToolSpec(s.vector("tcp_m", 3, required=True), _unit(s, "axis", [0.0, 0.0, 1.0]),
+                    s.number("radius_m", 0.003, above=0.0, high=0.1),
+                    s.number("length_m", 0.1, above=0.0, high=2.0))
+    s.done()
+    return tool
+
+
+def _read_beams(top: Section) -> tuple[BeamSpec, ...]:
+    beams = []
+    for b in top.items_of("beams", nonempty=True):
+        beams.append(BeamSpec(b.vector("point_m", 3, required=True), _unit(b, "direction", required=True),
+                              b.number("radius_m", 0.0005, above=0.0, high=0.05),
+                              b.integer("channel", 0, low=0, high=17), b.flag("level_when_blocked", True)))
+        b.done()
+    channels = [b.channel for b in beams]
+    if len(set(channels)) != len(channels):
+        top.fail("beams", f"two beams on one channel ({channels})")
+    return tuple(beams)
+
+
+def _read_sim_truth(s: Section) -> SimTruthSpec:
+    tcp = s.vector("tool_tcp_m", 3) if "tool_tcp_m" in s else None
+    axis = _unit(s, "tool_axis") if "tool_axis" in s else None
+    spec = SimTruthSpec(
+        seed=s.integer("seed", 0, low=0, high=2**32 - 1),
+        arm_length_error_mm=s.number("arm_length_error_mm", 0.0, low=0.0, high=20.0),
+        arm_angle_error_deg=s.number("arm_angle_error_deg", 0.0, low=0.0, high=2.0),
+        tool_tcp_m=tcp, tool_tcp_error_mm=s.number("tool_tcp_error_mm", 1.0, low=0.0, high=50.0),
+        tool_axis=axis, tool_tilt_deg=s.number("tool_tilt_deg", 0.5, low=0.0, high=10.0),
+        fixture_error_mm=s.number("fixture_error_mm", 0.5, low=0.0, high=50.0),
+        repeatability_mm=s.number("repeatability_mm", 0.03, low=0.0, high=5.0),
+        trigger_latency_s=s.number("trigger_latency_s", 0.0, low=0.0, high=1.0),
+        trigger_jitter_s=s.number("trigger_jitter_s", 0.0, low=0.0, high=0.1))
+    s.done()
+    return spec
+
 
 def read_cell(name_or_path: str | Path) -> Cell:
     """Read and check a cell file's structure; raises CellFileError naming file, section and key.
 
-    Which drivers exist and which options they take is the driver registry's to say
-    (``cellcal.daemon.cells.load_cell`` checks both at load).
+    Which drivers exist and which options they take is the driver registry's to say, and
+    each routine reads its own section (``cellcal.daemon.cells.load_cell`` checks both).
     """
     path = resolve_cell(name_or_path)
     where = str(path)
@@ -89,9 +207,10 @@ def read_cell(name_or_path: str | Path) -> Cell:
     for section in _REQUIRED:
         if section not in doc:
             top.fail(None, f"section [{section}] is missing")
+    known = _SECTIONS | set(ROUTINE_SECTIONS)
     for section in doc:
-        if section not in _SECTIONS:
-            top.fail(section, f"unknown section (sections: {', '.join(sorted(_SECTIONS))})")
+        if section not in known:
+            top.fail(section, f"unknown section (sections: {', '.join(sorted(known))})")
 
     s = top.section("cell")
     name = s.text("name", path.stem)
@@ -120,14 +239,6 @@ def read_cell(name_or_path: str | Path) -> Cell:
     if "robot" not in drivers:
         d.fail("robot", "missing (required)")
 
-    b = top.section("beam")
-    beam = {"kind": "beam", "point_m": b.vector("point_m", 3, required=True).tolist(),
-            "direction": b.vector("direction", 3, required=True, nonzero=True).tolist(),
-            "radius_m": b.number("radius_m", 0.0005, above=0.0, high=0.05),
-            "channel": b.number("channel", 0, low=0, high=17, integer=True),
-            "level_when_blocked": b.flag("level_when_blocked", True)}
-    b.done()
-
     w = top.section("workspace")
     low, high = w.vector("min_m", 3, required=True), w.vector("max_m", 3, required=True)
     if np.any(low >= high):
@@ -138,12 +249,27 @@ def read_cell(name_or_path: str | Path) -> Cell:
     limits = {"tcp_speed_m_s": lim.number("tcp_speed_m_s", required=True, above=0.0, high=5.0),
               "tcp_accel_m_s2": lim.number("tcp_accel_m_s2", 2.5, above=0.0, high=50.0),
               "joint_speed_rad_s": lim.number("joint_speed_rad_s", required=True, above=0.0, high=6.3),
-              "joint_accel_rad_s2": lim.number("joint_accel_rad_s2", 4.0, above=0.0, high=100.0)}
+              "joint_accel_rad_s2": lim.number("joint_accel_rad_s2", 4.0, above=0.0, high=100.0),
+              "contact_travel_m": lim.number("contact_travel_m", 0.05, above=0.0, high=0.5)}
     lim.done()
 
-    t = top.section("trigger_timing")
-    timing = {"latency_s": t.number("latency_s", 0.0, low=0.0, high=1.0),
-              "jitter_s": t.number("jitter_s", 0.0, low=0.0, high=0.1)}
-    t.done()
-
-    return Cell(where, name, robot, tuple(home_q.tolist()), drivers, beam, low, high, limits, timing)
+    tool = _read_tool(top.section("tool")) if "tool" in doc else None
+    beams = _read_beams(top) if "beams" in doc else ()
+    stylus = None
+    if "stylus" in doc:
+        st = top.section("stylus")
+        stylus = {"centre_m": st.vector("centre_m", 3, required=True),
+                  "radius_m": st.number("radius_m", 0.0005, above=0.0, high=0.05)}
+        st.done()
+    pivot = None
+    if "pivot" in doc:
+        pv = top.section("pivot")
+        pivot = pv.vector("point_m", 3, required=True)
+        pv.done()
+    truth = _read_sim_truth(top.section("sim_truth")) if "sim_truth" in doc else None
+    routines = {}
+    for section in ROUTINE_SECTIONS:
+        if section in doc:
+            routines[section] = top.section(section).mapping
+    return Cell(where, name, robot, tuple(home_q.tolist()), drivers, low, high, limits, tool, beams, stylus,
+                pivot, truth, routines)

@@ -90,12 +90,14 @@ class ArmKinematics:
     construction so both always describe the same arm.
     """
 
-    def __init__(self, model: KinematicModel):
+    def __init__(self, model: KinematicModel, params: np.ndarray | None = None):
+        """The model's nominal geometry (what a controller computes with), or `params`
+        (the arm as really built, for the simulated physics)."""
         self.model = model
         self.chain = model.chains["flange"]
         self.n_joints = model.n_joints
         elements = self.chain.elements
-        params = np.asarray(model.nominal, dtype=float)
+        params = np.asarray(model.nominal if params is None else params, dtype=float)
         self._base = np.array([params[el.param] if el.param >= 0 else el.constant for el in elements])
         self._coupling = np.zeros((len(elements), self.n_joints))
         for i, el in enumerate(elements):

@@ -126,7 +126,7 @@ class SimCell:
         self.tracker: TrackerServer | None = None
         self._stream: UrStateStream | None = None
         self._latest: RobotSample | None = None
-        self._beam_level: bool | None = None
+        self._beam_levels: dict[int, bool] = {}
 
     def start(self) -> "SimCell":
         a = self.addresses
@@ -137,7 +137,7 @@ class SimCell:
                 check_free(*address)
         try:
             self.fake_ur = FakeUrProcess(a.ur_host, robot=self.cell.robot, q0=self.cell.home_q_rad,
-                                         cell={"models": [self.cell.beam]})
+                                         cell={"models": [b.as_model() for b in self.cell.beams]})
             try:
                 self.fake_ur.start()
             except RuntimeError as exc:
@@ -156,16 +156,16 @@ class SimCell:
         return self
 
     def _on_sample(self, sample: RobotSample) -> None:
-        """Copy each edge of the beam's controller input into the IO module's trigger ring."""
+        """Copy each edge of a beam's controller input into the IO module's trigger ring."""
         self._latest = sample
-        beam = self.cell.beam
-        level = bool(sample.digital_inputs >> beam["channel"] & 1)
-        previous, self._beam_level = self._beam_level, level
-        if previous is None or level == previous or self.modbus is None:
-            return
-        blocked = level == beam["level_when_blocked"]
-        self.modbus.record_edge(beam["channel"], Edge.BLOCKED if blocked else Edge.CLEARED,
-                                int(round(sample.t_s * 1e6)))
+        for beam in self.cell.beams:
+            level = bool(sample.digital_inputs >> beam.channel & 1)
+            previous, self._beam_levels[beam.channel] = self._beam_levels.get(beam.channel), level
+            if previous is None or level == previous or self.modbus is None:
+                continue
+            blocked = level == beam.level_when_blocked
+            self.modbus.record_edge(beam.channel, Edge.BLOCKED if blocked else Edge.CLEARED,
+                                    int(round(sample.t_s * 1e6)))
 
     def _tracker_position(self, target: str) -> np.ndarray | None:
         if target not in self.addresses.tracker_targets or self._latest is None:

@@ -119,7 +119,7 @@ class SimRobot(Robot):
                 arm.halt()
                 raise DeviceError(self.name, f"contact search left the workspace box at "
                                              f"{np.round(position, 4).tolist()} m")
-            if any(c.distance_m(position) <= 0.0 for c in self.contacts):
+            if world.touching() or any(c.distance_m(position) <= 0.0 for c in self.contacts):
                 contact = True
                 break
         arm.halt()
@@ -177,7 +177,7 @@ class SimTrigger(TriggerInput):
 
 
 class SimTracker(Tracker):
-    """A tracker whose instrument frame is the robot base; each target sits at the TCP."""
+    """A tracker whose instrument frame is the robot base; each target sits at the real tool tip."""
 
     def __init__(self, world: SimWorld | None = None, *, targets=("smr1",), constant_mm: float = 0.015,
                  per_m_mm: float = 0.006, seed: int | None = 1):
@@ -190,7 +190,7 @@ class SimTracker(Tracker):
     def measure(self, target: str = "smr1", timeout_s: float = 5.0) -> TrackerMeasurement:
         if target not in self.targets:
             raise DeviceError(self.name, f"target not found: {target!r} (targets: {', '.join(self.targets)})")
-        true_m = self.world.tcp_pose[:3]
+        true_m = self.world.tool_tip_m()
         sigma_m = float(self.noise.sigma(true_m[None, :] * 1000.0)[0]) / 1000.0
         return TrackerMeasurement(self.world.t_s, true_m + self.rng.normal(0.0, sigma_m, 3), None, "ok", sigma_m)
 

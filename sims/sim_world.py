@@ -10,10 +10,14 @@ kinematics of the robot model, trapezoidal joint and linear moves, 2 ms cycle), 
 in-process cell and the cell behind the real client libraries move the TCP along the
 same path with the same timing.
 
-Beam edges are timed between cycles, where the TCP's straight step crosses the beam's
-radius, not at the cycle that first shows the new level: a real light barrier switches
-when the tip gets there. The edge's timestamp adds the sensor's latency and a jitter
-drawn uniformly from [-jitter, +jitter].
+What the arm really does is the cell's :class:`~.truth.CellTruth`: the joints move the
+arm as built (not as drawn), the real tool body blocks the real beams and touches the
+real stylus, and each motion ends off by the arm's repeatability. The controller side
+(reported TCP pose, the TCP a routine sets) computes with the drawing, as a real
+controller does. Beam edges are timed between cycles, where the tool's straight step
+crosses the beam, not at the cycle that first shows the new level: a real light
+barrier switches when the tool gets there. The edge's timestamp adds the sensor's
+latency and a jitter drawn uniformly from [-jitter, +jitter].
 """
 from __future__ import annotations
 
@@ -27,7 +31,8 @@ from ..config.robot_files import load_robot
 from ..drivers.interfaces import DeviceError, Edge, RobotSample, RobotState, TriggerEvent
 from ..solvers.robot_model import KinematicModel
 from .arm_motion import ArmKinematics, MovingArm, MotionFault
-from .scene import LightBeam, model_from_spec
+from .scene import LightBeam
+from .truth import CellTruth, beam_blocked, switching_fraction, touching, truth_of_cell
 
 HOME_Q = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
 SAMPLE_BUFFER_S = 120.0
@@ -55,55 +60,33 @@ class SpeedLimits:
     joint_accel_rad_s2: float = 4.0
 
 
-@dataclass(frozen=True)
-class BeamTiming:
-    """How late and how unevenly the beam's sensor reports an edge."""
-
-    latency_s: float = 0.0
-    jitter_s: float = 0.0
-
-
-def beam_crossing(beam: LightBeam, p0: np.ndarray, p1: np.ndarray) -> float | None:
-    """Fraction s in [0, 1] of the step p0 -> p1 where the distance to the beam line
-    equals its radius (the switching point), or None when the step does not cross it."""
-    d = beam.direction / np.linalg.norm(beam.direction)
-    a0 = (p0 - beam.point_m) - ((p0 - beam.point_m) @ d) * d
-    step = (p1 - p0) - ((p1 - p0) @ d) * d
-    qa, qb, qc = step @ step, 2.0 * (a0 @ step), a0 @ a0 - beam.radius_m**2
-    if qa < 1e-30:
-        return None
-    disc = qb * qb - 4.0 * qa * qc
-    if disc < 0.0:
-        return None
-    roots = [(-qb - np.sqrt(disc)) / (2.0 * qa), (-qb + np.sqrt(disc)) / (2.0 * qa)]
-    inside0 = qc < 0.0
-    # entering: the smaller root; leaving: the larger
-    s = roots[1] if inside0 else roots[0]
-    return float(np.clip(s, 0.0, 1.0))
-
-
 class SimWorld:
     """The arm's true state, the beams around it and the simulated clock."""
 
-    def __init__(self, model: KinematicModel, *, q0=HOME_Q, beams=(), workspace: Workspace = Workspace(),
-                 limits: SpeedLimits = SpeedLimits(), beam_timing: BeamTiming = BeamTiming(),
+    def __init__(self, model: KinematicModel, *, q0=HOME_Q, truth: CellTruth | None = None,
+                 workspace: Workspace = Workspace(), limits: SpeedLimits = SpeedLimits(),
                  cycle_s: float = 0.002, seed: int | None = 0):
         if len(q0) != model.n_joints:
             raise ValueError(f"q0 has {len(q0)} joints, {model.name} has {model.n_joints}")
         self.model = model
-        self.kinematics = ArmKinematics(model)
+        self.truth = truth if truth is not None else CellTruth(np.asarray(model.nominal, float), None)
+        self.kinematics = ArmKinematics(model)  # the controller's: the drawing
+        self.physics = ArmKinematics(model, self.truth.arm_params)  # the arm as built
         self.arm = MovingArm(self.kinematics, q0, cycle_s)
         self.cycle_s = cycle_s
-        self.beams: list[LightBeam] = list(beams)
+        self.beams: list[LightBeam] = list(self.truth.beams)
+        self.contacts = [c for c in (self.truth.stylus, *self.truth.contacts) if c is not None]
         self.workspace = workspace
         self.limits = limits
-        self.beam_timing = beam_timing
         self.rng = np.random.default_rng(seed)
         self.t_s = 0.0
         self.state = RobotState.READY
         self.stop_reason = ""
         self._stop_after_motion_s: float | None = None
-        self._blocked = {id(b): self._is_blocked(b, self.arm.tcp_pose[:3]) for b in self.beams}
+        self._repeat_offset_m = np.zeros(3)
+        self._motion = None
+        self._body = self.tool_body()
+        self._blocked = {id(b): beam_blocked(b, self._body, self.tool_radius_m) for b in self.beams}
         self._edges: list[TriggerEvent] = []  # device-stamped, not yet delivered
         self.samples: deque[RobotSample] = deque(maxlen=int(SAMPLE_BUFFER_S / cycle_s))
         self.samples.append(self._sample())
@@ -112,11 +95,40 @@ class SimWorld:
 
     @property
     def tcp_pose(self) -> np.ndarray:
+        """The TCP pose the controller reports (its drawing of the arm, its TCP setting)."""
         return self.arm.tcp_pose.copy()
 
     @property
     def q(self) -> np.ndarray:
         return self.arm.q.copy()
+
+    @property
+    def tool_radius_m(self) -> float:
+        return 0.0 if self.truth.tool is None else self.truth.tool.radius_m
+
+    def tool_body(self, q=None) -> tuple[np.ndarray, np.ndarray]:
+        """The real tool's core segment (base frame, m) at joints q (default: now); a point at
+        the controller's TCP when the truth has no tool."""
+        q = self.arm.q if q is None else q
+        if self.truth.tool is None:
+            p = self.kinematics.tcp_frame(q, self.arm.tcp_offset)[1] + self._repeat_offset_m
+            return p, p
+        rotation, position = self.physics.flange(q)
+        front, back = self.truth.tool.segment(rotation, position)
+        return front + self._repeat_offset_m, back + self._repeat_offset_m
+
+    def tool_tip_m(self) -> np.ndarray:
+        """Where the real tool tip is now (what a tracker target at the tip measures)."""
+        front, back = self._body
+        if self.truth.tool is None:
+            return front.copy()
+        axis = front - back
+        n = np.linalg.norm(axis)
+        direction = axis / n if n > 0 else self.physics.flange(self.arm.q)[0] @ self.truth.tool.axis
+        return front + direction * self.truth.tool.radius_m
+
+    def touching(self) -> bool:
+        return any(touching(c, self._body, self.tool_radius_m) for c in self.contacts)
 
     def digital_inputs(self) -> int:
         bits = 0
@@ -127,10 +139,6 @@ class SimWorld:
 
     def _sample(self) -> RobotSample:
         return RobotSample(self.t_s, self.arm.q.copy(), self.arm.tcp_pose.copy(), self.digital_inputs())
-
-    @staticmethod
-    def _is_blocked(beam: LightBeam, position: np.ndarray) -> bool:
-        return beam.distance_m(position) < beam.radius_m
 
     # -- faults ----------------------------------------------------------------------
 
@@ -154,7 +162,11 @@ class SimWorld:
 
     def step(self) -> None:
         """Advance one controller cycle: move, time any beam edge, record a sample."""
-        p_old = self.arm.tcp_pose[:3].copy()
+        if self.arm.motion is not None and self.arm.motion is not self._motion:
+            self._motion = self.arm.motion  # a new motion ends a little off: repeatability
+            sigma = self.truth.repeatability_mm / 1e3 / np.sqrt(3.0)
+            self._repeat_offset_m = self.rng.normal(0.0, sigma, 3) if sigma > 0 else np.zeros(3)
+        body_old = self._body
         try:
             self.arm.step()
         except MotionFault as exc:
@@ -162,16 +174,20 @@ class SimWorld:
             self.samples.append(self._sample())
             raise DeviceError("sim robot", str(exc)) from None
         t_old, self.t_s = self.t_s, self.t_s + self.cycle_s
-        p_new = self.arm.tcp_pose[:3]
+        self._body = body_new = self.tool_body()
+        radius = self.tool_radius_m
         for beam in self.beams:
-            blocked = self._is_blocked(beam, p_new)
+            blocked = beam_blocked(beam, body_new, radius)
             if blocked != self._blocked[id(beam)]:
                 self._blocked[id(beam)] = blocked
-                s = beam_crossing(beam, p_old, p_new)
-                t_edge = t_old + (self.cycle_s if s is None else s * self.cycle_s)
-                timing = self.beam_timing
-                t_edge += timing.latency_s + (self.rng.uniform(-timing.jitter_s, timing.jitter_s)
-                                              if timing.jitter_s > 0 else 0.0)
+
+                def blocked_at(s, beam=beam):
+                    mixed = (body_old[0] + s * (body_new[0] - body_old[0]), body_old[1] + s * (body_new[1] - body_old[1]))
+                    return beam_blocked(beam, mixed, radius)
+
+                t_edge = t_old + switching_fraction(blocked_at) * self.cycle_s
+                jitter = self.truth.trigger_jitter_s
+                t_edge += self.truth.trigger_latency_s + (self.rng.uniform(-jitter, jitter) if jitter > 0 else 0.0)
                 self._edges.append(TriggerEvent(t_edge, beam.channel,
                                                 Edge.BLOCKED if blocked else Edge.CLEARED, True))
         self.samples.append(self._sample())
@@ -211,7 +227,8 @@ class SimWorld:
 
 def world_of_cell(cell: Cell) -> SimWorld:
     """The world the in-process sim devices of `cell` share (the registry's shared object
-    of the ``sim`` backends): its robot at home, its beam, workspace, limits and timing."""
-    return SimWorld(load_robot(cell.robot), q0=cell.home_q_rad, beams=[model_from_spec(cell.beam)],
-                    workspace=Workspace(cell.workspace_min_m, cell.workspace_max_m),
-                    limits=SpeedLimits(**cell.limits), beam_timing=BeamTiming(**cell.trigger_timing))
+    of the ``sim`` backends): its robot at home, its truth, workspace and limits."""
+    model = load_robot(cell.robot)
+    limits = {k: v for k, v in cell.limits.items() if k in SpeedLimits.__dataclass_fields__}
+    return SimWorld(model, q0=cell.home_q_rad, truth=truth_of_cell(cell, model),
+                    workspace=Workspace(cell.workspace_min_m, cell.workspace_max_m), limits=SpeedLimits(**limits))

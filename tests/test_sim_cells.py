@@ -23,6 +23,7 @@ import pytest
 from cellcal.daemon.cells import CellFileError, load_cell, open_drivers, shipped_cells
 from cellcal.daemon.cli import main as cli_main
 from cellcal.drivers.interfaces import DeviceError, Edge, RobotState
+from cellcal.sims.truth import segment_line_distance
 
 SPEEDS_M_S = (0.02, 0.04, 0.1)
 SWEEP_HALF_M = 0.015  # the sweep runs this far either side of the beam
@@ -41,17 +42,29 @@ def write_cell(tmp_path: Path, text: str, name: str = "cell.yaml") -> Path:
     return path
 
 
+def without_sections(text: str, *names: str) -> str:
+    """A cell file's text without the named top-level sections."""
+    kept, skipping = [], False
+    for line in text.splitlines(keepends=True):
+        if line[:1].strip() and not line.startswith("#"):
+            skipping = line.split(":")[0] in names
+        if not skipping:
+            kept.append(line)
+    return "".join(kept)
+
+
 def net_cell_file(tmp_path: Path, host: str) -> Path:
     """The shipped sim-net cell moved to another loopback address."""
     return write_cell(tmp_path, shipped_text("sim-net").replace("127.0.0.1", host), "sim-net.yaml")
 
 
-def sweep_through_beam(robot, trigger, beam: dict, speeds=SPEEDS_M_S, timeout_s: float = 5.0):
-    """Down through the beam at each speed, from the same start; the edges of each sweep."""
+def sweep_through_beam(robot, trigger, beam, speeds=SPEEDS_M_S, timeout_s: float = 5.0):
+    """Down through `beam` (a BeamSpec) with the controller's TCP, at each speed, from the
+    same start; the edges of each sweep on the beam's channel."""
     home = robot.actual_tcp_pose()
-    z_beam = beam["point_m"][2]
-    start = np.concatenate([[beam["point_m"][0], home[1], z_beam + SWEEP_HALF_M], home[3:]])
-    end = np.concatenate([[beam["point_m"][0], home[1], z_beam - SWEEP_HALF_M], home[3:]])
+    z_beam = beam.point_m[2]
+    start = np.concatenate([[beam.point_m[0], beam.point_m[1], z_beam + SWEEP_HALF_M], home[3:]])
+    end = np.concatenate([[beam.point_m[0], beam.point_m[1], z_beam - SWEEP_HALF_M], home[3:]])
     sweeps = []
     for speed in speeds:
         robot.move_l(start, 0.25, 1.0)
@@ -59,10 +72,24 @@ def sweep_through_beam(robot, trigger, beam: dict, speeds=SPEEDS_M_S, timeout_s:
         robot.move_l(end, speed, 1.0)
         events, deadline = [], time.monotonic() + timeout_s
         while len(events) < 2 and time.monotonic() < deadline:
-            events += trigger.events(timeout_s=0.5)
+            events += [e for e in trigger.events(timeout_s=0.5) if e.channel == beam.channel]
         assert [e.edge for e in events] == [Edge.BLOCKED, Edge.CLEARED], f"sweep at {speed} m/s: {events}"
         sweeps.append(events)
     return sweeps
+
+
+def sweep_tool_across_beams(robot, trigger, cell, speed: float):
+    """The tool, set to its drawing, swept along x across the beams' crossing with its tip
+    5 mm below the beam plane: each beam is blocked and cleared once by the tool's body."""
+    robot.set_tcp(cell.tool.tcp_pose)
+    crossing = cell.beams[0].point_m
+    home = robot.actual_tcp_pose()
+    start = np.concatenate([crossing + [-0.02, 0.0, -0.005], home[3:]])
+    end = np.concatenate([crossing + [0.02, 0.0, -0.005], home[3:]])
+    robot.move_l(start, 0.25, 1.0)
+    trigger.events()
+    robot.move_l(end, speed, 1.0)
+    return trigger.events(timeout_s=0.5)
 
 
 def tcp_at(robot, t_s: float) -> np.ndarray:
@@ -95,10 +122,11 @@ def test_shipped_cells_load():
     ("  tcp_speed_m_s: 0.25", "  tcp_speed_m_s: 0.25\n  tcp_sped_m_s: 0.3", "limits", "tcp_sped_m_s",
      "unknown key"),
     ("  min_m: [-1.2, -1.0, 0.05]", "  min_m: low", "workspace", "min_m", "not a list of 3 numbers"),
-    ("  radius_m: 0.0005        #", "  radius_m: -0.001        #", "beam", "radius_m", "out of range"),
+    ("radius_m: 0.0002, channel: 1}", "radius_m: -0.001, channel: 1}", "beams[1]", "radius_m", "out of range"),
+    ("  radius_m: 0.003", "  radius_m: 0.003\n  radius: 0.003", "tool", "radius", "unknown key"),
     ("  trigger: {driver: sim}", "  trigger: {driver: laser}", "drivers.trigger", "driver",
      "no trigger driver named 'laser'"),
-    ("  jitter_s: 0.0005", "  jitter_s: yes", "trigger_timing", "jitter_s", "is not a number"),
+    ("  trigger_jitter_s: 0.0005", "  trigger_jitter_s: yes", "sim_truth", "trigger_jitter_s", "is not a number"),
 ])
 def test_load_cell_names_file_section_and_key(tmp_path, old, new, section, key, what):
     text = shipped_text("sim")
@@ -130,7 +158,7 @@ def test_load_cell_refuses_a_missing_section_and_a_repeated_key(tmp_path):
     with pytest.raises(CellFileError, match=r"section \[limits\] is missing"):
         load_cell(write_cell(tmp_path, text.replace("limits:", "limits_old:"), "a.yaml"))
     with pytest.raises(CellFileError, match="given twice"):
-        load_cell(write_cell(tmp_path, text.replace("  channel: 0", "  channel: 0\n  channel: 1"), "b.yaml"))
+        load_cell(write_cell(tmp_path, text.replace("  seed: 7", "  seed: 7\n  seed: 8"), "b.yaml"))
 
 
 # -- the in-process cell ---------------------------------------------------------------
@@ -142,20 +170,32 @@ def sim_cell():
         yield cell, drivers
 
 
-def test_sweep_edges_put_the_tcp_on_the_beam(sim_cell):
+@pytest.mark.parametrize("speed", SPEEDS_M_S)
+def test_edges_put_the_real_tool_on_the_real_beams(sim_cell, speed):
+    """The truth decides: where the edge says, less the sensor's true latency, the real tool
+    body (the arm as built, the tool as it really is) touches the real beam."""
     cell, drivers = sim_cell
-    timing = cell.trigger_timing
+    world, truth = drivers.world, drivers.world.truth
     t0 = time.perf_counter()
-    sweeps = sweep_through_beam(drivers.robot, drivers.trigger, cell.beam)
+    events = sweep_tool_across_beams(drivers.robot, drivers.trigger, cell, speed)
     assert time.perf_counter() - t0 < 5.0  # simulated time: no real waiting
-    for speed, events in zip(SPEEDS_M_S, sweeps):
-        for event in events:
-            assert event.device_time and event.channel == cell.beam["channel"]
-            position = tcp_at(drivers.robot, event.t_s - timing["latency_s"])
-            error = abs(distance_to_beam(cell.beam, position) - cell.beam["radius_m"])
-            assert error <= speed * timing["jitter_s"] + 5e-5, (speed, event, error)
-        blocked, cleared = (tcp_at(drivers.robot, e.t_s - timing["latency_s"])[2] for e in events)
-        assert blocked > cell.beam["point_m"][2] > cleared  # moving down: in above, out below
+    assert sorted((e.channel, e.edge.value) for e in events) == [
+        (0, "blocked"), (0, "cleared"), (1, "blocked"), (1, "cleared")], events
+    samples = drivers.robot.samples()
+    t = np.array([s.t_s for s in samples])
+    q = np.array([s.q_rad for s in samples])
+    beams = {b.channel: b for b in truth.beams}
+    for event in events:
+        assert event.device_time
+        t_true = event.t_s - truth.trigger_latency_s
+        q_then = np.array([np.interp(t_true, t, q[:, j]) for j in range(q.shape[1])])
+        body = world.tool_body(q_then)
+        beam = beams[event.channel]
+        d = beam.direction / np.linalg.norm(beam.direction)
+        gap = segment_line_distance(body[0], body[1], beam.point_m, d) - beam.radius_m - truth.tool.radius_m
+        assert abs(gap) <= speed * truth.trigger_jitter_s + 2e-6, (event, gap)
+    # and the drawing is not the truth: the nominal beam would put the edges elsewhere
+    assert np.linalg.norm(truth.beams[0].point_m - cell.beams[0].point_m) > 1e-4
 
 
 def test_sim_robot_refuses_what_the_cell_forbids(sim_cell):
@@ -196,25 +236,30 @@ def test_sim_panel_and_tracker(sim_cell):
     panel.set_result(0)
     assert panel.lamps["busy"] and panel.run_counter == 1
     measured = tracker.measure("smr1")
-    assert np.linalg.norm(measured.position_m - drivers.robot.actual_tcp_pose()[:3]) < 10 * measured.quality
+    # the target is on the real tool tip, 150 mm out from the flange the controller reports
+    assert np.linalg.norm(measured.position_m - drivers.world.tool_tip_m()) < 10 * measured.quality
+    assert np.linalg.norm(measured.position_m - drivers.robot.actual_tcp_pose()[:3]) > 0.14
     with pytest.raises(DeviceError, match="target not found"):
         tracker.measure("smr9")
 
 
 # -- the same cell over loopback -------------------------------------------------------
 
-def test_sim_net_sweep_matches_the_in_process_cell():
+def test_sim_net_sweep_matches_the_in_process_cell(tmp_path):
     from cellcal.sims.net_cell import SimCell
 
-    in_process = load_cell("sim")
+    # the in-process cell with a point probe at the controller's TCP and the beams as drawn,
+    # as the networked fakes have them
+    text = without_sections(shipped_text("sim"), "tool", "sim_truth") + "sim_truth: {fixture_error_mm: 0.0}\n"
+    in_process = load_cell(write_cell(tmp_path, text))
     with open_drivers(in_process) as drivers:
-        local = [[tcp_at(drivers.robot, e.t_s - in_process.trigger_timing["latency_s"]) for e in events]
-                 for events in sweep_through_beam(drivers.robot, drivers.trigger, in_process.beam)]
+        local = [[tcp_at(drivers.robot, e.t_s) for e in events]
+                 for events in sweep_through_beam(drivers.robot, drivers.trigger, in_process.beams[0])]
     net = load_cell("sim-net").on_host(next(_HOSTS))
     with SimCell(net):
         with open_drivers(net) as drivers:
             remote = [[tcp_at(drivers.robot, e.t_s) for e in events]
-                      for events in sweep_through_beam(drivers.robot, drivers.trigger, net.beam)]
+                      for events in sweep_through_beam(drivers.robot, drivers.trigger, net.beams[0])]
     for speed, a, b in zip(SPEEDS_M_S, local, remote):
         for p_local, p_net in zip(a, b):
             assert np.linalg.norm(p_local - p_net) < 0.0005, (speed, p_local, p_net)

@@ -1,0 +1,172 @@
+"""What a simulated cell really has: the one hidden truth every simulated device obeys.
+
+The cell file says what the cell is *meant* to be (the tool as drawn, where the beams,
+the stylus and the pivot were installed); its ``sim_truth`` section says how far
+reality is from that, or states reality outright, and a seed draws the rest. From it:
+
+* the arm as built (its geometry off the drawing; the controller still computes with
+  the drawing, so its reported TCP is where it *believes* the tool is);
+* the mounted tool as it really is: its tip (the TCP a perfect calibration finds), its
+  axis (runout tilt), its radius and length, as a capsule that blocks beams and touches
+  things with its whole body, not just a point;
+* the fixtures where they really are, the sensors' real latency and jitter, and the
+  arm's repeatability (each motion ends a little off, drawn afresh per motion).
+
+The in-process cell (:mod:`.sim_world`) and the fake UR controller behind the network
+fakes (:mod:`.fake_ur`) are both built from one :class:`CellTruth`, so the same routine
+run in both cells is scored against the same truth. Routines and solvers never read
+it; tests and the run's report (``sim_truth`` in the JSON) do.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..config.cells import Cell, SimTruthSpec
+from ..solvers.robot_model import KinematicModel
+from .scene import ContactPlane, ContactSphere, LightBeam
+
+
+@dataclass(frozen=True)
+class ToolBody:
+    """The real tool: a capsule of `radius_m` whose tip is the TCP, reaching `length_m` back."""
+
+    tcp_m: np.ndarray  # the tip, flange frame
+    axis: np.ndarray  # unit, flange frame, from the flange toward the tip
+    radius_m: float
+    length_m: float
+
+    def segment(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The capsule's core segment in the frame the flange pose is given in: from the
+        centre of the tip's rounding back along the axis."""
+        tip = position + rotation @ self.tcp_m
+        axis = rotation @ self.axis
+        front = tip - axis * self.radius_m
+        return front, front - axis * max(self.length_m - self.radius_m, 0.0)
+
+    @property
+    def tcp_pose(self) -> np.ndarray:
+        """The tool frame a perfect calibration finds: origin at the tip, z along the axis
+        (the rotation about the axis is a convention: the smallest turn from flange z)."""
+        z = np.array([0.0, 0.0, 1.0])
+        turn = np.cross(z, self.axis)
+        sin, cos = float(np.linalg.norm(turn)), float(z @ self.axis)
+        rotvec = turn / sin * np.arctan2(sin, cos) if sin > 1e-12 else np.zeros(3)
+        return np.concatenate([self.tcp_m, rotvec])
+
+
+@dataclass(frozen=True)
+class CellTruth:
+    arm_params: np.ndarray  # the arm as built, in the model's parameter order (mm, rad)
+    tool: ToolBody | None  # None: a point probe at whatever TCP the controller is set to
+    beams: tuple[LightBeam, ...] = ()
+    stylus: ContactSphere | None = None
+    pivot_m: np.ndarray | None = None
+    contacts: tuple = ()  # further surfaces (ContactPlane, ContactSphere)
+    repeatability_mm: float = 0.0
+    trigger_latency_s: float = 0.0
+    trigger_jitter_s: float = 0.0
+    seed: int = 0
+    drawn: dict = field(default_factory=dict)  # how far each part is from the cell file, for reports
+
+    def report(self) -> dict:
+        """The truth in the units people read, for a simulated run's report."""
+        out = {"seed": self.seed, "repeatability_mm": self.repeatability_mm,
+               "trigger_latency_ms": self.trigger_latency_s * 1e3, "trigger_jitter_ms": self.trigger_jitter_s * 1e3}
+        if self.tool is not None:
+            out["tool"] = {"tcp_mm": (self.tool.tcp_m * 1e3).tolist(), "axis": self.tool.axis.tolist(),
+                           "radius_mm": self.tool.radius_m * 1e3}
+        out.update(self.drawn)
+        return out
+
+
+def _random_unit(rng: np.random.Generator) -> np.ndarray:
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+def _tilted(axis: np.ndarray, angle_rad: float, rng: np.random.Generator) -> np.ndarray:
+    """`axis` tilted by `angle_rad` towards a random perpendicular direction."""
+    perpendicular = np.cross(axis, _random_unit(rng))
+    perpendicular /= np.linalg.norm(perpendicular)
+    return np.cos(angle_rad) * axis + np.sin(angle_rad) * perpendicular
+
+
+def truth_of_cell(cell: Cell, model: KinematicModel) -> CellTruth:
+    """The truth of a simulated cell: the file's ``sim_truth`` (defaults where absent),
+    with what it does not state drawn from its seed (the same seed gives the same cell)."""
+    spec = cell.sim_truth or SimTruthSpec()
+    rng = np.random.default_rng(spec.seed)
+    params = np.asarray(model.nominal, dtype=float).copy()
+    errors = np.where(model.param_is_angle, np.deg2rad(spec.arm_angle_error_deg), spec.arm_length_error_mm)
+    params += rng.uniform(-1.0, 1.0, len(params)) * errors
+    drawn: dict = {}
+    tool = None
+    if cell.tool is not None:
+        tcp = spec.tool_tcp_m if spec.tool_tcp_m is not None else \
+            cell.tool.tcp_m + _random_unit(rng) * spec.tool_tcp_error_mm / 1e3
+        axis = spec.tool_axis if spec.tool_axis is not None else \
+            _tilted(cell.tool.axis, np.deg2rad(spec.tool_tilt_deg), rng)
+        tool = ToolBody(np.asarray(tcp, float), np.asarray(axis, float) / np.linalg.norm(axis),
+                        cell.tool.radius_m, cell.tool.length_m)
+        drawn["tool_tcp_off_drawing_mm"] = float(np.linalg.norm(tool.tcp_m - cell.tool.tcp_m) * 1e3)
+        drawn["tool_axis_off_drawing_deg"] = float(np.rad2deg(np.arccos(np.clip(tool.axis @ cell.tool.axis, -1, 1))))
+
+    def placed(point: np.ndarray) -> np.ndarray:
+        return np.asarray(point, float) + _random_unit(rng) * spec.fixture_error_mm / 1e3
+
+    beams = tuple(LightBeam(placed(b.point_m), b.direction, b.radius_m, b.channel, b.level_when_blocked)
+                  for b in cell.beams)
+    stylus = None
+    if cell.stylus is not None:
+        stylus = ContactSphere(placed(cell.stylus["centre_m"]), cell.stylus["radius_m"])
+    pivot = placed(cell.pivot_m) if cell.pivot_m is not None else None
+    return CellTruth(params, tool, beams, stylus, pivot, (), spec.repeatability_mm, spec.trigger_latency_s,
+                     spec.trigger_jitter_s, spec.seed, drawn)
+
+
+# -- geometry of a capsule against lines, points and planes ------------------------------------
+
+def segment_line_distance(a: np.ndarray, b: np.ndarray, point: np.ndarray, direction: np.ndarray) -> float:
+    """Shortest distance between the segment a-b and the line through `point` along unit `direction`."""
+    u = (a - point) - ((a - point) @ direction) * direction
+    w = (b - point) - ((b - point) @ direction) * direction
+    v = w - u
+    vv = float(v @ v)
+    t = 0.0 if vv < 1e-30 else float(np.clip(-(u @ v) / vv, 0.0, 1.0))
+    return float(np.linalg.norm(u + t * v))
+
+
+def segment_point_distance(a: np.ndarray, b: np.ndarray, point: np.ndarray) -> float:
+    ab = b - a
+    ll = float(ab @ ab)
+    t = 0.0 if ll < 1e-30 else float(np.clip((point - a) @ ab / ll, 0.0, 1.0))
+    return float(np.linalg.norm(a + t * ab - point))
+
+
+def beam_blocked(beam: LightBeam, segment, radius_m: float) -> bool:
+    d = beam.direction / np.linalg.norm(beam.direction)
+    return segment_line_distance(segment[0], segment[1], beam.point_m, d) < beam.radius_m + radius_m
+
+
+def touching(surface, segment, radius_m: float) -> bool:
+    """Whether the capsule (segment, radius) touches or pierces a contact surface."""
+    if isinstance(surface, ContactSphere):
+        return segment_point_distance(segment[0], segment[1], surface.centre_m) <= surface.radius_m + radius_m
+    if isinstance(surface, ContactPlane):
+        return min(surface.distance_m(segment[0]), surface.distance_m(segment[1])) <= radius_m
+    return surface.distance_m(segment[0]) <= radius_m
+
+
+def switching_fraction(blocked_at, steps: int = 24) -> float:
+    """Fraction s in [0, 1] of a step at which `blocked_at(s)` first differs from its value
+    at 0 (bisection; the body moves on a straight line within one 2 ms cycle)."""
+    start, lo, hi = blocked_at(0.0), 0.0, 1.0
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        if blocked_at(mid) == start:
+            lo = mid
+        else:
+            hi = mid
+    return hi
