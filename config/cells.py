@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..solvers import se3
 from .reader import ConfigError, Section, read_yaml, resolve, shipped
 from .robot_files import ModelError, load_robot
 
@@ -76,13 +77,7 @@ class ToolSpec:
     def tcp_pose(self) -> np.ndarray:
         """[x, y, z, rx, ry, rz]: the tool frame whose z is the tool axis (rotation about it
         by the smallest turn from the flange's z)."""
-        z = np.array([0.0, 0.0, 1.0])
-        axis = self.axis / np.linalg.norm(self.axis)
-        turn = np.cross(z, axis)
-        sin, cos = np.linalg.norm(turn), float(z @ axis)
-        angle = np.arctan2(sin, cos)
-        rotvec = turn / sin * angle if sin > 1e-12 else (np.zeros(3) if cos > 0 else np.array([np.pi, 0, 0]))
-        return np.concatenate([self.tcp_m, rotvec])
+        return np.concatenate([self.tcp_m, se3.rotvec_from_z(self.axis)])
 
 
 @dataclass(frozen=True)

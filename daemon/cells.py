@@ -2,8 +2,9 @@
 the driver registry, and every device it names built through the registry.
 
 The file's structure is checked where it is read; here each device's driver name and
-options are checked by the registry at load, so a typo in a driver option fails at
-start-up with the file, the section and the key, like the rest of the cell file.
+options are checked by the driver registry, and each routine reads its own section, at
+load: a typo in a driver option or a routine option fails at start-up with the file,
+the section and the key, like the rest of the cell file.
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from pathlib import Path
 from ..config.cells import Cell, CellFileError, read_cell, shipped_cells
 from ..drivers import registry
 from ..drivers.registry import DriverConfigError
+from ..routines import registry as routines
 
 __all__ = ["Cell", "CellDrivers", "CellFileError", "load_cell", "open_drivers", "shipped_cells"]
 
@@ -22,13 +24,15 @@ def _placed(exc: DriverConfigError, cell: Cell, kind: str) -> CellFileError:
 
 
 def load_cell(name_or_path: str | Path) -> Cell:
-    """Load and check a cell file, drivers and their options included; raises CellFileError."""
+    """Load and check a cell file, drivers, their options and the routines' sections
+    included; raises CellFileError naming file, section and key."""
     cell = read_cell(name_or_path)
     for kind, spec in cell.drivers.items():
         try:
             registry.check(kind, spec.name, spec.options)
         except DriverConfigError as exc:
             raise _placed(exc, cell, kind) from None
+    routines.check_sections(cell)
     return cell
 
 

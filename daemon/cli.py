@@ -13,10 +13,11 @@ import sys
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from ..config.robot_files import ModelError, load_robot
+from ..config.reader import ConfigError
+from ..config.robot_files import load_robot
 from ..routines.dataset import DatasetError, MeasurementTable, read_measurements
 from ..solvers.identify import LOSSES, REGULARIZE, IdentifyOptions, identify
-from . import analyze_cmd, importers, sim_campaign, sim_cell
+from . import analyze_cmd, importers, run_cmd, sim_campaign, sim_cell
 from .cli_common import UsageError, check_folds, print_progress
 from .report import identification_json, identification_text
 
@@ -103,6 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_identify)
 
     analyze_cmd.add_parser(sub)
+    run_cmd.add_parser(sub)
     importers.add_parser(sub)
     sim_campaign.add_parser(sub)
     sim_campaign.add_sim_data_parser(sub)
@@ -121,7 +123,7 @@ def main(argv=None) -> int:
 def _run(args) -> int:
     try:
         return args.func(args)
-    except (DatasetError, ModelError, UsageError) as exc:
+    except (DatasetError, ConfigError, UsageError) as exc:
         print(f"cellcal: error: {exc}", file=sys.stderr)
         return 2
     except (ValueError, np.linalg.LinAlgError, RuntimeError) as exc:

@@ -98,6 +98,15 @@ def check(kind: str, name: str, options: dict) -> None:
         check_values(**{p: options.get(p, v.default) for p, v in named.items()})
 
 
+# the hidden truth of a simulated cell, for scoring a simulated run's report (never its solving)
+_SIM_TRUTH = "cellcal.sims.truth:truth_of_cell"
+
+
+def simulated_truth(cell, model):
+    """The hidden truth of a cell whose file has a ``sim_truth`` section, else None."""
+    return _load(_SIM_TRUTH)(cell, model) if getattr(cell, "sim_truth", None) is not None else None
+
+
 def shared_context(name: str, cell):
     """The object every device of backend family `name` shares in `cell`, or None."""
     return _load(_SHARED[name])(cell) if name in _SHARED else None

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config.cells import Cell, SimTruthSpec
+from ..solvers import se3
 from ..solvers.robot_model import KinematicModel
 from .scene import ContactPlane, ContactSphere, LightBeam
 
@@ -49,11 +50,7 @@ class ToolBody:
     def tcp_pose(self) -> np.ndarray:
         """The tool frame a perfect calibration finds: origin at the tip, z along the axis
         (the rotation about the axis is a convention: the smallest turn from flange z)."""
-        z = np.array([0.0, 0.0, 1.0])
-        turn = np.cross(z, self.axis)
-        sin, cos = float(np.linalg.norm(turn)), float(z @ self.axis)
-        rotvec = turn / sin * np.arctan2(sin, cos) if sin > 1e-12 else np.zeros(3)
-        return np.concatenate([self.tcp_m, rotvec])
+        return np.concatenate([self.tcp_m, se3.rotvec_from_z(self.axis)])
 
 
 @dataclass(frozen=True)
@@ -69,6 +66,18 @@ class CellTruth:
     trigger_jitter_s: float = 0.0
     seed: int = 0
     drawn: dict = field(default_factory=dict)  # how far each part is from the cell file, for reports
+
+    def score_tool_frame(self, tool_frame) -> dict:
+        """How far a found tool frame [x, y, z, rx, ry, rz] (m, rad) is from the real tool:
+        the TCP position and the direction of its z axis (the rotation about the tool axis is
+        a convention, not a measurement)."""
+        if self.tool is None:
+            return {}
+        frame = np.asarray(tool_frame, dtype=float)
+        z = se3.rotvec_to_matrix(frame[3:])[:, 2]
+        angle = float(np.degrees(np.arccos(np.clip(z @ self.tool.axis, -1.0, 1.0))))
+        return {"position_error_mm": float(np.linalg.norm(frame[:3] - self.tool.tcp_m) * 1e3),
+                "axis_error_deg": angle, "true_tool_frame": self.tool.tcp_pose.tolist()}
 
     def report(self) -> dict:
         """The truth in the units people read, for a simulated run's report."""

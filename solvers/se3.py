@@ -110,3 +110,15 @@ def rigid_fit(source: np.ndarray, target: np.ndarray, weights=None):
     d = np.sign(np.linalg.det(vt.T @ u.T))
     r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
     return r, ct - r @ cs
+
+
+def rotvec_from_z(axis) -> np.ndarray:
+    """The rotation vector of the smallest turn that takes z onto unit `axis`: a tool frame
+    whose z is the tool's axis, with the rotation about it fixed by that convention."""
+    axis = np.asarray(axis, dtype=float)
+    axis = axis / np.linalg.norm(axis)
+    turn = np.cross([0.0, 0.0, 1.0], axis)
+    sin, cos = float(np.linalg.norm(turn)), float(axis[2])
+    if sin < 1e-12:
+        return np.zeros(3) if cos > 0 else np.array([np.pi, 0.0, 0.0])
+    return turn / sin * np.arctan2(sin, cos)

@@ -1,0 +1,127 @@
+"""``cellcal run ROUTINE --cell CELL.yaml [--dry-run] [--json] [--from DATASET]``.
+
+Plans the routine from the cell file, checks every motion against the cell's limits
+(``--dry-run`` stops there), moves and records, writes the dataset, solves and gates.
+``--from DATASET`` re-solves a recorded dataset offline with the same code. On a
+simulated cell the result also carries ``sim_truth``: the error against the hidden truth.
+
+Exit status: 0 the result passed every gate (it may be written back); 1 a device fault,
+a computation that failed, or a result that failed a gate (the JSON still comes, with
+``write_back: false`` and the reasons); 2 bad usage, a bad cell file, a plan that would
+leave the cell's limits, or a dataset that cannot be used.
+"""
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+
+from ..config.robot_files import load_robot
+from ..drivers import registry as drivers_registry
+from ..drivers.interfaces import DeviceError
+from ..routines import registry, runner
+from ..routines.base import PlanRefused, Result, RoutineError, tool_frame_json
+from .cells import load_cell, open_drivers
+from .cli_common import UsageError, print_progress
+
+
+def _score(result: Result, cell) -> None:
+    truth = drivers_registry.simulated_truth(cell, load_robot(cell.robot))
+    if truth is None:
+        return
+    score = truth.report()
+    if result.tool_frame is not None:
+        score.update(truth.score_tool_frame(result.tool_frame))
+    result.sim_truth = score
+
+
+def _text(result: Result) -> str:
+    lines = [f"{result.routine}: {'PASSED every gate: may be written back' if result.write_back else 'NOT to be written back'}"]
+    if result.tool_frame is not None:
+        f = tool_frame_json(result.tool_frame)
+        lines.append(f"  tool frame  x {f['x_mm']:9.4f} mm  y {f['y_mm']:9.4f} mm  z {f['z_mm']:9.4f} mm   "
+                     f"rx {f['rx_deg']:8.4f}  ry {f['ry_deg']:8.4f}  rz {f['rz_deg']:8.4f} deg")
+    for p in result.parameters:
+        std = "" if p.std is None else f" +- {p.std:.4f}"
+        lines.append(f"  {p.name:<28} {p.value:12.4f}{std} {p.unit}")
+    lines.append(f"  residual RMS {result.residual_rms_mm:.4f} mm over {len(result.residuals_mm)} measurements "
+                 f"(expected noise {result.expected_noise_mm:.4f} mm); condition {result.condition:.3g}")
+    if result.cycle_time_s is not None:
+        lines.append(f"  cycle time {result.cycle_time_s:.1f} s")
+    for g in result.gates:
+        lines.append(f"  [{'pass' if g.passed else 'FAIL'}] {g.name}: {g.why}")
+    lines += [f"  note: {n}" for n in result.notes]
+    if result.sim_truth:
+        t = result.sim_truth
+        if "position_error_mm" in t:
+            lines.append(f"  against the simulation's hidden truth: TCP {t['position_error_mm']:.4f} mm, "
+                         f"axis {t['axis_error_deg']:.4f} deg")
+    if result.dataset:
+        lines.append(f"  dataset: {result.dataset}")
+    return "\n".join(lines)
+
+
+def cmd_run(args) -> int:
+    try:
+        cell = load_cell(args.cell)
+        if args.routine not in registry.available():
+            raise UsageError(f"no routine named {args.routine!r} (routines: {', '.join(registry.available())})")
+        if args.from_dataset:
+            result = runner.solve_file(args.routine, cell, args.from_dataset)
+        else:
+            prepared = runner.prepare(args.routine, cell)
+            if args.dry_run:
+                summary = {"routine": args.routine, "cell": cell.path, "moves": len(prepared.plan),
+                           "within_limits": True,
+                           "plan": [{"kind": m.kind, "label": m.label} for m in prepared.plan]}
+                if args.json:
+                    print(json.dumps(summary))
+                else:
+                    print(f"{args.routine}: {len(prepared.plan)} moves planned; every one is within the "
+                          f"limits of {cell.path} (nothing moved)")
+                return 0
+            with open_drivers(cell) as drivers:
+                dataset = runner.measure(prepared, drivers, args.out, print_progress)
+            result = runner.solve(args.routine, cell, dataset)
+    except PlanRefused as exc:
+        raise UsageError(f"{args.cell}: plan refused, nothing moved: {exc}") from None
+    except (DeviceError, RoutineError) as exc:
+        return _fail(args, 1, str(exc))
+    _score(result, cell)
+    if args.json:
+        print(json.dumps(result.as_json(), default=_json_default))
+    else:
+        print(_text(result))
+    return 0 if result.write_back else 1
+
+
+def _json_default(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return value.item()
+    raise TypeError(type(value).__name__)
+
+
+def _fail(args, code: int, message: str) -> int:
+    print(f"cellcal: {message}", file=sys.stderr)
+    if args.json:
+        print(json.dumps({"error": {"code": code, "message": message}}))
+    return code
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("run", help="run a calibration routine on a cell",
+                       description="Plan the routine from the cell file, check every motion against the "
+                                   "cell's limits, move and record, write the dataset, solve, and check the "
+                                   "result's quality gates. Nothing is written to the controller here.")
+    p.add_argument("routine", metavar="ROUTINE", help="one of: " + ", ".join(registry.ROUTINES))
+    p.add_argument("--cell", default="sim", metavar="CELL.yaml",
+                   help="cell file, or the name of a shipped cell (default: sim, the simulated cell)")
+    p.add_argument("--dry-run", action="store_true", help="plan and check every motion; move nothing")
+    p.add_argument("--from", dest="from_dataset", metavar="DATASET",
+                   help="re-solve a recorded dataset instead of measuring")
+    p.add_argument("--out", default="out/runs", metavar="DIR", help="where datasets are written (default: out/runs)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.set_defaults(func=cmd_run)

@@ -1,0 +1,203 @@
+"""What every routine is: plan -> check the whole plan -> move and record -> dataset on
+disk -> solve (a pure function in ``solvers``) -> gates -> result.
+
+A routine is one module with one :class:`Routine` subclass that owns one section of the
+cell file (Klipper style: it reads and bounds its own options in :meth:`Routine.read_options`,
+at cell load). It gets its devices through the driver interfaces only (the cell file
+picks the backends) and moves the arm only through :class:`~.guard.GuardedRobot`, so
+every command passes the cell's limits. Results of every routine have the same shape
+(:class:`Result`), so the daemon and the store can treat them alike.
+"""
+from __future__ import annotations
+
+import abc
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from ..config.cells import Cell
+from ..config.reader import Section
+from ..drivers.interfaces import Robot, Tracker, TriggerInput
+
+
+class RoutineError(RuntimeError):
+    """The routine could not run or solve; the message says what to fix (exit 1)."""
+
+
+class PlanRefused(ValueError):
+    """A planned move would leave the cell's limits; names the move and the limit (exit 2)."""
+
+
+@dataclass(frozen=True)
+class Move:
+    """One motion command of a plan, in the robot's units (m, rad, rotation vectors).
+
+    kind ``joint``: to ``q_rad``; ``linear``: the TCP to ``pose`` on a straight line;
+    ``contact``: along ``direction`` at ``speed`` until contact, at most ``travel_m``.
+    """
+
+    kind: str
+    label: str
+    speed: float  # rad/s for joint moves, m/s otherwise
+    accel: float  # rad/s^2 for joint moves, m/s^2 otherwise
+    q_rad: np.ndarray | None = None
+    pose: np.ndarray | None = None
+    direction: np.ndarray | None = None  # unit, base frame
+    travel_m: float = 0.0
+
+    @classmethod
+    def joint(cls, label, q_rad, speed, accel) -> "Move":
+        return cls("joint", label, float(speed), float(accel), q_rad=np.asarray(q_rad, dtype=float))
+
+    @classmethod
+    def linear(cls, label, pose, speed, accel) -> "Move":
+        return cls("linear", label, float(speed), float(accel), pose=np.asarray(pose, dtype=float))
+
+    @classmethod
+    def contact(cls, label, direction, speed, travel_m, accel=1.0) -> "Move":
+        d = np.asarray(direction, dtype=float)
+        return cls("contact", label, float(speed), float(accel), direction=d / np.linalg.norm(d),
+                   travel_m=float(travel_m))
+
+
+@dataclass(frozen=True)
+class Devices:
+    """What a routine may use, behind the driver interfaces (None where the cell has none)."""
+
+    robot: Robot
+    trigger: TriggerInput | None = None
+    tracker: Tracker | None = None
+
+
+@dataclass(frozen=True)
+class Gate:
+    """One quality check of a result: passed, the value, the limit, and why, in words."""
+
+    name: str
+    passed: bool
+    value: float
+    limit: float
+    why: str
+
+    def as_json(self) -> dict:
+        return {"name": self.name, "passed": self.passed, "value": _finite(self.value),
+                "limit": _finite(self.limit), "why": self.why}
+
+
+@dataclass(frozen=True)
+class Parameter:
+    name: str
+    value: float
+    std: float | None
+    unit: str
+
+    def as_json(self) -> dict:
+        return {"name": self.name, "value": self.value, "std": self.std, "unit": self.unit}
+
+
+@dataclass
+class Result:
+    """The same shape for every routine.
+
+    ``tool_frame`` is the flange -> TCP frame [x, y, z, rx, ry, rz] (m, rad) that would be
+    written back, for routines that find one; ``frame`` a base frame for those that find
+    that. ``write_back`` is True only when every gate passed.
+    """
+
+    routine: str
+    parameters: list[Parameter]
+    residuals_mm: np.ndarray  # (N,) or (N, k): what the fit leaves per measurement
+    expected_noise_mm: float
+    condition: float
+    gates: list[Gate]
+    tool_frame: np.ndarray | None = None
+    frame: dict | None = None
+    notes: list[str] = field(default_factory=list)
+    extra: dict = field(default_factory=dict)  # routine-specific numbers, units in the keys
+    dataset: str | None = None
+    cycle_time_s: float | None = None
+    sim_truth: dict | None = None
+
+    @property
+    def write_back(self) -> bool:
+        return bool(self.gates) and all(g.passed for g in self.gates)
+
+    @property
+    def residual_rms_mm(self) -> float:
+        r = np.asarray(self.residuals_mm, dtype=float)
+        r = r.reshape(len(r), -1) if r.size else r.reshape(0, 1)
+        return float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) if len(r) else float("nan")
+
+    def reasons(self) -> list[str]:
+        """Why the result must not be written back (empty when it may)."""
+        if not self.gates:
+            return ["no gate was evaluated"]
+        return [f"{g.name}: {g.why}" for g in self.gates if not g.passed]
+
+    def as_json(self) -> dict:
+        out = {"routine": self.routine, "dataset": self.dataset, "write_back": self.write_back,
+               "reasons": self.reasons(), "parameters": [p.as_json() for p in self.parameters],
+               "residual_rms_mm": _finite(self.residual_rms_mm), "expected_noise_mm": self.expected_noise_mm,
+               "n_measurements": int(len(self.residuals_mm)), "condition": _finite(self.condition),
+               "gates": [g.as_json() for g in self.gates], "notes": list(self.notes)}
+        if self.tool_frame is not None:
+            out["tool_frame"] = tool_frame_json(self.tool_frame)
+        if self.frame is not None:
+            out["frame"] = self.frame
+        if self.cycle_time_s is not None:
+            out["cycle_time_s"] = self.cycle_time_s
+        out.update(self.extra)
+        if self.sim_truth is not None:
+            out["sim_truth"] = self.sim_truth
+        return out
+
+
+def tool_frame_json(pose) -> dict:
+    """A tool frame as people and controllers read it: mm, and a rotation vector in degrees."""
+    pose = np.asarray(pose, dtype=float)
+    return {"x_mm": pose[0] * 1e3, "y_mm": pose[1] * 1e3, "z_mm": pose[2] * 1e3,
+            "rx_deg": math.degrees(pose[3]), "ry_deg": math.degrees(pose[4]), "rz_deg": math.degrees(pose[5]),
+            "pose_m_rad": pose.tolist()}
+
+
+def _finite(value):
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+Progress = Callable[[str], None]
+
+
+class Routine(abc.ABC):
+    """One measuring routine. Subclasses set ``name`` (``tcp-laser``) and ``section``
+    (``tcp_laser``), and implement the four steps."""
+
+    name: str = ""
+    section: str = ""
+    needs: tuple[str, ...] = ("robot",)  # device kinds the cell must have
+
+    def __init__(self, cell: Cell, options):
+        self.cell = cell
+        self.options = options
+
+    @classmethod
+    @abc.abstractmethod
+    def read_options(cls, section: Section, cell: Cell):
+        """Read and bound every option of the routine's section (``section.done()`` at the
+        end); raise through ``section.fail`` naming the key. Runs at cell load."""
+
+    @abc.abstractmethod
+    def plan(self) -> list[Move]:
+        """Every motion of the routine, from the cell file alone (nothing moves here)."""
+
+    @abc.abstractmethod
+    def measure(self, devices: Devices, robot: "Robot", plan: list[Move], progress: Progress):
+        """Move through the plan with the guarded `robot` and record; returns the dataset
+        (a :class:`~.records.Dataset`). Raises DeviceError on a device fault."""
+
+    @classmethod
+    @abc.abstractmethod
+    def solve(cls, dataset, cell: Cell, options) -> Result:
+        """The result of a recorded dataset: a pure solver call, residuals, gates."""

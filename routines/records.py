@@ -1,0 +1,170 @@
+"""A routine's dataset on disk: the seam between measuring and solving.
+
+Every routine writes what it recorded before it solves, so any result can be re-solved
+offline (``cellcal run ROUTINE --from DATASET``) and any routine tested by replaying one.
+The file is CSV with a small header of metadata lines::
+
+    # cellcal dataset
+    # routine: tcp-laser
+    # cell: sim (config/cells/sim.yaml)
+    # robot: ur10e
+    # cellcal: 0.1.0
+    # created: 2026-11-22T15:30:00+00:00
+    # complete: true
+    # meta: {"speed_m_s": 0.04, ...}          (the routine's own scalars, one JSON object)
+    sweep,edge,channel,t_s,x_m,...            (the routine's columns)
+    0,blocked,0,1.2345,...
+
+Columns are numbers, except those the routine names as text. The file is written to a
+temporary name and renamed into place, so a reader never sees half a dataset; a routine
+stopped by a fault writes what it has with ``complete: false``.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+from .dataset import DatasetError
+
+MAGIC = "# cellcal dataset"
+HEADER_KEYS = ("routine", "cell", "robot", "cellcal", "created", "complete", "meta")
+
+
+def cellcal_version() -> str:
+    try:
+        return metadata.version("cellcal")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+@dataclass
+class Dataset:
+    routine: str
+    columns: dict[str, np.ndarray]  # name -> (N,) numbers, or text (dtype str) for text columns
+    meta: dict = field(default_factory=dict)  # JSON-able scalars and lists
+    cell: str = ""
+    robot: str = ""
+    complete: bool = True
+    created: str = ""
+    version: str = ""
+    path: str | None = None
+
+    def __len__(self) -> int:
+        return len(next(iter(self.columns.values()))) if self.columns else 0
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.columns[name]
+
+    def stack(self, *names: str) -> np.ndarray:
+        return np.column_stack([self.columns[n] for n in names])
+
+    def write(self, path: str | Path) -> Path:
+        """Write atomically (temporary file, then rename); returns the path."""
+        path = Path(path)
+        lengths = {len(v) for v in self.columns.values()}
+        if len(lengths) > 1:
+            raise ValueError(f"columns of different lengths: {sorted(lengths)}")
+        self.created = self.created or datetime.now(timezone.utc).isoformat(timespec="seconds")
+        self.version = self.version or cellcal_version()
+        out = io.StringIO()
+        out.write(f"{MAGIC}\n# routine: {self.routine}\n# cell: {self.cell}\n# robot: {self.robot}\n"
+                  f"# cellcal: {self.version}\n# created: {self.created}\n"
+                  f"# complete: {'true' if self.complete else 'false'}\n"
+                  f"# meta: {json.dumps(self.meta, sort_keys=True, default=_json_default)}\n")
+        writer = csv.writer(out, lineterminator="\n")
+        names = list(self.columns)
+        writer.writerow(names)
+        for row in zip(*(self.columns[n] for n in names)):
+            writer.writerow([_cell_text(v) for v in row])
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        try:
+            with open(tmp, "w", encoding="utf-8", newline="") as f:
+                f.write(out.getvalue())
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        finally:
+            if tmp.exists():
+                tmp.unlink()
+        self.path = str(path)
+        return path
+
+
+def _json_default(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    raise TypeError(f"not JSON-able: {type(value).__name__}")
+
+
+def _cell_text(value) -> str:
+    if isinstance(value, (str, np.str_)):
+        return str(value)
+    value = float(value)
+    return repr(value) if math.isfinite(value) else "nan"
+
+
+def read_dataset(path: str | Path, routine: str | None = None, text_columns=()) -> Dataset:
+    """Read a routine's dataset; `routine` (if given) must match the file's. Raises
+    DatasetError naming the file, line and column."""
+    name = os.fspath(path)
+    try:
+        lines = Path(name).read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise DatasetError(f"{name}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{name}: cannot read: {exc}") from None
+    if not lines or lines[0].strip() != MAGIC:
+        raise DatasetError(f"{name}:1: not a cellcal routine dataset (first line must be '{MAGIC}')")
+    header, i = {}, 1
+    while i < len(lines) and lines[i].startswith("#"):
+        key, sep, value = lines[i][1:].partition(":")
+        if sep and key.strip() in HEADER_KEYS:
+            header[key.strip()] = value.strip()
+        i += 1
+    for key in ("routine", "complete", "meta"):
+        if key not in header:
+            raise DatasetError(f"{name}: header line '# {key}: ...' is missing")
+    if routine is not None and header["routine"] != routine:
+        raise DatasetError(f"{name}: a dataset of routine {header['routine']!r}, not of {routine!r}")
+    try:
+        meta = json.loads(header["meta"])
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{name}: header 'meta' is not one JSON object: {exc}") from None
+    if not isinstance(meta, dict):
+        raise DatasetError(f"{name}: header 'meta' is not one JSON object")
+    rows = list(csv.reader(lines[i:]))
+    if not rows:
+        raise DatasetError(f"{name}:{i + 1}: no column header")
+    names = [n.strip() for n in rows[0]]
+    if len(set(names)) != len(names) or not all(names):
+        raise DatasetError(f"{name}:{i + 1}: empty or repeated column names")
+    values: dict[str, list] = {n: [] for n in names}
+    for k, row in enumerate(rows[1:], start=i + 2):
+        if not row:
+            continue
+        if len(row) != len(names):
+            raise DatasetError(f"{name}:{k}: row has {len(row)} fields, header has {len(names)}")
+        for n, text in zip(names, row):
+            if n in text_columns:
+                values[n].append(text)
+                continue
+            try:
+                v = float(text)
+            except ValueError:
+                raise DatasetError(f"{name}:{k}: column {n!r}: {text[:24]!r} is not a number") from None
+            values[n].append(v)
+    columns = {n: np.array(v, dtype=str if n in text_columns else float) for n, v in values.items()}
+    return Dataset(header["routine"], columns, meta, header.get("cell", ""), header.get("robot", ""),
+                   header["complete"] == "true", header.get("created", ""), header.get("cellcal", ""), name)

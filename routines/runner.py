@@ -1,0 +1,88 @@
+"""Running one routine on a cell: plan, check, measure, write the dataset, solve, gate.
+
+The same steps for every routine, in one place, so the daemon and ``cellcal run`` cannot
+drift apart. Nothing moves before the whole plan has passed the guard; a device fault
+stops the arm, writes no dataset and raises; the dataset is on disk before solving.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from ..config.cells import Cell
+from ..config.robot_files import load_robot
+from ..drivers.interfaces import DeviceError
+from .base import Devices, Move, Progress, Result, Routine, RoutineError
+from .guard import ArmState, GuardedRobot, MotionGuard
+from .records import Dataset, read_dataset
+from .registry import read_options, routine_class
+
+
+@dataclass
+class Prepared:
+    routine: Routine
+    plan: list[Move]
+    guard: MotionGuard
+
+
+def planning_tool(cell: Cell) -> np.ndarray:
+    """The TCP the routines plan with and set before they move: the tool as drawn."""
+    return cell.tool.tcp_pose if cell.tool is not None else np.zeros(6)
+
+
+def prepare(name: str, cell: Cell) -> Prepared:
+    """The routine, its plan, and the plan checked from the cell's home (raises PlanRefused)."""
+    cls = routine_class(name)
+    routine = cls(cell, read_options(name, cell))
+    missing = [k for k in cls.needs if k not in cell.drivers]
+    if missing:
+        raise RoutineError(f"{cell.path}: routine {name} needs a {' and a '.join(missing)} in [drivers]")
+    plan = routine.plan()
+    guard = MotionGuard(cell, load_robot(cell.robot))
+    guard.check_plan(plan, ArmState(np.asarray(cell.home_q_rad, dtype=float), planning_tool(cell)))
+    return Prepared(routine, plan, guard)
+
+
+def dataset_path(out_dir: str | Path, name: str) -> Path:
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
+    return Path(out_dir) / f"{name}-{stamp}.csv"
+
+
+def measure(prepared: Prepared, drivers, out_dir: str | Path, progress: Progress) -> Dataset:
+    """Move through the plan and write the dataset; on a device fault, stop and raise."""
+    routine, cell = prepared.routine, prepared.routine.cell
+    robot = GuardedRobot(drivers.robot, prepared.guard)
+    devices = Devices(robot=drivers.robot, trigger=drivers.trigger, tracker=drivers.tracker)
+    previous = np.asarray(drivers.robot.tcp(), dtype=float)
+    try:
+        dataset = routine.measure(devices, robot, prepared.plan, progress)
+    except BaseException:
+        try:
+            drivers.robot.stop()
+        except DeviceError:
+            pass
+        raise
+    dataset.meta.setdefault("tool_frame_before", previous.tolist())
+    dataset.cell = f"{cell.name} ({cell.path})"
+    dataset.robot = cell.robot
+    dataset.write(dataset_path(out_dir, routine.name))
+    progress(f"wrote {dataset.path}")
+    return dataset
+
+
+def solve(name: str, cell: Cell, dataset: Dataset) -> Result:
+    cls = routine_class(name)
+    result = cls.solve(dataset, cell, read_options(name, cell))
+    result.dataset = dataset.path
+    if result.cycle_time_s is None and "cycle_time_s" in dataset.meta:
+        result.cycle_time_s = float(dataset.meta["cycle_time_s"])
+    return result
+
+
+def solve_file(name: str, cell: Cell, path: str | Path) -> Result:
+    """Re-solve a recorded dataset offline with the same code (``--from``)."""
+    cls = routine_class(name)
+    return solve(name, cell, read_dataset(path, name, getattr(cls, "text_columns", ())))
