@@ -28,11 +28,12 @@ import numpy as np
 
 from ..config.cells import Cell
 from ..config.robot_files import load_robot
-from ..drivers.interfaces import DeviceError, Edge, RobotSample, RobotState, TriggerEvent
+from ..drivers.interfaces import DeviceError, RobotSample, RobotState, TriggerEvent
 from ..solvers.robot_model import KinematicModel
 from .arm_motion import ArmKinematics, MovingArm, MotionFault
 from .scene import LightBeam
-from .truth import CellTruth, beam_blocked, switching_fraction, touching, truth_of_cell
+from .truth import (CellTruth, beam_blocked, beam_edges, real_tool_body, real_tool_tip, repeat_offset_m, touching,
+                    truth_of_cell)
 
 HOME_Q = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
 SAMPLE_BUFFER_S = 120.0
@@ -110,22 +111,11 @@ class SimWorld:
         """The real tool's core segment (base frame, m) at joints q (default: now); a point at
         the controller's TCP when the truth has no tool."""
         q = self.arm.q if q is None else q
-        if self.truth.tool is None:
-            p = self.kinematics.tcp_frame(q, self.arm.tcp_offset)[1] + self._repeat_offset_m
-            return p, p
-        rotation, position = self.physics.flange(q)
-        front, back = self.truth.tool.segment(rotation, position)
-        return front + self._repeat_offset_m, back + self._repeat_offset_m
+        return real_tool_body(self.truth, self.physics, self.kinematics, q, self.arm.tcp_offset, self._repeat_offset_m)
 
     def tool_tip_m(self) -> np.ndarray:
         """Where the real tool tip is now (what a tracker target at the tip measures)."""
-        front, back = self._body
-        if self.truth.tool is None:
-            return front.copy()
-        axis = front - back
-        n = np.linalg.norm(axis)
-        direction = axis / n if n > 0 else self.physics.flange(self.arm.q)[0] @ self.truth.tool.axis
-        return front + direction * self.truth.tool.radius_m
+        return real_tool_tip(self.truth, self.physics, self.arm.q, self._body)
 
     def touching(self) -> bool:
         return any(touching(c, self._body, self.tool_radius_m) for c in self.contacts)
@@ -164,8 +154,7 @@ class SimWorld:
         """Advance one controller cycle: move, time any beam edge, record a sample."""
         if self.arm.motion is not None and self.arm.motion is not self._motion:
             self._motion = self.arm.motion  # a new motion ends a little off: repeatability
-            sigma = self.truth.repeatability_mm / 1e3 / np.sqrt(3.0)
-            self._repeat_offset_m = self.rng.normal(0.0, sigma, 3) if sigma > 0 else np.zeros(3)
+            self._repeat_offset_m = repeat_offset_m(self.truth, self.rng)
         body_old = self._body
         try:
             self.arm.step()
@@ -174,22 +163,9 @@ class SimWorld:
             self.samples.append(self._sample())
             raise DeviceError("sim robot", str(exc)) from None
         t_old, self.t_s = self.t_s, self.t_s + self.cycle_s
-        self._body = body_new = self.tool_body()
-        radius = self.tool_radius_m
-        for beam in self.beams:
-            blocked = beam_blocked(beam, body_new, radius)
-            if blocked != self._blocked[id(beam)]:
-                self._blocked[id(beam)] = blocked
-
-                def blocked_at(s, beam=beam):
-                    mixed = (body_old[0] + s * (body_new[0] - body_old[0]), body_old[1] + s * (body_new[1] - body_old[1]))
-                    return beam_blocked(beam, mixed, radius)
-
-                t_edge = t_old + switching_fraction(blocked_at) * self.cycle_s
-                jitter = self.truth.trigger_jitter_s
-                t_edge += self.truth.trigger_latency_s + (self.rng.uniform(-jitter, jitter) if jitter > 0 else 0.0)
-                self._edges.append(TriggerEvent(t_edge, beam.channel,
-                                                Edge.BLOCKED if blocked else Edge.CLEARED, True))
+        self._body = self.tool_body()
+        self._edges += beam_edges(self.truth, self.beams, self._blocked, body_old, self._body, t_old,
+                                  self.cycle_s, self.rng)
         self.samples.append(self._sample())
         if self._stop_after_motion_s is not None and self.arm.moving_s >= self._stop_after_motion_s:
             self._stop_after_motion_s = None

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config.cells import Cell, SimTruthSpec
+from ..drivers.interfaces import Edge, TriggerEvent
 from ..solvers import se3
 from ..solvers.robot_model import KinematicModel
 from .scene import ContactPlane, ContactSphere, LightBeam
@@ -179,3 +180,62 @@ def switching_fraction(blocked_at, steps: int = 24) -> float:
         else:
             hi = mid
     return hi
+
+
+# -- the physics both simulated cells run (SimWorld in process, the fake UR controller) ---------
+
+def repeat_offset_m(truth: CellTruth, rng: np.random.Generator) -> np.ndarray:
+    """How far a new motion really ends from where the controller puts it: the arm's
+    repeatability, drawn afresh for each motion (base frame, m)."""
+    sigma = truth.repeatability_mm / 1e3 / np.sqrt(3.0)
+    return rng.normal(0.0, sigma, 3) if sigma > 0 else np.zeros(3)
+
+
+def real_tool_body(truth: CellTruth, physics, controller, q, tcp_offset, offset_m) -> tuple[np.ndarray, np.ndarray]:
+    """The real tool's core segment (base frame, m) at joints q: the real tool on the arm as
+    built (`physics`, an ArmKinematics of ``truth.arm_params``), off by the motion's
+    repeatability `offset_m`. Without a tool in the truth, a point at the controller's TCP
+    (`controller`: its kinematics; `tcp_offset`: its tool frame)."""
+    if truth.tool is None:
+        p = controller.tcp_frame(q, tcp_offset)[1] + offset_m
+        return p, p
+    rotation, position = physics.flange(q)
+    front, back = truth.tool.segment(rotation, position)
+    return front + offset_m, back + offset_m
+
+
+def real_tool_tip(truth: CellTruth, physics, q, body) -> np.ndarray:
+    """Where the real tool tip is, given its body at joints q (what a tracker target at the tip measures)."""
+    front, back = body
+    if truth.tool is None:
+        return front.copy()
+    axis = front - back
+    n = np.linalg.norm(axis)
+    direction = axis / n if n > 0 else physics.flange(q)[0] @ truth.tool.axis
+    return front + direction * truth.tool.radius_m
+
+
+def beam_edges(truth: CellTruth, beams, blocked: dict, body_old, body_new, t_old_s: float, cycle_s: float,
+               rng: np.random.Generator) -> list[TriggerEvent]:
+    """The sensor edges of one controller cycle in which the real tool moved from `body_old`
+    to `body_new` (segments). A beam switches where the tool's straight step crosses it
+    (bisection), not at the cycle that first shows the new level; its time adds the
+    sensor's latency and a jitter drawn uniformly from [-jitter, +jitter]. `blocked`
+    (id(beam) -> bool, the beams' current state) is updated."""
+    radius = 0.0 if truth.tool is None else truth.tool.radius_m
+    jitter = truth.trigger_jitter_s
+    edges = []
+    for beam in beams:
+        now = beam_blocked(beam, body_new, radius)
+        if now == blocked[id(beam)]:
+            continue
+        blocked[id(beam)] = now
+
+        def blocked_at(s, beam=beam):
+            mixed = (body_old[0] + s * (body_new[0] - body_old[0]), body_old[1] + s * (body_new[1] - body_old[1]))
+            return beam_blocked(beam, mixed, radius)
+
+        t_edge = t_old_s + switching_fraction(blocked_at) * cycle_s
+        t_edge += truth.trigger_latency_s + (rng.uniform(-jitter, jitter) if jitter > 0 else 0.0)
+        edges.append(TriggerEvent(t_edge, beam.channel, Edge.BLOCKED if now else Edge.CLEARED, True))
+    return edges
