@@ -9,6 +9,7 @@ regressor and the "after" points lie flat.
 from __future__ import annotations
 
 import html
+import os
 from pathlib import Path
 
 import matplotlib
@@ -60,9 +61,26 @@ def _regressor(model, obs: Observations, f: Finding):
     return np.rad2deg(obs.q[:, joint - 1]), f"joint {joint} angle (deg)", direction
 
 
-def write_report(folder, model, obs: Observations, f: Finding, text: str) -> Path:
+REPORT_FILES = ("residual_vs_regressor.png", "heldout_histogram.png", "candidates.png", "report.md", "report.html")
+
+
+def prepare_folder(folder) -> Path:
+    """The report's folder, made if missing, with any earlier report's files removed (no
+    stale plot of another run stays beside this one); other files are left alone.
+    Raises OSError with the reason when the folder cannot be used."""
     out = Path(folder)
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"{out}: exists and is not a directory")
     out.mkdir(parents=True, exist_ok=True)
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise PermissionError(f"{out}: not writable")
+    for name in REPORT_FILES:
+        (out / name).unlink(missing_ok=True)
+    return out
+
+
+def write_report(folder, model, obs: Observations, f: Finding, text: str) -> Path:
+    out = prepare_folder(folder)
     images = []
 
     if f.cause != "none":

@@ -6,10 +6,10 @@ import json
 import numpy as np
 
 from ..config.robot_files import load_robot
-from ..routines.dataset import joint_velocities, read_measurements
+from ..routines.dataset import check_joint_limits, joint_velocities, read_measurements
 from ..solvers.analyze import AnalyzeOptions, Finding, Scored, analyze
 from ..solvers.effects import CAUSES, Context, approach_directions
-from .cli_common import UsageError, check_folds, print_progress
+from .cli_common import ReportError, UsageError, check_folds, print_progress
 
 MIN_MEASUREMENTS = 30
 
@@ -60,7 +60,7 @@ def finding_json(f: Finding, n: int) -> dict:
     return out
 
 
-def finding_text(f: Finding, robot: str, n: int) -> str:
+def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
     lines = [f"cellcal analyze: {robot}, {n} measurements", ""]
     if f.cause == "none":
         lines.append("finding: none -- no candidate beats the geometric model clearly on held-out data")
@@ -73,7 +73,7 @@ def finding_text(f: Finding, robot: str, n: int) -> str:
                  f"with the effect {f.extended.heldout_mean_mm:.4f} mm (gain {f.gain_pct:.1f}%)")
     if f.second is not None:
         lines.append(f"second effect: {f.second.label}; both fitted: {f.both.heldout_mean_mm:.4f} mm")
-    lines += [f"  note: {note}" for note in f.notes]
+    lines += [f"  note: {note}" for note in (*f.notes, *not_scored)]
     lines += ["", "candidates (held-out mean error, mm):"]
     for c in f.candidates[:10]:
         lines.append(f"  {c.heldout_mean_mm:8.4f}  {c.label}")
@@ -87,20 +87,39 @@ def run(args) -> int:
     check_folds(args.folds)
     model = load_robot(args.robot)
     table = read_measurements(args.data, model.n_joints)
+    check_joint_limits(table, model.joint_limits, model.name)
     if len(table) < MIN_MEASUREMENTS:
         raise UsageError(f"{args.data}: {len(table)} measurements; the analysis needs at least {MIN_MEASUREMENTS}")
     obs = table.observations()
-    finding = analyze(model, obs, _context(table), AnalyzeOptions(folds=args.folds, causes=tuple(args.causes)),
-                      progress=print_progress)
+    ctx = _context(table)
+    requested = tuple(dict.fromkeys(args.causes))
+    unscorable = {c: why for c in requested if (why := CAUSES[c].unscorable(model, ctx))}
+    if len(unscorable) == len(requested):
+        raise UsageError(f"{args.data}: none of the requested causes can be scored on these data: "
+                         + "; ".join(f"{c} {why}" for c, why in unscorable.items()))
+    not_scored = [f"{c} not scored: {why}" for c, why in unscorable.items()]
+    for note in not_scored:
+        print_progress(note)
+    causes = tuple(c for c in requested if c not in unscorable)
+    finding = analyze(model, obs, ctx, AnalyzeOptions(folds=args.folds, causes=causes), progress=print_progress)
+    text = finding_text(finding, model.name, len(obs), not_scored)
+    # the finding first: a report that cannot be written must not lose it
+    if args.json:
+        out = finding_json(finding, len(obs))
+        out["notes"] = out["notes"] + not_scored
+        out["not_scored"] = {c: why for c, why in unscorable.items()}
+        print(json.dumps(out, default=_jsonable), flush=True)
+    else:
+        print(text, flush=True)
     if args.report:
         from .analysis_report import write_report  # matplotlib loads only when a report is asked for
 
-        page = write_report(args.report, model, obs, finding, finding_text(finding, model.name, len(obs)))
+        try:
+            page = write_report(args.report, model, obs, finding, text)
+        except OSError as exc:
+            raise ReportError(f"--report {args.report}: cannot write the report there: "
+                              f"{exc.strerror or exc}; the finding above stands") from None
         print_progress(f"report written to {page}")
-    if args.json:
-        print(json.dumps(finding_json(finding, len(obs)), default=_jsonable))
-    else:
-        print(finding_text(finding, model.name, len(obs)))
     return 0
 
 

@@ -14,11 +14,13 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from ..config.reader import ConfigError
+from ..drivers.interfaces import DeviceError
+from ..routines.base import RoutineError
 from ..config.robot_files import load_robot
-from ..routines.dataset import DatasetError, MeasurementTable, read_measurements
+from ..routines.dataset import DatasetError, MeasurementTable, check_joint_limits, read_measurements
 from ..solvers.identify import LOSSES, REGULARIZE, IdentifyOptions, identify
 from . import analyze_cmd, importers, run_cmd, sim_campaign, sim_cell
-from .cli_common import UsageError, check_folds, print_progress
+from .cli_common import ReportError, UsageError, check_folds, check_positive, print_progress
 from .report import identification_json, identification_text
 
 
@@ -52,6 +54,10 @@ def cmd_identify(args) -> int:
             raise UsageError(f"{args.validate or args.data}: target(s) {', '.join(unknown)} do not occur "
                              "in the calibration rows, so their offsets are unknown")
     check_folds(args.folds)
+    check_positive("--prior-mm", args.prior_mm)
+    check_joint_limits(cal, model.joint_limits, model.name)
+    if val is not None:
+        check_joint_limits(val, model.joint_limits, model.name)
     bad = sorted(set(args.fix or ()) - set(model.param_names))
     if bad:
         raise UsageError(f"--fix: {', '.join(bad)} not a parameter of {model.name} "
@@ -123,15 +129,26 @@ def main(argv=None) -> int:
 def _run(args) -> int:
     try:
         return args.func(args)
+    except ReportError as exc:  # the result is already on stdout: only the line on stderr
+        return _error(args, 2, f"error: {exc}", json_object=False)
     except (DatasetError, ConfigError, UsageError) as exc:
-        print(f"cellcal: error: {exc}", file=sys.stderr)
-        return 2
-    except (ValueError, np.linalg.LinAlgError, RuntimeError) as exc:
-        print(f"cellcal: computation failed: {exc}", file=sys.stderr)
-        return 1
+        return _error(args, 2, f"error: {exc}")
+    except DeviceError as exc:
+        return _error(args, 1, f"device fault, motion stopped: {exc}")
+    except RoutineError as exc:
+        return _error(args, 1, f"routine failed: {exc}")
+    except (ValueError, np.linalg.LinAlgError, RuntimeError, MemoryError) as exc:
+        return _error(args, 1, f"computation failed: {exc or type(exc).__name__}")
     except KeyboardInterrupt:
-        print("cellcal: interrupted", file=sys.stderr)
-        return 1
+        return _error(args, 1, "interrupted")
+
+
+def _error(args, code: int, message: str, json_object: bool = True) -> int:
+    """One line on stderr; with --json also one error object on stdout (spec/cli.md)."""
+    print(f"cellcal: {message}", file=sys.stderr)
+    if json_object and getattr(args, "json", False):
+        print(json.dumps({"error": {"code": code, "message": message}}))
+    return code
 
 
 if __name__ == "__main__":

@@ -13,15 +13,13 @@ leave the cell's limits, or a dataset that cannot be used.
 from __future__ import annotations
 
 import json
-import sys
 
 import numpy as np
 
 from ..config.robot_files import load_robot
 from ..drivers import registry as drivers_registry
-from ..drivers.interfaces import DeviceError
 from ..routines import registry, runner
-from ..routines.base import PlanRefused, Result, RoutineError, tool_frame_json
+from ..routines.base import PlanRefused, Result, tool_frame_json
 from .cells import load_cell, open_drivers
 from .cli_common import UsageError, print_progress
 
@@ -86,8 +84,6 @@ def cmd_run(args) -> int:
             result = runner.solve(args.routine, cell, dataset)
     except PlanRefused as exc:
         raise UsageError(f"{args.cell}: plan refused, nothing moved: {exc}") from None
-    except (DeviceError, RoutineError) as exc:
-        return _fail(args, 1, str(exc))
     _score(result, cell)
     if args.json:
         print(json.dumps(result.as_json(), default=_json_default))
@@ -102,13 +98,6 @@ def _json_default(value):
     if isinstance(value, (np.floating, np.integer, np.bool_)):
         return value.item()
     raise TypeError(type(value).__name__)
-
-
-def _fail(args, code: int, message: str) -> int:
-    print(f"cellcal: {message}", file=sys.stderr)
-    if args.json:
-        print(json.dumps({"error": {"code": code, "message": message}}))
-    return code
 
 
 def add_parser(sub) -> None:

@@ -27,7 +27,7 @@ from ..sims.workspace import full_workspace
 from ..solvers.identify import REGULARIZE, IdentifyOptions, identify
 from ..solvers.measurement_model import Observations, predict
 from ..solvers.pose_design import select_poses
-from .cli_common import UsageError, print_progress
+from .cli_common import UsageError, check_positive, check_seed, output_file, output_folder, print_progress
 from .report import error_stats
 
 # trigger latency needs joint velocities at the triggers, which a static pose campaign has not
@@ -63,6 +63,8 @@ def _truth_error(arm: SimulatedArm, layout, x, obs: Observations) -> np.ndarray:
 def run(args) -> int:
     if args.poses < 10 or args.candidates < args.poses or args.validate_poses < 1:
         raise UsageError("need --poses >= 10, --candidates >= --poses and --validate-poses >= 1")
+    check_seed(args.seed)
+    out = output_folder(args.out, "--out")
     t0 = time.perf_counter()
     model = load_robot(args.robot)
     rng = np.random.default_rng(args.seed)
@@ -76,8 +78,6 @@ def run(args) -> int:
     cal = arm.measure(candidates[design.chosen])
     val = arm.measure(full_workspace(model, args.validate_poses, rng))
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     for name, obs in (("cal.csv", cal), ("val.csv", val)):
         write_measurements(out / name, q_rad=obs.q, xyz_mm=obs.xyz_mm,
                            comment=f"{model.name}, simulated tracker campaign, seed {args.seed}")
@@ -142,19 +142,28 @@ def add_sim_data_parser(sub):
     p.set_defaults(func=run_sim_data)
 
 
-def _hidden_effect(spec: str, rms_mm: float) -> HiddenEffect:
+def _hidden_effect(spec: str, rms_mm: float, n_joints: int) -> HiddenEffect:
     """--effect CAUSE[:JOINT], joint 1-based."""
     cause, _, joint = spec.partition(":")
     if cause not in SIM_DATA_CAUSES:
         raise UsageError(f"--effect {spec}: cause must be one of {', '.join(SIM_DATA_CAUSES)}")
-    if cause != "thermal_drift" and not joint.isdigit():
-        raise UsageError(f"--effect {spec}: give the joint, e.g. {cause}:2")
-    return HiddenEffect(cause, int(joint) - 1 if joint else None, rms_mm=rms_mm)
+    if cause == "thermal_drift":
+        if joint:
+            raise UsageError(f"--effect {spec}: thermal_drift acts on the whole arm; give no joint")
+        return HiddenEffect(cause, None, rms_mm=rms_mm)
+    if not joint.isdigit() or not 1 <= int(joint) <= n_joints:
+        raise UsageError(f"--effect {spec}: give the joint from 1 to {n_joints}, e.g. {cause}:2")
+    return HiddenEffect(cause, int(joint) - 1, rms_mm=rms_mm)
 
 
 def run_sim_data(args) -> int:
-    effects = [_hidden_effect(spec, args.rms_mm) for spec in args.effect]
+    if args.poses < 1:
+        raise UsageError(f"--poses must be at least 1, got {args.poses}")
+    check_positive("--rms-mm", args.rms_mm)
+    check_seed(args.seed)
+    output_file(args.out, "-o")
     model = load_robot(args.robot)
+    effects = [_hidden_effect(spec, args.rms_mm, model.n_joints) for spec in args.effect]
     rng = np.random.default_rng(args.seed)
     arm = PhysicalArm(model, rng, effects)
     campaign = arm.campaign(full_workspace(model, args.poses, rng))

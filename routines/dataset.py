@@ -17,6 +17,7 @@ from __future__ import annotations
 import csv
 import os
 import re
+import stat
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -29,6 +30,9 @@ SCALARS = ("t_s", "temp_c", "payload_kg")
 SPLITS = ("cal", "val")
 DEFAULT_TARGET = "tcp"
 KNOWN = XYZ + QUAT + SCALARS + ("target", "split")
+
+MAX_POSITION_MM = 1e5  # 100 m: beyond any tracker's range
+MAX_JOINT = {"rad": 4 * np.pi, "deg": 720.0}  # two turns either way
 
 _JOINT = re.compile(r"q(\d+)_(deg|rad)")
 # Stricter than float(): no "1_000", no non-ASCII digits, no nan/inf.
@@ -102,8 +106,11 @@ def read_measurements(path, n_joints: int) -> MeasurementTable:
     def at(column):
         return [(f"{name}:{ln}", column, r[cols[column]]) for ln, r in rows]
 
-    q = np.column_stack([_numbers(at(c)) for c in joints])
-    xyz = np.column_stack([_numbers(at(c)) for c in XYZ])
+    q = np.column_stack([_bounded(_numbers(at(c)), at(c), MAX_JOINT[unit], unit, "no joint turns that far")
+                         for c in joints])
+    xyz = np.column_stack([_bounded(_numbers(at(c)), at(c), MAX_POSITION_MM, "mm",
+                                    "not a position a measuring instrument gives (over 100 m away)")
+                           for c in XYZ])
     scalars = {c: _numbers(at(c)) if c in cols else None for c in SCALARS}
 
     quat = None
@@ -145,6 +152,9 @@ def _records(name: str) -> list[tuple[int, list[str]]]:
     """(physical line number, fields) of every non-comment, non-blank line."""
     try:
         with open(name, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise DatasetError(f"{name}: not a regular file (a device, a pipe or a folder cannot be a "
+                                   "measurement file)")
             raw = f.read()
     except OSError as exc:
         raise DatasetError(f"{name}: cannot read file: {exc.strerror or exc}") from None
@@ -153,6 +163,9 @@ def _records(name: str) -> list[tuple[int, list[str]]]:
     except UnicodeDecodeError as exc:
         lineno = raw[: exc.start].count(b"\n") + 1
         raise DatasetError(f"{name}:{lineno}: not UTF-8 text (byte 0x{raw[exc.start]:02x})") from None
+    if "\r" in text and "\n" not in text:
+        raise DatasetError(f"{name}: lines end in CR alone (old Mac line endings); save it with LF or "
+                           "CRLF line endings")
     records = []
     for lineno, line in enumerate(text.split("\n"), start=1):
         line = line.rstrip("\r")
@@ -205,6 +218,36 @@ def _check_header(where: str, header: list[str], n_joints: int):
         raise DatasetError(f"{where}: column {missing!r} missing: partial quaternion "
                            f"(has {', '.join(present)}); give all of qw, qx, qy, qz or none")
     return cols, joints, unit
+
+
+def _bounded(values: np.ndarray, cells, limit: float, unit: str, why: str) -> np.ndarray:
+    """Refuse the first value beyond +-limit, naming its line and column."""
+    bad = np.flatnonzero(np.abs(values) > limit)
+    if bad.size:
+        where, column, text = cells[bad[0]]
+        raise DatasetError(f"{where}: column {column!r}: {text.strip()} {unit} is {why} "
+                           f"(|value| must be at most {limit:g})")
+    return values
+
+
+def check_joint_limits(table: MeasurementTable, joint_limits, model_name: str) -> None:
+    """Refuse joint values outside the robot model's limits, naming the column and rows
+    (degrees under a ``_rad`` header end up here)."""
+    if joint_limits is None:
+        return
+    unit = table.joint_unit
+    scale = np.rad2deg(1.0) if unit == "deg" else 1.0
+    margin = np.deg2rad(1.0)  # a controller reports a joint a hair past its software limit
+    for j, (lo, hi) in enumerate(np.asarray(joint_limits)):
+        outside = np.flatnonzero((table.q_rad[:, j] < lo - margin) | (table.q_rad[:, j] > hi + margin))
+        if outside.size:
+            lines = ", ".join(str(n) for n in table.line[outside[:5]]) + (" ..." if outside.size > 5 else "")
+            hint = " (degrees under a _rad header?)" if unit == "rad" and np.abs(table.q_rad).max() > 2 * np.pi \
+                else ""
+            raise DatasetError(
+                f"{table.path}: column 'q{j + 1}_{unit}': {outside.size} of {len(table)} rows are outside "
+                f"{model_name}'s joint {j + 1} limits {lo * scale:g}..{hi * scale:g} {unit}{hint}; "
+                f"lines {lines}")
 
 
 def _numbers(cells) -> np.ndarray:

@@ -63,6 +63,8 @@ class IdentifyOptions:
             raise ValueError(f"loss must be one of {LOSSES}, got {self.loss!r}")
         if self.folds < 2:
             raise ValueError("folds must be at least 2")
+        if not (np.isfinite(self.prior_mm) and self.prior_mm > 0):
+            raise ValueError(f"prior_mm must be a positive number of mm, got {self.prior_mm}")
         for name in ("max_std_mm", "max_std_deg", "plausible_mm", "plausible_deg"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
@@ -247,6 +249,41 @@ def _f_scale(residuals: np.ndarray) -> float:
     return max(2.5 * 1.4826 * mad, 1e-6)
 
 
+class IdentificationError(ValueError):
+    """Data no identification can use, or a fit that shows the data are wrong; the message
+    says what to check."""
+
+
+MIN_SPREAD_MM = 1.0  # measured positions spanning less than this carry no geometry
+MAX_FIT_MM = 50.0  # a calibrated model leaving a larger mean error means the data are wrong, not the arm
+
+
+def check_data(layout: Layout, obs: Observations) -> None:
+    """Refuse data that cannot determine a calibration, before any fitting."""
+    spread = float(np.ptp(obs.xyz_mm, axis=0).max()) if len(obs) else 0.0
+    if spread < MIN_SPREAD_MM:
+        raise IdentificationError(f"the measured positions span only {spread:.3g} mm: degenerate data "
+                                  f"(at least {MIN_SPREAD_MM:g} mm of spread is needed; is the instrument "
+                                  "reading a fixed or empty value?)")
+    n_unknown = 6 + 3 * len(layout.target_names)
+    if 3 * len(obs) <= n_unknown:
+        per_target = np.bincount(obs.target, minlength=len(layout.target_names))
+        raise IdentificationError(
+            f"{len(obs)} rows measure {len(layout.target_names)} targets: the base and target offsets alone are "
+            f"{n_unknown} unknowns against {3 * len(obs)} measured coordinates (fewest rows on one target: "
+            f"{per_target.min()}); measure each target at several poses")
+
+
+def check_fit(errors_mm: np.ndarray) -> None:
+    """Refuse a fit so poor that the data, not the arm, must be wrong."""
+    mean = float(np.mean(errors_mm))
+    if not np.isfinite(mean) or mean > MAX_FIT_MM:
+        raise IdentificationError(
+            f"the calibrated model still misses the measurements by {mean:.4g} mm on average: something is "
+            "wrong with the data, not the arm (joint values in the wrong unit, joints in the wrong order, "
+            "another robot's file, positions in m instead of mm?)")
+
+
 def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions = IdentifyOptions(),
              x_start: np.ndarray | None = None, progress=None) -> Identification:
     """Identify geometric parameters, base and target offsets from measured positions."""
@@ -257,6 +294,7 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
     if unknown:
         raise ValueError(f"cannot fix unknown parameter(s) {', '.join(unknown)}; "
                          f"the model's parameters are {', '.join(model.param_names)}")
+    check_data(layout, obs)
     if x_start is None:
         x_start = initial_base_and_targets(layout, obs)
     nuisance = np.zeros(layout.size, bool)
@@ -280,6 +318,7 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
     f_scale = _f_scale(before.residuals_mm)
     # first pass over every structurally identifiable parameter: a noise estimate
     first = fit(layout, obs, x0, structural.keep, scale=scale, loss=loss, f_scale=f_scale)
+    check_fit(first.errors)
     dof = max(3 * len(obs) - int(structural.keep.sum()), 1)
     resid = first.residuals_mm.ravel()
     noise = float(np.sqrt(resid @ resid / dof)) if loss == "linear" else 1.4826 * float(

@@ -121,8 +121,11 @@ def test_console_script_shows_no_traceback(tmp_path):
     proc = subprocess.run([script, "identify", "--robot", "ur5e", "--data", str(path), "--json"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
-    assert "Traceback" not in proc.stderr and proc.stdout == ""
+    assert "Traceback" not in proc.stderr
     assert "bad.csv:2" in proc.stderr and "z_mm" in proc.stderr
+    # with --json, scripts that read stdout get one error object (spec/cli.md)
+    error = __import__("json").loads(proc.stdout)["error"]
+    assert error["code"] == 2 and "bad.csv:2" in error["message"]
 
 
 def test_sim_campaign_writes_its_datasets_and_scores_against_truth(tmp_path, capsys):

@@ -87,3 +87,8 @@ class Cause:
     def magnitude(self, term: Term, theta: np.ndarray, joint_delta: np.ndarray | None) -> dict:
         """Physical size of a fitted term, units in the key names."""
         raise NotImplementedError
+
+    def unscorable(self, model: KinematicModel, ctx: Context) -> str | None:
+        """Why these data (or this robot) cannot score the cause at all, naming what is
+        missing; None when it can be scored."""
+        return None

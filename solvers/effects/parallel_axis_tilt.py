@@ -16,6 +16,11 @@ from .base import Cause, Term
 class ParallelAxisTilt(Cause):
     id = "parallel_axis_tilt"
 
+    def unscorable(self, model, ctx):
+        if not model.joint_elements or not parallel_joint_pairs(model):
+            return f"{model.name} has no nominally parallel neighbouring joint axes"
+        return None
+
     def terms(self, model, layout, x, obs, ctx):
         if not model.joint_elements:
             return []

@@ -40,6 +40,16 @@ class ThermalDrift(Cause):
                      extra={"dT": dt})
                 for where, dt, unit in drivers]
 
+    def unscorable(self, model, ctx):
+        if ctx.temp_c is not None and np.ptp(ctx.temp_c) > 0.1:
+            return None
+        if ctx.t_s is not None and np.ptp(ctx.t_s) > 60.0:
+            return None
+        if ctx.temp_c is None and ctx.t_s is None:
+            return "needs a temp_c or t_s column (temperature or time of each measurement)"
+        return ("needs temp_c varying by more than 0.1 K or t_s spanning more than 60 s; "
+                "these data have neither")
+
     def magnitude(self, term, theta, joint_delta):
         k = float(theta[0])
         if term.units == ("1/K",):

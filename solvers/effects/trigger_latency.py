@@ -20,5 +20,12 @@ class TriggerLatency(Cause):
             return []
         return [Term(self.id, {}, ("tau",), joint_basis=-ctx.dq_rad_s[:, :, None], units=("s",))]
 
+    def unscorable(self, model, ctx):
+        if ctx.dq_rad_s is None:
+            return "needs the joint velocities at the trigger: columns dq1_rad_s .. dqN_rad_s"
+        if not np.any(ctx.dq_rad_s):
+            return "the joint velocity columns dq1_rad_s .. are all zero: measured at rest, no latency shows"
+        return None
+
     def magnitude(self, term, theta, joint_delta):
         return {"latency_ms": float(theta[0]) * 1e3}
