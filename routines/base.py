@@ -26,6 +26,10 @@ class RoutineError(RuntimeError):
     """The routine could not run or solve; the message says what to fix (exit 1)."""
 
 
+class RoutineAborted(RuntimeError):
+    """The run was aborted (operator, service stopping): no further command is sent."""
+
+
 class PlanRefused(ValueError):
     """A planned move would leave the cell's limits; names the move and the limit (exit 2)."""
 

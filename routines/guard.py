@@ -21,7 +21,7 @@ from ..config.cells import Cell
 from ..drivers.interfaces import ContactResult, Robot
 from ..solvers.inverse import inverse, tcp_poses
 from ..solvers.robot_model import KinematicModel
-from .base import Move, PlanRefused
+from .base import Move, PlanRefused, RoutineAborted
 
 JOINT_PATH_SAMPLES = 24  # points along a joint move at which the TCP is checked against the box
 
@@ -126,8 +126,9 @@ class GuardedRobot:
     command outside the limits ever got through.
     """
 
-    def __init__(self, robot: Robot, guard: MotionGuard):
+    def __init__(self, robot: Robot, guard: MotionGuard, abort=None):
         self.robot, self.guard = robot, guard
+        self.abort = abort  # a threading.Event: once set, every further command is refused
         self.sent: list[Move] = []
 
     def _state(self) -> ArmState:
@@ -135,6 +136,8 @@ class GuardedRobot:
 
     def run(self, move: Move) -> ContactResult | None:
         """Check `move` from where the arm is now, then send it."""
+        if self.abort is not None and self.abort.is_set():
+            raise RoutineAborted(f"aborted before move '{move.label}'")
         self.guard.check(move, self._state())
         self.sent.append(move)
         if move.kind == "joint":

@@ -51,10 +51,11 @@ def dataset_path(out_dir: str | Path, name: str) -> Path:
     return Path(out_dir) / f"{name}-{stamp}.csv"
 
 
-def measure(prepared: Prepared, drivers, out_dir: str | Path, progress: Progress) -> Dataset:
-    """Move through the plan and write the dataset; on a device fault, stop and raise."""
+def measure(prepared: Prepared, drivers, out_dir: str | Path, progress: Progress, abort=None) -> Dataset:
+    """Move through the plan and write the dataset; on a device fault or an abort (the
+    `abort` event set), stop and raise."""
     routine, cell = prepared.routine, prepared.routine.cell
-    robot = GuardedRobot(drivers.robot, prepared.guard)
+    robot = GuardedRobot(drivers.robot, prepared.guard, abort)
     devices = Devices(robot=drivers.robot, trigger=drivers.trigger, tracker=drivers.tracker)
     previous = np.asarray(drivers.robot.tcp(), dtype=float)
     try:
@@ -77,6 +78,8 @@ def solve(name: str, cell: Cell, dataset: Dataset) -> Result:
     cls = routine_class(name)
     result = cls.solve(dataset, cell, read_options(name, cell))
     result.dataset = dataset.path
+    if "tool_frame_before" in dataset.meta:
+        result.extra.setdefault("tool_frame_before", list(dataset.meta["tool_frame_before"]))
     if result.cycle_time_s is None and "cycle_time_s" in dataset.meta:
         result.cycle_time_s = float(dataset.meta["cycle_time_s"])
     return result

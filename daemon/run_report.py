@@ -1,0 +1,74 @@
+"""A run's report a person can read: the frame before and after, the gates, the residual of
+every measurement, and the routine's own numbers; one HTML page with its plots.
+"""
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from ..routines.base import Result, tool_frame_json  # noqa: E402
+
+
+def _frame_row(label: str, pose) -> str:
+    if pose is None:
+        return f"<tr><th>{label}</th><td colspan=6>none</td></tr>"
+    f = tool_frame_json(pose)
+    cells = "".join(f"<td>{f[k]:.4f}</td>" for k in ("x_mm", "y_mm", "z_mm", "rx_deg", "ry_deg", "rz_deg"))
+    return f"<tr><th>{label}</th>{cells}</tr>"
+
+
+def write_run_report(folder: str | Path, run_id: int, result: Result) -> Path:
+    out = Path(folder) / f"run-{run_id}"
+    out.mkdir(parents=True, exist_ok=True)
+    residuals = np.asarray(result.residuals_mm, dtype=float)
+    per = np.linalg.norm(residuals.reshape(len(residuals), -1), axis=1) if residuals.size else residuals
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.6))
+    ax1.plot(np.arange(1, len(per) + 1), per, ".", ms=4)
+    ax1.axhline(result.expected_noise_mm, color="tab:red", lw=1, label="expected noise")
+    ax1.set_xlabel("measurement, in the order taken")
+    ax1.set_ylabel("residual (mm)")
+    ax1.legend()
+    ax2.hist(per, bins=30)
+    ax2.set_xlabel("residual (mm)")
+    fig.suptitle(f"run {run_id}: {result.routine}, residual RMS {result.residual_rms_mm:.4f} mm")
+    fig.tight_layout()
+    fig.savefig(out / "residuals.png", dpi=100)
+    plt.close(fig)
+
+    before = result.extra.get("tool_frame_before")
+    gates = "".join(f"<tr><td>{'pass' if g.passed else '<b>FAIL</b>'}</td><td>{html.escape(g.name)}</td>"
+                    f"<td>{html.escape(g.why)}</td></tr>" for g in result.gates)
+    params = "".join(f"<tr><td>{html.escape(p.name)}</td><td>{p.value:.5g}</td>"
+                     f"<td>{'' if p.std is None else f'{p.std:.3g}'}</td><td>{html.escape(p.unit)}</td></tr>"
+                     for p in result.parameters)
+    verdict = "written back" if result.write_back else "NOT written back: " + "; ".join(result.reasons())
+    page = out / "report.html"
+    page.write_text(
+        "<!doctype html><meta charset='utf-8'><title>cellcal run</title>"
+        "<body style='font-family:sans-serif;max-width:60em'>"
+        f"<h1>Run {run_id}: {html.escape(result.routine)}</h1><p><b>{html.escape(verdict)}</b></p>"
+        "<h2>Tool frame</h2><table border=1 cellpadding=4><tr><th></th><th>x mm</th><th>y mm</th><th>z mm</th>"
+        "<th>rx deg</th><th>ry deg</th><th>rz deg</th></tr>"
+        + _frame_row("before", before) + _frame_row("found", result.tool_frame) + "</table>"
+        f"<h2>Gates</h2><table border=1 cellpadding=4>{gates}</table>"
+        f"<h2>Parameters</h2><table border=1 cellpadding=4>{params}</table>"
+        "<h2>Residuals</h2><img src='residuals.png' alt='residual of every measurement'>"
+        + "".join(f"<p>{html.escape(n)}</p>" for n in result.notes)
+        + f"<h2>Everything</h2><pre>{html.escape(json.dumps(result.as_json(), indent=1, default=_plain))}</pre>"
+        f"<p>dataset: {html.escape(str(result.dataset))}</p></body>\n", encoding="utf-8")
+    return page
+
+
+def _plain(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return value.item()
+    return str(value)

@@ -1,0 +1,292 @@
+"""The service: one explicit state machine from the operator's start button to a written-back
+tool frame, and everything that may go wrong on the way.
+
+    idle -> checking -> running -> solving -> gates -> writing back -> done
+                  \\          \\         \\        \\            \\
+                   refused    fault/aborted      fault        fault (old frame kept)
+
+* checking: the robot is ready, the routine is one this cell can run, its plan passes the
+  cell's limits, the sensors it needs answer. A failure here is *refused*: nothing moved.
+* running: the routine moves and records (in a worker thread: the main loop keeps serving
+  the panel and the signals); the dataset is on disk before solving.
+* gates: a result that fails any gate is never written (state fault, code GATE_FAILED).
+* writing back: the tool frame goes to the controller, is read back and compared; the
+  frame before is kept in the store, so ``cellcal tool rollback`` can restore it.
+
+Every transition is one log line with the run id (journald-friendly), a row in the
+store, and the panel's lamps and result code. The abort button and SIGTERM/SIGINT stop
+the motion at once; the run is recorded as aborted and nothing is written back.
+"""
+from __future__ import annotations
+
+import enum
+import logging
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..drivers.interfaces import DeviceError, DeviceTimeout, RobotState
+from ..routines import registry, runner
+from ..routines.base import PlanRefused, Result, RoutineAborted, RoutineError
+from ..routines.gates import frame_change
+from .notify import Notifier
+from .store import Store
+
+log = logging.getLogger("cellcal.daemon")
+
+# routine selector register values (spec/panel.md); 6 extends the map for tcf
+PANEL_ROUTINES = {1: "tcp-laser", 2: "tcp-stylus", 3: "tcp-npoint", 4: "handshake", 5: "tracker", 6: "tcf"}
+WRITE_BACK_TOLERANCE = 1e-9  # m and rad: the controller must report exactly what was sent
+
+
+class ResultCode(enum.IntEnum):
+    """The panel's result register: why the last run ended as it did (spec/panel.md)."""
+
+    OK = 0
+    NOT_READY = 10
+    NO_SUCH_ROUTINE = 11
+    LIMITS = 12
+    BUSY = 13
+    SENSOR_FAULT = 20
+    ROBOT_FAULT = 21
+    DEVICE_TIMEOUT = 22
+    COMPUTATION_FAILED = 30
+    GATE_FAILED = 31
+    WRITE_BACK_FAILED = 32
+    ABORTED = 40
+    INTERRUPTED = 41
+
+
+RESULT_MEANINGS = {
+    ResultCode.OK: "the run passed every gate and its tool frame was written back and read back",
+    ResultCode.NOT_READY: "start refused: the robot is not ready (protective or emergency stop, not connected)",
+    ResultCode.NO_SUCH_ROUTINE: "start refused: the routine selector names no routine this cell can run",
+    ResultCode.LIMITS: "start refused: the routine's plan would leave the cell's limits; nothing moved",
+    ResultCode.BUSY: "start refused: a routine is already running (the press is ignored)",
+    ResultCode.SENSOR_FAULT: "the trigger or the tracker failed or went silent; motion stopped",
+    ResultCode.ROBOT_FAULT: "the robot faulted (connection lost, protective or emergency stop); motion stopped",
+    ResultCode.DEVICE_TIMEOUT: "a device did not answer in time; motion stopped",
+    ResultCode.COMPUTATION_FAILED: "the measurements could not be solved (the routine says why)",
+    ResultCode.GATE_FAILED: "the result failed a quality gate and was not written back",
+    ResultCode.WRITE_BACK_FAILED: "the controller did not keep the written tool frame; the old one was restored",
+    ResultCode.ABORTED: "aborted by the operator or by a stop of the service; nothing written back",
+    ResultCode.INTERRUPTED: "the service died during the run; found at the next start, nothing written back",
+}
+
+
+@dataclass
+class RunOutcome:
+    run_id: int
+    state: str
+    code: ResultCode
+    reason: str
+    result: Result | None = None
+
+
+class Service:
+    """The daemon's core, independent of how it is started (CLI, tests)."""
+
+    def __init__(self, cell, drivers, store: Store, *, out_dir: str | Path, notifier: Notifier | None = None,
+                 routines: dict[int, str] | None = None, report=None):
+        self.cell, self.drivers, self.store = cell, drivers, store
+        self.out_dir = Path(out_dir)
+        self.notifier = notifier or Notifier({})
+        self.routines = dict(PANEL_ROUTINES if routines is None else routines)
+        self.report = report  # callable(run_id, result, store) -> path, or None
+        self.state = "idle"
+        self.abort = threading.Event()
+        self._worker: threading.Thread | None = None
+        self._lock = threading.Lock()  # the panel: one caller at a time
+        self.panel_ok = True
+        self.last: RunOutcome | None = None
+
+    # -- the panel ------------------------------------------------------------------------
+
+    def _panel(self, what: str, *args, **kwargs):
+        """A panel call that survives a dropped connection (logged once per drop)."""
+        panel = self.drivers.panel
+        if panel is None:
+            return None
+        try:
+            with self._lock:
+                value = getattr(panel, what)(*args, **kwargs)
+        except DeviceError as exc:
+            if self.panel_ok:
+                self.panel_ok = False
+                log.warning("panel lost: %s", exc)
+                self.store.event("panel_lost", str(exc))
+            return None
+        if not self.panel_ok:
+            self.panel_ok = True
+            log.info("panel back")
+            self.store.event("panel_back", None)
+        return value
+
+    def _transition(self, run_id: int | None, state: str, message: str | None = None) -> None:
+        self.state = state
+        tag = f"run {run_id}: " if run_id is not None else ""
+        log.info("%s%s%s", tag, state, f": {message}" if message else "")
+        if run_id is not None and state not in ("done", "fault", "refused", "aborted"):
+            self.store.record_state(run_id, state, message)
+        self.notifier.status(f"{state}{f' (run {run_id})' if run_id is not None else ''}")
+        busy = state not in ("idle", "done", "fault", "refused", "aborted")
+        self._panel("set_lamps", busy=busy)
+
+    # -- one run --------------------------------------------------------------------------
+
+    def busy(self) -> bool:
+        return self._worker is not None and self._worker.is_alive()
+
+    def poll_panel(self) -> None:
+        """One look at the panel: abort while running; a start request otherwise."""
+        if self.busy():
+            if self._panel("abort_requested"):
+                self.request_abort("abort button")
+            if self._panel("start_requested"):
+                log.info("start pressed while a run is going on: ignored")
+            return
+        self._panel("abort_requested")  # an abort with nothing running is cleared, not remembered
+        if self._panel("start_requested"):
+            selector = self._panel("routine_selector")
+            if selector is None:  # the request cannot be confirmed: never start from it
+                log.warning("start request seen but the routine selector could not be read: not started")
+                return
+            self.start(self.routines.get(int(selector), f"selector {selector}"))
+
+    def start(self, routine: str) -> None:
+        """Start a run in the worker thread (returns at once)."""
+        if self.busy():
+            raise RuntimeError("a run is already going on")
+        self.abort.clear()
+        self._worker = threading.Thread(target=self._run_safely, args=(routine,), name="cellcal-run", daemon=True)
+        self._worker.start()
+
+    def wait(self, timeout_s: float | None = None) -> RunOutcome | None:
+        if self._worker is not None:
+            self._worker.join(timeout_s)
+        return self.last
+
+    def request_abort(self, why: str) -> None:
+        """Stop the motion now; the worker ends the run as aborted."""
+        if not self.busy():
+            return
+        log.warning("abort: %s", why)
+        self.abort.set()
+        try:
+            self.drivers.robot.stop()
+        except DeviceError as exc:
+            log.warning("stop after abort failed: %s", exc)
+
+    def _run_safely(self, routine: str) -> None:
+        try:
+            self.last = self.run(routine)
+        except Exception as exc:  # a bug must not leave the lamps busy or the run open
+            log.exception("run failed unexpectedly")
+            self.last = RunOutcome(-1, "fault", ResultCode.COMPUTATION_FAILED, f"internal error: {exc}")
+
+    def run(self, routine: str) -> RunOutcome:
+        """The whole state machine for one run, in the calling thread."""
+        run_id = self.store.begin_run(routine, self.cell.path)
+        self._transition(run_id, "checking", routine)
+        prepared, refusal = self._check(routine)
+        if refusal is not None:
+            code, why = refusal
+            return self._end(run_id, "refused", code, why)
+        self._transition(run_id, "running", f"{len(prepared.plan)} moves")
+        try:
+            dataset = runner.measure(prepared, self.drivers, self.out_dir,
+                                     lambda message: log.info("run %d: %s", run_id, message), abort=self.abort)
+        except RoutineAborted as exc:
+            return self._end(run_id, "aborted", ResultCode.ABORTED, str(exc))
+        except DeviceError as exc:
+            if self.abort.is_set():
+                return self._end(run_id, "aborted", ResultCode.ABORTED, f"stopped by abort ({exc.what})")
+            return self._end(run_id, "fault", _device_code(self.drivers, exc), str(exc))
+        except RoutineError as exc:
+            return self._end(run_id, "fault", ResultCode.COMPUTATION_FAILED, str(exc))
+        self._transition(run_id, "solving", dataset.path)
+        try:
+            result = runner.solve(routine, self.cell, dataset)
+        except (RoutineError, ValueError, np.linalg.LinAlgError) as exc:
+            return self._end(run_id, "fault", ResultCode.COMPUTATION_FAILED, str(exc))
+        self.store.record_result(run_id, result)
+        if self.report is not None:
+            try:
+                self.store.record_report(run_id, str(self.report(run_id, result, self.store)))
+            except OSError as exc:
+                log.warning("run %d: report not written: %s", run_id, exc)
+        self._transition(run_id, "gates")
+        if not result.write_back:
+            return self._end(run_id, "fault", ResultCode.GATE_FAILED, "; ".join(result.reasons()), result)
+        if self.abort.is_set():
+            return self._end(run_id, "aborted", ResultCode.ABORTED, "aborted before write-back", result)
+        if result.tool_frame is None:
+            return self._end(run_id, "done", ResultCode.OK, "no tool frame to write (a frame routine)", result)
+        self._transition(run_id, "writing back")
+        failure = self.write_back(run_id, result.tool_frame)
+        if failure is not None:
+            return self._end(run_id, "fault", ResultCode.WRITE_BACK_FAILED, failure, result)
+        mm, deg = frame_change(result.tool_frame, dataset.meta.get("tool_frame_before", np.zeros(6)))
+        return self._end(run_id, "done", ResultCode.OK, f"tool frame written back ({mm:.3f} mm, {deg:.3f} deg "
+                                                         "from the previous one)", result)
+
+    def _check(self, routine: str):
+        """(the prepared routine, None) when it may run, else (None, (code, why))."""
+        robot = self.drivers.robot
+        try:
+            state = robot.state()
+        except DeviceError as exc:
+            return None, (ResultCode.NOT_READY, f"the robot does not answer: {exc}")
+        if state is not RobotState.READY:
+            return None, (ResultCode.NOT_READY, f"the robot is not ready: {state.value}")
+        if routine not in registry.available():
+            return None, (ResultCode.NO_SUCH_ROUTINE,
+                          f"no routine {routine!r} (routines: {', '.join(registry.available())})")
+        try:
+            prepared = runner.prepare(routine, self.cell)
+        except PlanRefused as exc:
+            return None, (ResultCode.LIMITS, f"plan refused, nothing moved: {exc}")
+        except RoutineError as exc:
+            return None, (ResultCode.NO_SUCH_ROUTINE, str(exc))
+        for kind in type(prepared.routine).needs:
+            if getattr(self.drivers, kind, None) is None:
+                return None, (ResultCode.SENSOR_FAULT, f"the cell has no {kind} for {routine}")
+        return prepared, None
+
+    def write_back(self, run_id: int, frame) -> str | None:
+        """The frame to the controller, read back and compared; the old one restored on a mismatch."""
+        robot = self.drivers.robot
+        frame = np.asarray(frame, dtype=float)
+        try:
+            before = np.asarray(robot.tcp(), dtype=float)
+            robot.set_tcp(frame)
+            readback = np.asarray(robot.tcp(), dtype=float)
+        except DeviceError as exc:
+            return f"write-back failed: {exc}"
+        if np.abs(readback - frame).max() > WRITE_BACK_TOLERANCE:
+            try:
+                robot.set_tcp(before)
+            except DeviceError:
+                pass
+            return f"the controller reports {readback.tolist()} after writing {frame.tolist()}; old frame restored"
+        self.store.record_tool_frame(run_id, "write", before, frame)
+        return None
+
+    def _end(self, run_id: int, state: str, code: ResultCode, reason: str, result: Result | None = None) -> RunOutcome:
+        self.store.finish_run(run_id, state, int(code), reason)
+        self._transition(run_id, state, f"{code.name.lower()}: {reason}")
+        self._panel("set_lamps", busy=False, done=state == "done", fault=state in ("fault", "refused"))
+        self._panel("set_result", int(code))
+        self.state = "idle"
+        return RunOutcome(run_id, state, code, reason, result)
+
+
+def _device_code(drivers, exc: DeviceError) -> ResultCode:
+    if isinstance(exc, DeviceTimeout):
+        return ResultCode.DEVICE_TIMEOUT
+    robot_name = getattr(drivers.robot, "name", None)
+    if exc.device == robot_name or "robot" in exc.device:
+        return ResultCode.ROBOT_FAULT
+    return ResultCode.SENSOR_FAULT

@@ -1,0 +1,266 @@
+"""The results store: every run, its states, dataset, parameters, gates, and the tool frames
+written to the controller. SQLite in WAL mode (standard library ``sqlite3``).
+
+The schema is versioned (``PRAGMA user_version``) and brought up to date by the
+migrations below, one transaction each, when the store is opened. Every write is one
+short transaction, so a process killed at any moment leaves a store that opens with its
+integrity intact and every run recorded before the kill still there; a run the daemon
+was in the middle of is marked ``interrupted`` when it next starts.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sqlite3
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+DEFAULT_STATE_DIR = "/var/lib/cellcal"  # systemd's StateDirectory=cellcal; $STATE_DIRECTORY overrides
+
+MIGRATIONS = (
+    # 1: runs with their state trail, parameters and gates; tool frames written or restored
+    """
+    CREATE TABLE runs (
+        id INTEGER PRIMARY KEY AUTOINCREMENT,
+        routine TEXT NOT NULL,
+        cell TEXT NOT NULL,
+        started_at REAL NOT NULL,
+        finished_at REAL,
+        state TEXT NOT NULL,
+        result_code INTEGER,
+        reason TEXT,
+        dataset_path TEXT,
+        dataset_sha256 TEXT,
+        report_path TEXT,
+        write_back INTEGER NOT NULL DEFAULT 0,
+        result_json TEXT
+    );
+    CREATE TABLE states (
+        run_id INTEGER NOT NULL REFERENCES runs(id),
+        at REAL NOT NULL,
+        state TEXT NOT NULL,
+        message TEXT
+    );
+    CREATE TABLE parameters (
+        run_id INTEGER NOT NULL REFERENCES runs(id),
+        name TEXT NOT NULL, value REAL, std REAL, unit TEXT
+    );
+    CREATE TABLE gates (
+        run_id INTEGER NOT NULL REFERENCES runs(id),
+        name TEXT NOT NULL, passed INTEGER NOT NULL, value REAL, limit_value REAL, why TEXT
+    );
+    CREATE TABLE tool_frames (
+        id INTEGER PRIMARY KEY AUTOINCREMENT,
+        run_id INTEGER REFERENCES runs(id),
+        at REAL NOT NULL,
+        action TEXT NOT NULL,
+        frame_before TEXT,
+        frame_after TEXT NOT NULL
+    );
+    CREATE INDEX states_by_run ON states(run_id);
+    """,
+    # 2: events that belong to no run (panel connection lost and back, start-up, shutdown)
+    """
+    CREATE TABLE events (
+        at REAL NOT NULL,
+        kind TEXT NOT NULL,
+        message TEXT
+    );
+    """,
+)
+SCHEMA_VERSION = len(MIGRATIONS)
+OPEN_STATES = ("checking", "running", "solving", "gates", "writing back")
+
+
+def state_dir(override: str | None = None) -> Path:
+    """--state-dir, else $STATE_DIRECTORY (systemd), else /var/lib/cellcal."""
+    if override:
+        return Path(override)
+    env = os.environ.get("STATE_DIRECTORY", "").split(":")[0]
+    return Path(env or DEFAULT_STATE_DIR)
+
+
+class StoreError(RuntimeError):
+    """The store cannot be opened or is from a newer cellcal."""
+
+
+def file_sha256(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+@dataclass(frozen=True)
+class RunRow:
+    id: int
+    routine: str
+    cell: str
+    started_at: float
+    finished_at: float | None
+    state: str
+    result_code: int | None
+    reason: str | None
+    dataset_path: str | None
+    dataset_sha256: str | None
+    report_path: str | None
+    write_back: bool
+    result_json: str | None
+
+
+class Store:
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.db = sqlite3.connect(str(self.path), timeout=10.0, isolation_level=None, check_same_thread=False)
+            self.db.execute("PRAGMA journal_mode=WAL")
+            self.db.execute("PRAGMA synchronous=FULL")
+            self.db.execute("PRAGMA foreign_keys=ON")
+            self._migrate()
+        except (OSError, sqlite3.Error) as exc:
+            raise StoreError(f"{self.path}: cannot open the results store: {exc}") from None
+
+    @classmethod
+    def open(cls, state_dir_path: str | Path) -> "Store":
+        return cls(Path(state_dir_path) / "cellcal.db")
+
+    def close(self) -> None:
+        self.db.close()
+
+    @contextmanager
+    def _tx(self):
+        self.db.execute("BEGIN IMMEDIATE")
+        try:
+            yield self.db
+        except BaseException:
+            self.db.execute("ROLLBACK")
+            raise
+        self.db.execute("COMMIT")
+
+    def _migrate(self) -> None:
+        version = self.db.execute("PRAGMA user_version").fetchone()[0]
+        if version > SCHEMA_VERSION:
+            raise StoreError(f"schema version {version} is newer than this cellcal's {SCHEMA_VERSION}")
+        for number in range(version, SCHEMA_VERSION):
+            with self._tx() as db:
+                for statement in MIGRATIONS[number].split(";"):
+                    if statement.strip():
+                        db.execute(statement)
+                db.execute(f"PRAGMA user_version = {number + 1}")
+
+    def integrity(self) -> str:
+        return self.db.execute("PRAGMA integrity_check").fetchone()[0]
+
+    # -- runs -----------------------------------------------------------------------------
+
+    def begin_run(self, routine: str, cell: str) -> int:
+        now = time.time()
+        with self._tx() as db:
+            run_id = db.execute("INSERT INTO runs (routine, cell, started_at, state) VALUES (?, ?, ?, 'checking')",
+                                (routine, cell, now)).lastrowid
+            db.execute("INSERT INTO states VALUES (?, ?, 'checking', NULL)", (run_id, now))
+        return int(run_id)
+
+    def record_state(self, run_id: int, state: str, message: str | None = None) -> None:
+        now = time.time()
+        with self._tx() as db:
+            db.execute("UPDATE runs SET state = ? WHERE id = ?", (state, run_id))
+            db.execute("INSERT INTO states VALUES (?, ?, ?, ?)", (run_id, now, state, message))
+
+    def record_result(self, run_id: int, result) -> None:
+        """Dataset (path and checksum), parameters, gates and the result JSON of a solved run."""
+        sha = file_sha256(result.dataset) if result.dataset and Path(result.dataset).exists() else None
+        with self._tx() as db:
+            db.execute("UPDATE runs SET dataset_path = ?, dataset_sha256 = ?, write_back = ?, result_json = ? "
+                       "WHERE id = ?", (result.dataset, sha, int(result.write_back),
+                                        json.dumps(result.as_json(), default=_jsonable), run_id))
+            db.executemany("INSERT INTO parameters VALUES (?, ?, ?, ?, ?)",
+                           [(run_id, p.name, p.value, p.std, p.unit) for p in result.parameters])
+            db.executemany("INSERT INTO gates VALUES (?, ?, ?, ?, ?, ?)",
+                           [(run_id, g.name, int(g.passed), g.value, g.limit, g.why) for g in result.gates])
+
+    def record_report(self, run_id: int, report_path: str) -> None:
+        with self._tx() as db:
+            db.execute("UPDATE runs SET report_path = ? WHERE id = ?", (report_path, run_id))
+
+    def finish_run(self, run_id: int, state: str, result_code: int, reason: str | None = None) -> None:
+        now = time.time()
+        with self._tx() as db:
+            db.execute("UPDATE runs SET state = ?, result_code = ?, reason = ?, finished_at = ? WHERE id = ?",
+                       (state, result_code, reason, now, run_id))
+            db.execute("INSERT INTO states VALUES (?, ?, ?, ?)", (run_id, now, state, reason))
+
+    def mark_interrupted(self, result_code: int) -> list[int]:
+        """Runs a previous process left open (it died mid-run): recorded as interrupted."""
+        open_runs = [r[0] for r in self.db.execute(
+            f"SELECT id FROM runs WHERE state IN ({','.join('?' * len(OPEN_STATES))})", OPEN_STATES)]
+        for run_id in open_runs:
+            self.finish_run(run_id, "interrupted", result_code,
+                            "the daemon stopped during this run (killed or crashed); nothing was written back")
+        return open_runs
+
+    def runs(self, limit: int = 50) -> list[RunRow]:
+        rows = self.db.execute("SELECT * FROM runs ORDER BY id DESC LIMIT ?", (limit,)).fetchall()
+        return [_run(r) for r in rows]
+
+    def run(self, run_id: int) -> RunRow | None:
+        row = self.db.execute("SELECT * FROM runs WHERE id = ?", (run_id,)).fetchone()
+        return None if row is None else _run(row)
+
+    def states(self, run_id: int) -> list[tuple[float, str, str | None]]:
+        return [tuple(r) for r in self.db.execute("SELECT at, state, message FROM states WHERE run_id = ? "
+                                                 "ORDER BY rowid", (run_id,))]
+
+    def gates(self, run_id: int) -> list[dict]:
+        return [{"name": n, "passed": bool(p), "value": v, "limit": lim, "why": w} for n, p, v, lim, w in
+                self.db.execute("SELECT name, passed, value, limit_value, why FROM gates WHERE run_id = ?",
+                                (run_id,))]
+
+    def parameters(self, run_id: int) -> list[dict]:
+        return [{"name": n, "value": v, "std": s, "unit": u} for n, v, s, u in
+                self.db.execute("SELECT name, value, std, unit FROM parameters WHERE run_id = ?", (run_id,))]
+
+    # -- tool frames ----------------------------------------------------------------------
+
+    def record_tool_frame(self, run_id: int | None, action: str, before, after) -> None:
+        with self._tx() as db:
+            db.execute("INSERT INTO tool_frames (run_id, at, action, frame_before, frame_after) "
+                       "VALUES (?, ?, ?, ?, ?)", (run_id, time.time(), action,
+                                                  None if before is None else json.dumps(list(map(float, before))),
+                                                  json.dumps(list(map(float, after)))))
+
+    def tool_frames(self) -> list[dict]:
+        return [{"id": i, "run_id": r, "at": at, "action": a,
+                 "frame_before": None if b is None else json.loads(b), "frame_after": json.loads(f)}
+                for i, r, at, a, b, f in self.db.execute(
+                    "SELECT id, run_id, at, action, frame_before, frame_after FROM tool_frames ORDER BY id")]
+
+    # -- events ---------------------------------------------------------------------------
+
+    def event(self, kind: str, message: str | None = None) -> None:
+        with self._tx() as db:
+            db.execute("INSERT INTO events VALUES (?, ?, ?)", (time.time(), kind, message))
+
+    def events(self) -> list[tuple[float, str, str | None]]:
+        return [tuple(r) for r in self.db.execute("SELECT at, kind, message FROM events ORDER BY rowid")]
+
+
+def _run(row) -> RunRow:
+    values = list(row)
+    values[11] = bool(values[11])
+    return RunRow(*values)
+
+
+def _jsonable(value):
+    import numpy as np
+
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return value.item()
+    raise TypeError(type(value).__name__)
