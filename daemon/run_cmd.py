@@ -2,7 +2,8 @@
 
 Plans the routine from the cell file, checks every motion against the cell's limits
 (``--dry-run`` stops there), moves and records, writes the dataset, solves and gates.
-``--from DATASET`` re-solves a recorded dataset offline with the same code. On a
+``--from DATASET`` re-solves a recorded dataset offline with the same code;
+``--resume DATASET`` continues a campaign a fault stopped (routines that can). On a
 simulated cell the result also carries ``sim_truth``: the error against the hidden truth.
 
 Exit status: 0 the result passed every gate (it may be written back); 1 a device fault,
@@ -65,10 +66,12 @@ def cmd_run(args) -> int:
         cell = load_cell(args.cell)
         if args.routine not in registry.available():
             raise UsageError(f"no routine named {args.routine!r} (routines: {', '.join(registry.available())})")
+        if args.from_dataset and args.resume:
+            raise UsageError("--from re-solves a dataset, --resume measures the rest of one: give one of them")
         if args.from_dataset:
             result = runner.solve_file(args.routine, cell, args.from_dataset)
         else:
-            prepared = runner.prepare(args.routine, cell)
+            prepared = runner.prepare(args.routine, cell, resume=args.resume)
             if args.dry_run:
                 summary = {"routine": args.routine, "cell": cell.path, "moves": len(prepared.plan),
                            "within_limits": True,
@@ -111,6 +114,8 @@ def add_parser(sub) -> None:
     p.add_argument("--dry-run", action="store_true", help="plan and check every motion; move nothing")
     p.add_argument("--from", dest="from_dataset", metavar="DATASET",
                    help="re-solve a recorded dataset instead of measuring")
+    p.add_argument("--resume", metavar="DATASET",
+                   help="continue the incomplete dataset a fault left: measure only what it lacks")
     p.add_argument("--out", default="out/runs", metavar="DIR", help="where datasets are written (default: out/runs)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=cmd_run)

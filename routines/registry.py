@@ -16,6 +16,7 @@ ROUTINES: dict[str, str] = {
     "tcp-stylus": "cellcal.routines.tcp_stylus:TcpStylus",
     "tcp-npoint": "cellcal.routines.tcp_npoint:TcpNpoint",
     "tcf": "cellcal.routines.tcf:Tcf",
+    "tracker": "cellcal.routines.tracker:TrackerCampaign",
 }
 
 

@@ -2,7 +2,8 @@
 
 The same steps for every routine, in one place, so the daemon and ``cellcal run`` cannot
 drift apart. Nothing moves before the whole plan has passed the guard; a device fault
-stops the arm, writes no dataset and raises; the dataset is on disk before solving.
+stops the arm, writes no dataset and raises (a routine that can resume keeps what it
+measured, marked incomplete); the dataset is on disk before solving.
 """
 from __future__ import annotations
 
@@ -33,13 +34,20 @@ def planning_tool(cell: Cell) -> np.ndarray:
     return cell.tool.tcp_pose if cell.tool is not None else np.zeros(6)
 
 
-def prepare(name: str, cell: Cell) -> Prepared:
-    """The routine, its plan, and the plan checked from the cell's home (raises PlanRefused)."""
+def prepare(name: str, cell: Cell, resume: str | Path | None = None) -> Prepared:
+    """The routine, its plan, and the plan checked from the cell's home (raises PlanRefused).
+
+    `resume`: an incomplete dataset of this routine; a routine that can continue one
+    (``resume(dataset)``) plans only what it still lacks."""
     cls = routine_class(name)
     routine = cls(cell, read_options(name, cell))
     missing = [k for k in cls.needs if k not in cell.drivers]
     if missing:
         raise RoutineError(f"{cell.path}: routine {name} needs a {' and a '.join(missing)} in [drivers]")
+    if resume is not None:
+        if not hasattr(routine, "resume"):
+            raise RoutineError(f"routine {name} cannot resume a dataset; run it anew")
+        routine.resume(read_dataset(resume, name, getattr(cls, "text_columns", ())))
     plan = routine.plan()
     guard = MotionGuard(cell, load_robot(cell.robot))
     guard.check_plan(plan, ArmState(np.asarray(cell.home_q_rad, dtype=float), planning_tool(cell)))
@@ -60,18 +68,46 @@ def measure(prepared: Prepared, drivers, out_dir: str | Path, progress: Progress
     previous = np.asarray(drivers.robot.tcp(), dtype=float)
     try:
         dataset = routine.measure(devices, robot, prepared.plan, progress)
-    except BaseException:
+    except BaseException as exc:
         try:
             drivers.robot.stop()
         except DeviceError:
             pass
+        kept = _keep_partial(routine, previous, out_dir, progress)
+        if kept and isinstance(exc, DeviceError):
+            raise DeviceError(exc.device, f"{exc.what}; {kept}") from exc
+        if kept and isinstance(exc, RoutineError):
+            raise RoutineError(f"{exc}; {kept}") from exc
         raise
+    _write(dataset, routine, previous, out_dir)
+    progress(f"wrote {dataset.path}")
+    return dataset
+
+
+def _write(dataset: Dataset, routine: Routine, previous: np.ndarray, out_dir) -> None:
+    cell = routine.cell
     dataset.meta.setdefault("tool_frame_before", previous.tolist())
     dataset.cell = f"{cell.name} ({cell.path})"
     dataset.robot = cell.robot
     dataset.write(dataset_path(out_dir, routine.name))
-    progress(f"wrote {dataset.path}")
-    return dataset
+
+
+def _keep_partial(routine: Routine, previous, out_dir, progress) -> str:
+    """A routine that can resume (``partial()``) keeps what it measured before a fault,
+    marked incomplete; says where, or "" when there is nothing to keep."""
+    partial = routine.partial() if hasattr(routine, "partial") else None
+    if partial is None or not len(partial):
+        return ""
+    partial.complete = False
+    try:
+        _write(partial, routine, previous, out_dir)
+    except OSError as exc:
+        progress(f"could not keep the {len(partial)} measurements taken: {exc}")
+        return ""
+    kept = (f"{len(partial)} measurements kept in {partial.path} (incomplete; "
+            f"'cellcal run {routine.name} --resume {partial.path}' measures the rest)")
+    progress(kept)
+    return kept
 
 
 def solve(name: str, cell: Cell, dataset: Dataset) -> Result:
