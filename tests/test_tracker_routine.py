@@ -13,6 +13,7 @@ resume tests use 10 + 2 poses chosen from 100 candidates, to keep them fast.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 from pathlib import Path
@@ -31,6 +32,7 @@ from cellcal.routines.dataset import read_measurements
 from cellcal.routines.records import read_dataset
 from cellcal.solvers.inverse import tcp_frames
 from cellcal.solvers.measurement_model import Layout, Observations, predict
+from cellcal.solvers.pose_design import move_time_s
 
 ARM_ERRORS = "  arm_length_error_mm: 0.5\n  arm_angle_error_deg: 0.05\n"
 FLOOR_FACTOR = 1.15
@@ -133,6 +135,17 @@ def test_the_base_frame_is_the_instrument_frame_of_the_simulated_tracker(campaig
     assert np.allclose(json.loads(frame["cell_file"].split(": ", 1)[1]), frame["pose_m_rad"], atol=1e-7)
 
 
+def test_the_campaign_time_is_the_robots_motion_plus_settling_and_measuring(campaign):
+    cell, doc = campaign["cell"], campaign["doc"]
+    prepared = runner.prepare("tracker", cell)  # the same plan again
+    q = np.array([cell.home_q_rad] + [m.q_rad for m in prepared.plan])
+    planned = move_time_s(np.abs(np.diff(q, axis=0)).max(axis=1), cell.limits["joint_speed_rad_s"],
+                          cell.limits["joint_accel_rad_s2"]).sum()
+    meta = read_dataset(doc["dataset"], "tracker", ("split", "target")).meta
+    assert meta["motion_s"] == pytest.approx(planned, rel=0.01)  # every move, on the robot's clock
+    assert doc["campaign_time_s"] == doc["cycle_time_s"] == pytest.approx(meta["motion_s"] + 90 * (1.0 + 0.5))
+
+
 def test_the_dataset_is_the_measurement_csv_with_its_header(campaign):
     path = Path(campaign["doc"]["dataset"])
     head = path.read_text().splitlines()[:8]
@@ -227,6 +240,33 @@ def test_a_fault_mid_campaign_keeps_what_was_measured_and_says_how_to_resume(tmp
     assert "# complete: false" in files[0].read_text()
 
 
+class Doubtful(Faulty):
+    """Readings the instrument marks doubtful ('unstable') for the calls listed."""
+
+    def __init__(self, drivers, doubtful_calls):
+        super().__init__(drivers, 10**6, "")
+        self.doubtful = set(doubtful_calls)
+
+    def measure(self, target="smr1", timeout_s=5.0):
+        reading = super().measure(target, timeout_s)
+        return dataclasses.replace(reading, status="unstable") if self.calls in self.doubtful else reading
+
+
+def test_a_doubtful_reading_is_repeated_and_one_that_stays_doubtful_ends_the_run(tmp_path):
+    cell = load_cell(variant(tmp_path, SMALL))
+    with open_drivers(cell) as drivers:
+        drivers.tracker = Doubtful(drivers, {2, 3})  # the second pose needs three readings ...
+        drivers.tracker.after, drivers.tracker.fault = 5, "tracker lost"  # ... and the run ends at the fourth
+        with pytest.raises(DeviceError, match="after 3 of 12 measurements"):
+            runner.measure(runner.prepare("tracker", cell), drivers, tmp_path / "a", lambda message: None)
+    assert len(read_dataset(next((tmp_path / "a").iterdir()), "tracker", ("split", "target"))) == 3
+    with open_drivers(cell) as drivers:
+        drivers.tracker = Doubtful(drivers, {4, 5, 6})  # retries: 2, so three doubtful in a row is too many
+        with pytest.raises(RoutineError, match=r"reports 'unstable' at '.*' 3 times in a row.*3 measurements kept"):
+            runner.measure(runner.prepare("tracker", cell), drivers, tmp_path / "b", lambda message: None)
+    assert len(read_dataset(next((tmp_path / "b").iterdir()), "tracker", ("split", "target"))) == 3
+
+
 def test_a_fault_before_the_first_measurement_leaves_no_dataset(tmp_path):
     cell = load_cell(variant(tmp_path, SMALL.replace("  seed: 3\n", "  seed: 3\n  target: smr9\n")))
     with open_drivers(cell) as drivers:
@@ -235,37 +275,43 @@ def test_a_fault_before_the_first_measurement_leaves_no_dataset(tmp_path):
     assert not (tmp_path / "runs").exists() or not list((tmp_path / "runs").iterdir())
 
 
-def test_resume_measures_only_the_missing_poses_and_solves_them_all(tmp_path, capsys):
-    path = variant(tmp_path, SMALL)
+@pytest.fixture(scope="module")
+def resumed(tmp_path_factory):
+    """A small campaign the tracker drops out of after 5 poses, then resumed by
+    `cellcal run tracker --resume`."""
+    tmp = tmp_path_factory.mktemp("resume")
+    path = variant(tmp, SMALL)
     cell = load_cell(path)
-    out = tmp_path / "runs"
+    out = tmp / "runs"
     with open_drivers(cell) as drivers:
         drivers.tracker = Faulty(drivers, 5, "tracker lost")
         with pytest.raises(DeviceError):
             runner.measure(runner.prepare("tracker", cell), drivers, out, lambda message: None)
     partial_path = next(out.iterdir())
-    partial = read_dataset(partial_path, "tracker", ("split", "target"))
-    resumed = runner.prepare("tracker", cell, resume=partial_path)
-    stops = [m for m in resumed.plan if m.label in resumed.routine._stops]
-    assert len(stops) == 12 - 5
-    assert not {resumed.routine._stops[m.label].pose for m in stops} & {int(p) for p in partial["pose"]}
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        code = cli_main(["run", "tracker", "--cell", str(path), "--resume", str(partial_path), "--json",
+                         "--out", str(out)])
+    doc = json.loads(buf.getvalue())
+    return {"path": path, "cell": cell, "partial_path": partial_path, "code": code, "doc": doc,
+            "partial": read_dataset(partial_path, "tracker", ("split", "target")),
+            "whole": read_dataset(doc["dataset"], "tracker", ("split", "target"))}
 
-    code, doc = run_cli(capsys, "run", "tracker", "--cell", str(path), "--resume", str(partial_path), "--json",
-                        "--out", str(out))
-    assert code in (0, 1) and doc["complete"] is True
-    whole = read_dataset(doc["dataset"], "tracker", ("split", "target"))
+
+def test_resume_measures_only_the_missing_poses_and_solves_them_all(resumed):
+    partial, whole, doc = resumed["partial"], resumed["whole"], resumed["doc"]
+    plan = runner.prepare("tracker", resumed["cell"], resume=resumed["partial_path"])
+    stops = [plan.routine._stops[m.label].pose for m in plan.plan if m.label in plan.routine._stops]
+    assert len(stops) == 12 - 5 and not set(stops) & {int(p) for p in partial["pose"]}
+    assert resumed["code"] == 0 and doc["complete"] is True, doc["reasons"]
     assert whole.complete and sorted(int(p) for p in whole["pose"]) == list(range(12))
     np.testing.assert_array_equal(whole["x_mm"][:5], partial["x_mm"])  # the rows taken before, kept as they were
-    assert whole.meta["resumed_from"] == str(partial_path)
+    assert whole.meta["resumed_from"] == str(resumed["partial_path"])
     assert doc["n_measurements"] == 10  # every calibration row, the earlier ones included
 
 
-def test_resume_refuses_a_dataset_of_another_plan_or_one_already_complete(tmp_path, capsys):
-    path = variant(tmp_path, SMALL)
-    cell = load_cell(path)
-    out = tmp_path / "runs"
-    with open_drivers(cell) as drivers:
-        dataset = runner.measure(runner.prepare("tracker", cell), drivers, out, lambda message: None)
+def test_resume_refuses_a_dataset_of_another_plan_or_one_already_complete(tmp_path, capsys, resumed):
+    path, cell, dataset = resumed["path"], resumed["cell"], resumed["whole"]
     with pytest.raises(RoutineError, match="nothing left to measure"):
         runner.prepare("tracker", cell, resume=dataset.path)
     other = load_cell(variant(tmp_path, SMALL.replace("seed: 3", "seed: 4"), name="other.yaml"))
