@@ -7,19 +7,25 @@ natively (:mod:`.fake_ur_script`). A fake-only JSON port (30199) lets tests read
 true arm state and inject faults: a protective or emergency stop, optionally once the
 arm has been moving for a given time, dropped connections, or a stalled controller.
 
+Given a cell file (``--cell-file``), the controller obeys that cell's hidden truth
+(:func:`.truth.truth_of_cell`, the same object the in-process cell and the run's score
+are built from): it computes and reports with the arm's drawing, but the real tool on
+the arm as built, off by the repeatability drawn for each motion, blocks the real beams
+and touches the real stylus, with the physics the in-process cell runs
+(:mod:`.truth`). A beam's sensor switches where the tool crosses it plus its latency
+and jitter; the digital inputs sample the sensors once per cycle, and the control port's
+``edges`` command gives each switch's exact time (the IO module of a networked cell
+stamps its trigger ring with them). Without a cell file the truth is the drawing, with
+no tool, beams or fixtures.
+
 The ur_rtde constructors hold Python's GIL while they wait for the controller, so the
 fake must live in another process; the ports are fixed, so parallel fakes need distinct
 loopback addresses (any 127.x.y.z works on Linux). Start one with
-``python -m cellcal.sims.fake_ur --host 127.0.7.1`` or :class:`.fake_ur_process.FakeUrProcess`.
+``python -m cellcal.sims.fake_ur_process --host 127.0.7.1`` or :class:`.fake_ur_process.FakeUrProcess`.
 """
 from __future__ import annotations
 
-import argparse
-import importlib
-import json
-import os
 import re
-import signal
 import socket
 import sys
 import threading
@@ -28,10 +34,13 @@ from collections import deque
 
 import numpy as np
 
+from ..config.cells import read_cell
 from ..config.robot_files import load_robot
 from . import fake_ur_rtde as rtde
 from .arm_motion import ArmKinematics, MovingArm, MotionFault, StopMotion
-from .scene import scene_from_spec
+from .scene import SwitchingSensors, scene_from_spec
+from .truth import (CellTruth, beam_blocked, beam_edges, real_tool_body, real_tool_tip, repeat_offset_m, touching,
+                    truth_of_cell)
 from .fake_ur_script import ControlScript
 from .fake_ur_sessions import ControlSession, DashboardSession, RtdeSession, ScriptSession
 
@@ -56,14 +65,27 @@ def _zero(kind: str):
 class FakeUrController:
     """The controller: arm, cell, registers, safety state and the servers around them."""
 
-    def __init__(self, host: str = "127.0.0.1", *, robot: str = "ur10e", q0=HOME_Q, cell: dict | None = None,
-                 version=(5, 15, 0, 11908), serial: str = "20235500001", control_port: int = CONTROL_PORT,
-                 frequency_hz: float = 500.0, verbose: bool = False):
+    def __init__(self, host: str = "127.0.0.1", *, robot: str | None = None, q0=HOME_Q, cell: dict | None = None,
+                 cell_file: str | None = None, version=(5, 15, 0, 11908), serial: str = "20235500001",
+                 control_port: int = CONTROL_PORT, frequency_hz: float = 500.0, seed: int = 0,
+                 verbose: bool = False):
         self.host, self.version, self.serial = host, tuple(version), serial
         self.control_port, self.frequency_hz, self.verbose = control_port, frequency_hz, verbose
         self.lock = threading.RLock()
         self.cell = scene_from_spec(cell)
-        self.arm = MovingArm(ArmKinematics(load_robot(robot)), q0, 1.0 / frequency_hz, contact=self.cell.touching)
+        cell_spec = read_cell(cell_file) if cell_file is not None else None
+        robot = robot or (cell_spec.robot if cell_spec is not None else "ur10e")
+        model = load_robot(robot)
+        self.truth = truth_of_cell(cell_spec, model) if cell_spec is not None else \
+            CellTruth(np.asarray(model.nominal, dtype=float), None)
+        self.physics = ArmKinematics(model, self.truth.arm_params)  # the arm as built
+        self.rng = np.random.default_rng(seed)  # repeatability and sensor jitter
+        self.contacts = [c for c in (self.truth.stylus, *self.truth.contacts) if c is not None]
+        self.arm = MovingArm(ArmKinematics(model), q0, 1.0 / frequency_hz, contact=self._touching)
+        self._motion, self._repeat_offset_m = None, np.zeros(3)
+        self._body = self.tool_body()
+        self._blocked = {id(b): beam_blocked(b, self._body, self._tool_radius_m) for b in self.truth.beams}
+        self.sensors = SwitchingSensors({b.channel: self._blocked[id(b)] for b in self.truth.beams})
         model = re.search(r"ur(\d+)", robot.lower())
         self.model_name = f"UR{model.group(1)}" if model else "UR10"
         self.inputs: dict = {}
@@ -89,6 +111,31 @@ class FakeUrController:
         self._listeners: list[socket.socket] = []
         self._stopped = threading.Event()
 
+    # the real tool (the cell's truth)
+    @property
+    def _tool_radius_m(self) -> float:
+        return 0.0 if self.truth.tool is None else self.truth.tool.radius_m
+
+    def tool_body(self, q=None) -> tuple[np.ndarray, np.ndarray]:
+        """The real tool's core segment (base frame, m) at joints q (default: now)."""
+        q = self.arm.q if q is None else q
+        return real_tool_body(self.truth, self.physics, self.arm.kin, q, self.arm.tcp_offset, self._repeat_offset_m)
+
+    def _touching(self, tcp_position: np.ndarray) -> bool:
+        """Contact for moveUntilContact and tool_contact: the real tool on a real surface, or the
+        TCP on a surface added to the scene."""
+        if self.cell.touching(tcp_position):
+            return True
+        body = self.tool_body()
+        return any(touching(c, body, self._tool_radius_m) for c in self.contacts)
+
+    def _input_bits(self) -> int:
+        bits = self.cell.input_bits(self.arm.tcp_pose, self.t_s)
+        for beam in self.truth.beams:
+            level = self.sensors.blocked[beam.channel] == beam.level_when_blocked
+            bits = bits | (1 << beam.channel) if level else bits & ~(1 << beam.channel)
+        return bits
+
     # the control cycle
     def run_cycle(self) -> None:
         with self.lock:
@@ -98,14 +145,24 @@ class FakeUrController:
                 if not self.script.running and self.arm.motion is not None \
                         and not isinstance(self.arm.motion, StopMotion):
                     self.arm.stop_joint(PROGRAM_STOP_DECEL_RAD_S2)  # a program that ends stops the arm
+            motion = self.arm.motion
+            if motion is not None and motion is not self._motion and not isinstance(motion, StopMotion):
+                self._motion = motion  # a new motion ends a little off: repeatability (a stop continues one)
+                self._repeat_offset_m = repeat_offset_m(self.truth, self.rng)
+            body_old = self._body
             try:
                 self.arm.step()
             except MotionFault as exc:
                 if self.script is not None:
                     self.script.terminate(str(exc))
+            t_old = self.t_s
             self.cycle += 1
             self.t_s = self.cycle / self.frequency_hz
-            self.digital_inputs = self.cell.input_bits(self.arm.tcp_pose, self.t_s)
+            self._body = self.tool_body()
+            self.sensors.schedule(beam_edges(self.truth, self.truth.beams, self._blocked, body_old, self._body,
+                                             t_old, 1.0 / self.frequency_hz, self.rng))
+            self.sensors.advance(self.t_s)  # the inputs sample the sensors once per cycle
+            self.digital_inputs = self._input_bits()
             published = (self.cycle, self._snapshot())
         with self._cycle_cond:
             self._published.append(published)
@@ -199,9 +256,20 @@ class FakeUrController:
                 self.script.terminate(why)
             self.log(f"{safety.replace('_', ' ')}: {why}")
 
+    def edges(self, first: int, wait_s: float = 0.0) -> dict:
+        """The sensors' edges numbered `first` or later, each at its exact switching time on the
+        controller's clock, waiting up to `wait_s` for one (without holding the controller)."""
+        with self._cycle_cond:
+            self._cycle_cond.wait_for(lambda: self.sensors.count > first or self.closing, max(wait_s, 0.0))
+        with self.lock:
+            return {"ok": True, "t_s": self.t_s, "next": self.sensors.count,
+                    "edges": [[n, e.t_s, e.channel, e.edge.value] for n, e in self.sensors.since(first)]}
+
     def control(self, request: dict) -> dict:
         """The fake-only port: inspect the truth, add cell models, inject faults."""
         cmd = request.get("cmd")
+        if cmd == "edges":
+            return self.edges(int(request.get("first", 0)), min(float(request.get("wait_s", 0.0)), 5.0))
         with self.lock:
             if cmd == "state":
                 arm = self.arm
@@ -210,6 +278,11 @@ class FakeUrController:
                         "moving": arm.moving, "safety": self.safety, "program_running": self.program_running,
                         "digital_inputs": self.digital_inputs, "digital_outputs": self.digital_outputs,
                         "stalled": self.stalled, "messages": list(self.messages)[-20:]}
+            if cmd == "tool":
+                return {"ok": True, "t_s": self.t_s, "q": self.arm.q.tolist(),
+                        "tool_tip_m": real_tool_tip(self.truth, self.physics, self.arm.q, self._body).tolist(),
+                        "tool_body_m": [p.tolist() for p in self._body],
+                        "repeat_offset_m": self._repeat_offset_m.tolist()}
             if cmd == "fault":
                 kind = request.get("kind")
                 if kind not in FAULT_KINDS:
@@ -225,8 +298,11 @@ class FakeUrController:
                     return {"ok": False, "error": "the arm is moving"}
                 self.arm.q = np.array(request["q"], dtype=float)
                 self.arm.set_tcp(self.arm.tcp_offset)
+                self._body = self.tool_body()  # put there, not moved: no edges
+                self._blocked = {id(b): beam_blocked(b, self._body, self._tool_radius_m) for b in self.truth.beams}
+                self.sensors.reset({b.channel: self._blocked[id(b)] for b in self.truth.beams})
                 return {"ok": True}
-        return {"ok": False, "error": f"unknown command {cmd!r} (state, fault, add_model, set_q)"}
+        return {"ok": False, "error": f"unknown command {cmd!r} (state, tool, edges, fault, add_model, set_q)"}
 
     def _fire_faults(self) -> None:
         for fault in list(self.faults):
@@ -332,49 +408,3 @@ class FakeUrController:
 def _first(pattern: str, text: str) -> str | None:
     match = re.search(pattern, text)
     return match.group(1) if match else None
-
-
-def _exit_with_parent(parent_pid: int, controller: FakeUrController) -> None:
-    while os.getppid() == parent_pid:
-        time.sleep(0.5)
-    controller.close()
-
-
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m cellcal.sims.fake_ur", description=__doc__.split("\n")[0])
-    parser.add_argument("--host", default="127.0.0.1", help="loopback address to serve on (127.x.y.z)")
-    parser.add_argument("--robot", default="ur10e", help="robot model file or shipped name (ur5e, ur10e)")
-    parser.add_argument("--q0", help="initial joints, rad, comma separated")
-    parser.add_argument("--cell", help="cell models as JSON: {\"models\": [{\"kind\": \"beam\", ...}]}")
-    parser.add_argument("--plugin", action="append", default=[],
-                        help="module:factory called with the controller, e.g. to add input sources")
-    parser.add_argument("--fault", action="append", default=[], metavar="KIND[@AFTER_MOTION_S]",
-                        help=f"inject a fault at once or after the arm moved that long ({', '.join(FAULT_KINDS)})")
-    parser.add_argument("--control-port", type=int, default=CONTROL_PORT)
-    parser.add_argument("--verbose", action="store_true", help="log controller messages to stderr")
-    parser.add_argument("--parent-pid", type=int, help="exit when this process ends (no orphans after a crash)")
-    args = parser.parse_args(argv)
-    q0 = HOME_Q if args.q0 is None else [float(v) for v in args.q0.split(",")]
-    controller = FakeUrController(args.host, robot=args.robot, q0=q0, cell=json.loads(args.cell or "{}"),
-                                  control_port=args.control_port, verbose=args.verbose)
-    for plugin in args.plugin:
-        module, _, attr = plugin.partition(":")
-        getattr(importlib.import_module(module), attr)(controller)
-    for fault in args.fault:
-        kind, _, after = fault.partition("@")
-        controller.control({"cmd": "fault", "kind": kind, **({"after_motion_s": float(after)} if after else {})})
-    signal.signal(signal.SIGTERM, lambda *_: controller.close())
-    if args.parent_pid:
-        threading.Thread(target=_exit_with_parent, args=(args.parent_pid, controller), daemon=True).start()
-    controller.start()
-    print(f"READY {args.host}", flush=True)
-    try:
-        controller.wait()
-    except KeyboardInterrupt:
-        pass
-    controller.close()
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

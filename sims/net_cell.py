@@ -7,13 +7,20 @@ process, :class:`~cellcal.sims.fake_ur_process.FakeUrProcess`: ur_rtde's constru
 hold the GIL), and in threads here the Modbus IO module (operator panel and trigger
 ring) and the tracker server.
 
+The fake controller obeys the cell file's hidden truth (``sim_truth``: the arm as
+built, the real tool, the beams and fixtures where they really are, the sensors'
+latency and jitter), built in its process from the same file with the same function as
+the in-process cell and the run's score, so both cells are scored against one truth.
+
 The light barrier is wired twice, as on a real cell that feeds one sensor to both the
-controller and an IO module: the fake controller sees the beam on its digital input,
-and a wiring thread here reads the controller's RTDE stream (every cycle, lossless)
-and records each edge of that input in the Modbus trigger ring, stamped with the
-controller's clock. The IO module's clock is therefore the controller's, so edges from
-either source line up with the robot's samples. The tracker measures the TCP position
-of the latest controller cycle, in the robot base frame.
+controller and an IO module. The controller samples the sensor on its digital inputs
+once per 2 ms cycle (the ``ur_digital_input`` trigger reads them from RTDE). The IO
+module has its own clock and stamps each edge when the sensor switches: a wiring thread
+here asks the fake controller for every switch at its exact time (the crossing between
+cycles plus the sensor's latency and jitter, on the controller's clock) and records it
+in the Modbus trigger ring. The IO module's clock is therefore the controller's, so
+edges from either source line up with the robot's samples. The tracker measures the
+real tool tip (a target at the tip), in the robot base frame.
 
 A cell file that does not describe such a cell is refused with a CellFileError naming
 the section; a fake that cannot start (a port in use) raises SimCellError.
@@ -23,20 +30,21 @@ from __future__ import annotations
 import dataclasses
 import errno
 import socket
+import sys
+import threading
 
 import numpy as np
 
 from ..config.cells import Cell, CellFileError
-from ..drivers.interfaces import Edge, RobotSample
+from ..drivers.interfaces import Edge
 from ..drivers.modbus_panel import PanelMap
-from ..drivers.ur_rtde_state import UrStateStream
 from .fake_ur import CONTROL_PORT, DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT
-from .fake_ur_process import FakeUrProcess
+from .fake_ur_process import ControlClient, FakeUrProcess
 from .modbus_server import ModbusCellServer
 from .tracker_server import TrackerServer
 
 UR_PORTS = (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT)
-WIRING_VARIABLES = ("timestamp", "actual_TCP_pose", "actual_digital_input_bits")
+EDGE_WAIT_S = 0.2  # how long one request for new edges waits (the wiring's shutdown time)
 
 
 class SimCellError(RuntimeError):
@@ -124,9 +132,11 @@ class SimCell:
         self.fake_ur: FakeUrProcess | None = None
         self.modbus: ModbusCellServer | None = None
         self.tracker: TrackerServer | None = None
-        self._stream: UrStateStream | None = None
-        self._latest: RobotSample | None = None
-        self._beam_levels: dict[int, bool] = {}
+        self._wiring: threading.Thread | None = None
+        self._wiring_client: ControlClient | None = None
+        self._tracker_client: ControlClient | None = None
+        self._tracker_lock = threading.Lock()
+        self._stopping = threading.Event()
 
     def start(self) -> "SimCell":
         a = self.addresses
@@ -137,7 +147,7 @@ class SimCell:
                 check_free(*address)
         try:
             self.fake_ur = FakeUrProcess(a.ur_host, robot=self.cell.robot, q0=self.cell.home_q_rad,
-                                         cell={"models": [b.as_model() for b in self.cell.beams]})
+                                         cell_file=self.cell.path)
             try:
                 self.fake_ur.start()
             except RuntimeError as exc:
@@ -145,41 +155,58 @@ class SimCell:
             if a.modbus is not None:
                 self.modbus = ModbusCellServer(*a.modbus, unit_id=a.unit_id, panel_map=a.panel_map,
                                                trigger_base_register=a.trigger_base_register).start()
-            self._stream = UrStateStream(a.ur_host, device="sim-cell beam wiring", variables=WIRING_VARIABLES)
-            self._latest = self._stream.latest()
-            self._stream.add_listener(self._on_sample)
+                self._stopping.clear()
+                self._wiring_client = self.fake_ur.client()
+                self._wiring = threading.Thread(target=self._wire_edges, args=(self._wiring_client, self.modbus),
+                                                name="sim-cell beam wiring", daemon=True)
+                self._wiring.start()
             if a.tracker is not None:
+                self._tracker_client = self.fake_ur.client()
                 self.tracker = TrackerServer(self._tracker_position, host=a.tracker[0], port=a.tracker[1]).start()
         except BaseException:
             self.stop()
             raise
         return self
 
-    def _on_sample(self, sample: RobotSample) -> None:
-        """Copy each edge of a beam's controller input into the IO module's trigger ring."""
-        self._latest = sample
-        for beam in self.cell.beams:
-            level = bool(sample.digital_inputs >> beam.channel & 1)
-            previous, self._beam_levels[beam.channel] = self._beam_levels.get(beam.channel), level
-            if previous is None or level == previous or self.modbus is None:
-                continue
-            blocked = level == beam.level_when_blocked
-            self.modbus.record_edge(beam.channel, Edge.BLOCKED if blocked else Edge.CLEARED,
-                                    int(round(sample.t_s * 1e6)))
+    def _wire_edges(self, client: ControlClient, modbus: ModbusCellServer) -> None:
+        """Record every switch of the sensors in the IO module's trigger ring at its exact time."""
+        first = 0
+        try:
+            while not self._stopping.is_set():
+                reply = client.request(cmd="edges", first=first, wait_s=EDGE_WAIT_S)
+                for n, t_s, channel, edge in reply["edges"]:
+                    if n != first:
+                        print(f"cellcal sim-cell: trigger wiring lost edges {first}..{n - 1}", file=sys.stderr)
+                    modbus.record_edge(int(channel), Edge(edge), int(round(t_s * 1e6)))
+                    first = n + 1
+                first = max(first, reply["next"])
+        except (OSError, RuntimeError, ValueError):
+            if not self._stopping.is_set():  # the fake controller ended; sim-cell notices and exits
+                print("cellcal sim-cell: trigger wiring lost the fake UR controller", file=sys.stderr)
 
     def _tracker_position(self, target: str) -> np.ndarray | None:
-        if target not in self.addresses.tracker_targets or self._latest is None:
+        """The real tool tip, where a target sits (None for a target the cell does not have)."""
+        if target not in self.addresses.tracker_targets or self._tracker_client is None:
             return None
-        return np.asarray(self._latest.tcp_pose[:3], dtype=float)
+        with self._tracker_lock:
+            return np.asarray(self._tracker_client.request(cmd="tool")["tool_tip_m"], dtype=float)
 
     def stop(self) -> None:
         """Stop everything that was started, in reverse order; idempotent."""
+        self._stopping.set()
         if self.tracker is not None:
             self.tracker.stop()
             self.tracker = None
-        if self._stream is not None:
-            self._stream.close()
-            self._stream = None
+        if self._tracker_client is not None:
+            self._tracker_client.close()
+            self._tracker_client = None
+        if self._wiring is not None:
+            self._wiring_client.interrupt()  # ends a request the wiring waits on
+            self._wiring.join(EDGE_WAIT_S + 5.0)
+            self._wiring = None
+        if self._wiring_client is not None:
+            self._wiring_client.close()
+            self._wiring_client = None
         if self.modbus is not None:
             self.modbus.stop()
             self.modbus = None

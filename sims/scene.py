@@ -12,13 +12,23 @@ An input source is any callable ``(tcp_pose_m, t_s) -> {channel: level}``, so ro
 and tests can plug in their own (a rotating beam, a trigger with latency) through
 ``--plugin module:factory`` or by adding objects to ``Scene.input_sources``.
 Bit numbering is the controller's: standard inputs 0-7, configurable 8-15, tool 16-17.
+
+A sensor judged on the real tool (the cell's truth, :mod:`.truth`) switches late: its
+edges are timed where the tool crosses the beam, plus the sensor's latency and jitter.
+``SwitchingSensors`` holds such edges until their time, so an input sampled once per
+controller cycle sees them then, and logs each with its exact time, as an IO module
+with its own clock stamps it.
 """
 from __future__ import annotations
 
+import dataclasses
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable, Protocol
 
 import numpy as np
+
+from ..drivers.interfaces import Edge, TriggerEvent
 
 
 class InputSource(Protocol):
@@ -139,3 +149,41 @@ def scene_from_spec(spec: dict | None) -> Scene:
     for model in (spec or {}).get("models", []):
         scene.add(model)
     return scene
+
+
+class SwitchingSensors:
+    """Sensor outputs that switch at given times (edges with the sensor's latency), read by
+    inputs that sample them, and the log of every switch with its exact time."""
+
+    def __init__(self, blocked: dict[int, bool], log_size: int = 1024):
+        self.blocked = dict(blocked)  # channel -> the sensor's output says blocked
+        self.log: deque[tuple[int, TriggerEvent]] = deque(maxlen=log_size)  # (event number, edge)
+        self.count = 0  # edges switched since the start
+        self._pending: list[TriggerEvent] = []
+        self._last_t_s = -np.inf
+
+    def schedule(self, edges) -> None:
+        self._pending.extend(edges)
+
+    def advance(self, t_s: float) -> None:
+        """Switch every output whose edge is due by `t_s`, in time order. A device clock does
+        not run backwards: an edge whose jitter would put it before one already switched (only
+        when the jitter exceeds the latency) is stamped at that one's time."""
+        due = sorted((e for e in self._pending if e.t_s <= t_s), key=lambda e: e.t_s)
+        if not due:
+            return
+        self._pending = [e for e in self._pending if e.t_s > t_s]
+        for edge in due:
+            self.blocked[edge.channel] = edge.edge is Edge.BLOCKED
+            self._last_t_s = max(edge.t_s, self._last_t_s)
+            self.log.append((self.count, dataclasses.replace(edge, t_s=self._last_t_s)))
+            self.count += 1
+
+    def reset(self, blocked: dict[int, bool]) -> None:
+        """Outputs as they are now, nothing pending (the arm was put somewhere, not moved)."""
+        self.blocked = dict(blocked)
+        self._pending = []
+
+    def since(self, first: int) -> list[tuple[int, TriggerEvent]]:
+        """Logged edges numbered `first` or later (those still kept)."""
+        return [(n, e) for n, e in self.log if n >= first]

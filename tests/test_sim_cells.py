@@ -1,10 +1,11 @@
 """Cell files, the in-process simulated cell and the same cell over loopback (sim-net).
 
 A light-barrier sweep is the measurement every TCP routine rests on: the trigger's edge
-times, matched against the robot's sample stream, must put the TCP on the beam. The
-in-process cell times edges between controller cycles (with the sensor's latency and
-jitter); the networked cell sees them at the first controller cycle with the new level,
-so both must agree to within one cycle's travel.
+times, matched against the robot's sample stream, must put the real tool on the real
+beam. Both cells obey one hidden truth built from the cell file: edges are timed where
+the real tool crosses the real beam, plus the sensor's latency and jitter, on the
+controller's clock (the in-process trigger and the networked cell's Modbus ring); the
+controller's own digital inputs see the same sensor once per 2 ms cycle.
 """
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.optimize import brentq
 
 from cellcal.daemon.cells import CellFileError, load_cell, open_drivers, shipped_cells
 from cellcal.daemon.cli import main as cli_main
@@ -26,7 +28,6 @@ from cellcal.drivers.interfaces import DeviceError, Edge, RobotState
 from cellcal.sims.truth import segment_line_distance
 
 SPEEDS_M_S = (0.02, 0.04, 0.1)
-SWEEP_HALF_M = 0.015  # the sweep runs this far either side of the beam
 _HOSTS = (f"127.9.{os.getpid() % 250 + 1}.{n}" for n in itertools.cycle(range(1, 255)))
 
 
@@ -42,54 +43,28 @@ def write_cell(tmp_path: Path, text: str, name: str = "cell.yaml") -> Path:
     return path
 
 
-def without_sections(text: str, *names: str) -> str:
-    """A cell file's text without the named top-level sections."""
-    kept, skipping = [], False
-    for line in text.splitlines(keepends=True):
-        if line[:1].strip() and not line.startswith("#"):
-            skipping = line.split(":")[0] in names
-        if not skipping:
-            kept.append(line)
-    return "".join(kept)
-
-
 def net_cell_file(tmp_path: Path, host: str) -> Path:
     """The shipped sim-net cell moved to another loopback address."""
     return write_cell(tmp_path, shipped_text("sim-net").replace("127.0.0.1", host), "sim-net.yaml")
 
 
-def sweep_through_beam(robot, trigger, beam, speeds=SPEEDS_M_S, timeout_s: float = 5.0):
-    """Down through `beam` (a BeamSpec) with the controller's TCP, at each speed, from the
-    same start; the edges of each sweep on the beam's channel."""
-    home = robot.actual_tcp_pose()
-    z_beam = beam.point_m[2]
-    start = np.concatenate([[beam.point_m[0], beam.point_m[1], z_beam + SWEEP_HALF_M], home[3:]])
-    end = np.concatenate([[beam.point_m[0], beam.point_m[1], z_beam - SWEEP_HALF_M], home[3:]])
-    sweeps = []
-    for speed in speeds:
-        robot.move_l(start, 0.25, 1.0)
-        trigger.events()  # edges of the way back up are not this sweep's
-        robot.move_l(end, speed, 1.0)
-        events, deadline = [], time.monotonic() + timeout_s
-        while len(events) < 2 and time.monotonic() < deadline:
-            events += [e for e in trigger.events(timeout_s=0.5) if e.channel == beam.channel]
-        assert [e.edge for e in events] == [Edge.BLOCKED, Edge.CLEARED], f"sweep at {speed} m/s: {events}"
-        sweeps.append(events)
-    return sweeps
-
-
-def sweep_tool_across_beams(robot, trigger, cell, speed: float):
+def sweep_tool_across_beams(robot, trigger, cell, speed: float, timeout_s: float = 5.0):
     """The tool, set to its drawing, swept along x across the beams' crossing with its tip
-    5 mm below the beam plane: each beam is blocked and cleared once by the tool's body."""
+    5 mm below the beam plane: each beam is blocked and cleared once by the tool's body.
+    Returns the edges and the robot's time when the sweep began."""
     robot.set_tcp(cell.tool.tcp_pose)
     crossing = cell.beams[0].point_m
     home = robot.actual_tcp_pose()
     start = np.concatenate([crossing + [-0.02, 0.0, -0.005], home[3:]])
     end = np.concatenate([crossing + [0.02, 0.0, -0.005], home[3:]])
     robot.move_l(start, 0.25, 1.0)
+    t_start = robot.samples()[-1].t_s
     trigger.events()
     robot.move_l(end, speed, 1.0)
-    return trigger.events(timeout_s=0.5)
+    events, deadline = [], time.monotonic() + timeout_s  # a trigger on its own connection may lag
+    while len(events) < 4 and time.monotonic() < deadline:
+        events += trigger.events(timeout_s=0.5)
+    return sorted(events, key=lambda e: e.t_s), t_start
 
 
 def tcp_at(robot, t_s: float) -> np.ndarray:
@@ -99,13 +74,6 @@ def tcp_at(robot, t_s: float) -> np.ndarray:
     xyz = np.array([s.tcp_pose[:3] for s in samples])
     assert t[0] <= t_s <= t[-1], "the edge lies outside the buffered samples"
     return np.array([np.interp(t_s, t, xyz[:, k]) for k in range(3)])
-
-
-def distance_to_beam(beam: dict, position: np.ndarray) -> float:
-    d = np.asarray(beam["direction"], dtype=float)
-    d /= np.linalg.norm(d)
-    off = position - np.asarray(beam["point_m"])
-    return float(np.linalg.norm(off - (off @ d) * d))
 
 
 # -- cell files ------------------------------------------------------------------------
@@ -177,7 +145,7 @@ def test_edges_put_the_real_tool_on_the_real_beams(sim_cell, speed):
     cell, drivers = sim_cell
     world, truth = drivers.world, drivers.world.truth
     t0 = time.perf_counter()
-    events = sweep_tool_across_beams(drivers.robot, drivers.trigger, cell, speed)
+    events, _ = sweep_tool_across_beams(drivers.robot, drivers.trigger, cell, speed)
     assert time.perf_counter() - t0 < 5.0  # simulated time: no real waiting
     assert sorted((e.channel, e.edge.value) for e in events) == [
         (0, "blocked"), (0, "cleared"), (1, "blocked"), (1, "cleared")], events
@@ -245,24 +213,162 @@ def test_sim_panel_and_tracker(sim_cell):
 
 # -- the same cell over loopback -------------------------------------------------------
 
-def test_sim_net_sweep_matches_the_in_process_cell(tmp_path):
+def true_crossings(body_at, samples, beam, tool_radius_m: float) -> list[tuple[float, Edge]]:
+    """When the real tool body really started and stopped blocking the real `beam`: the gap
+    between the capsule and the beam changes sign, found between samples by root finding on
+    the tool's straight step (independently of the simulation's own edge timing)."""
+    d = beam.direction / np.linalg.norm(beam.direction)
+    bodies = [body_at(s.q_rad) for s in samples]
+
+    def gap(body) -> float:
+        return segment_line_distance(body[0], body[1], beam.point_m, d) - beam.radius_m - tool_radius_m
+
+    gaps = [gap(body) for body in bodies]
+    found = []
+    for i in range(1, len(samples)):
+        if (gaps[i - 1] < 0) == (gaps[i] < 0):
+            continue
+        old, new = bodies[i - 1], bodies[i]
+        u = brentq(lambda u: gap((old[0] + u * (new[0] - old[0]), old[1] + u * (new[1] - old[1]))),
+                   0.0, 1.0, xtol=1e-12)
+        t = samples[i - 1].t_s + u * (samples[i].t_s - samples[i - 1].t_s)
+        found.append((t, Edge.BLOCKED if gaps[i] < 0 else Edge.CLEARED))
+    return found
+
+
+def edge_delays(events, samples, body_at, truth) -> list[float]:
+    """Each trigger event's time less the time the real tool really crossed the real beam."""
+    beams = {b.channel: b for b in truth.beams}
+    crossings = {c: true_crossings(body_at, samples, beams[c], truth.tool.radius_m) for c in beams}
+    assert sorted((e.channel, e.edge.value) for e in events) == sorted(
+        (c, edge.value) for c, found in crossings.items() for _, edge in found), \
+        f"edges {events} against crossings {crossings} in {len(samples)} samples from " \
+        f"{samples[0].t_s if samples else None} s"
+    delays, taken = [], {c: 0 for c in beams}
+    for event in events:
+        t_true, edge = crossings[event.channel][taken[event.channel]]
+        taken[event.channel] += 1
+        assert edge is event.edge and event.device_time
+        delays.append(event.t_s - t_true)
+    return delays
+
+
+def sweeps_with_delays(drivers, cell, body_at, truth, speeds=SPEEDS_M_S) -> list[tuple]:
+    """Per speed: the sweep's edges, their delays against the truth and the controller's TCP at
+    each edge less the sensor's latency. `body_at(q, drivers)`: the real tool body after the sweep."""
+    out = []
+    for speed in speeds:
+        events, t_start = sweep_tool_across_beams(drivers.robot, drivers.trigger, cell, speed)
+        samples = drivers.robot.samples(since_t_s=t_start)
+        delays = edge_delays(events, samples, body_at(drivers), truth)
+        positions = [tcp_at(drivers.robot, e.t_s - truth.trigger_latency_s) for e in events]
+        out.append((speed, events, delays, positions, body_at(drivers)(samples[-1].q_rad)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def net_cell():
+    """The sim-net fakes on a loopback address of their own, shared by the tests below."""
     from cellcal.sims.net_cell import SimCell
 
-    # the in-process cell with a point probe at the controller's TCP and the beams as drawn,
-    # as the networked fakes have them
-    text = without_sections(shipped_text("sim"), "tool", "sim_truth") + "sim_truth: {fixture_error_mm: 0.0}\n"
-    in_process = load_cell(write_cell(tmp_path, text))
-    with open_drivers(in_process) as drivers:
-        local = [[tcp_at(drivers.robot, e.t_s) for e in events]
-                 for events in sweep_through_beam(drivers.robot, drivers.trigger, in_process.beams[0])]
-    net = load_cell("sim-net").on_host(next(_HOSTS))
-    with SimCell(net):
-        with open_drivers(net) as drivers:
-            remote = [[tcp_at(drivers.robot, e.t_s) for e in events]
-                      for events in sweep_through_beam(drivers.robot, drivers.trigger, net.beams[0])]
-    for speed, a, b in zip(SPEEDS_M_S, local, remote):
-        for p_local, p_net in zip(a, b):
-            assert np.linalg.norm(p_local - p_net) < 0.0005, (speed, p_local, p_net)
+    cell = load_cell("sim-net").on_host(next(_HOSTS))
+    with SimCell(cell) as sim:
+        yield cell, sim
+
+
+def net_tool_body(sim, truth):
+    """The fake controller's real tool body, from the truth and its current motion's repeatability offset."""
+    from cellcal.config.robot_files import load_robot
+    from cellcal.sims.arm_motion import ArmKinematics
+    from cellcal.sims.truth import real_tool_body
+
+    model = load_robot("ur10e")
+    physics, drawing = ArmKinematics(model, truth.arm_params), ArmKinematics(model)
+
+    def body_at(drivers):
+        offset = np.array(sim.fake_ur.request(cmd="tool")["repeat_offset_m"])
+        tcp = drivers.robot.tcp()
+        return lambda q: real_tool_body(truth, physics, drawing, q, tcp, offset)
+    return body_at
+
+
+def test_sim_net_sweep_matches_the_in_process_cell(net_cell):
+    """The same sweeps of the real tool across the real beams in both cells, scored against the
+    one truth both are built from (the same cell sections, the same seed): every edge, less the
+    sensor's true latency, is where the real tool crossed the real beam, to within the jitter
+    (+-0.5 ms), in both cells. The Modbus ring is stamped by the IO module's own clock at the
+    switching time, so the controller's 2 ms cycle does not enter; the jitter draws differ
+    between the cells, so their edge positions agree to within two jitters of travel plus the
+    difference of the two sweeps' repeatability offsets (sqrt(2) for the beams' 45 deg to the sweep)."""
+    from cellcal.config.robot_files import load_robot
+    from cellcal.sims.truth import truth_of_cell
+
+    net, sim = net_cell
+    local_cell = load_cell("sim")
+    with open_drivers(local_cell) as drivers:
+        truth = drivers.world.truth
+        local = sweeps_with_delays(drivers, local_cell, lambda d: d.world.tool_body, truth)
+    net_truth = truth_of_cell(net, load_robot(net.robot))
+    assert np.array_equal(net_truth.arm_params, truth.arm_params) and net_truth.report() == truth.report()
+    assert all(np.array_equal(a.point_m, b.point_m) for a, b in zip(net_truth.beams, truth.beams))
+    with open_drivers(net) as drivers:
+        remote = sweeps_with_delays(drivers, net, net_tool_body(sim, truth), truth)
+    latency, jitter = truth.trigger_latency_s, truth.trigger_jitter_s
+    for (speed, ev_a, delays_a, pos_a, body_a), (_, ev_b, delays_b, pos_b, body_b) in zip(local, remote):
+        assert [(e.channel, e.edge) for e in ev_a] == [(e.channel, e.edge) for e in ev_b]
+        for delay in delays_a + delays_b:  # 1 us: the ring's clock resolution
+            assert abs(delay - latency) <= jitter + 1e-6, (speed, delays_a, delays_b)
+        offsets_differ_m = np.linalg.norm(body_a[0] - body_b[0])  # the same end joints in both cells
+        for p_a, p_b in zip(pos_a, pos_b):
+            assert np.linalg.norm(p_a - p_b) <= speed * 2 * jitter + np.sqrt(2) * offsets_differ_m + 5e-6, speed
+    # the jitter is really there and really drawn afresh, not a constant offset
+    spread = np.ptp([d for row in remote for d in row[2]])
+    assert spread > jitter / 2
+
+
+def test_sim_net_tracker_measures_the_real_tool_tip(net_cell):
+    from cellcal.config.robot_files import load_robot
+    from cellcal.sims.arm_motion import ArmKinematics
+    from cellcal.sims.truth import real_tool_tip, truth_of_cell
+
+    net, sim = net_cell
+    truth = truth_of_cell(net, load_robot(net.robot))
+    with open_drivers(net) as drivers:
+        drivers.robot.set_tcp(net.tool.tcp_pose)  # the controller's TCP: the tool's drawing
+        q = drivers.robot.actual_q()
+        body = net_tool_body(sim, truth)(drivers)(q)
+        tip = real_tool_tip(truth, ArmKinematics(load_robot(net.robot), truth.arm_params), q, body)
+        measured = drivers.tracker.measure("smr1")
+        assert np.linalg.norm(measured.position_m - tip) < 10 * measured.quality
+        # the drawing is not the truth: the real tip is about 1 mm (the tool's error) off the TCP
+        assert np.linalg.norm(measured.position_m - drivers.robot.actual_tcp_pose()[:3]) > 0.5e-3
+
+
+def test_robot_digital_input_sees_the_sensor_latency_and_the_2_ms_cycle(net_cell, tmp_path):
+    """The same sensor on the controller's digital inputs: sampled once per 2 ms cycle, so each
+    edge comes at the first cycle after the sensor switched, late by the sensor's latency +-
+    jitter and up to one more cycle; along the sweep, within speed * (latency + 2 ms + jitter)."""
+    from cellcal.config.robot_files import load_robot
+    from cellcal.sims.truth import truth_of_cell
+
+    net, sim = net_cell
+    host = net.drivers["robot"].options["host"]
+    text = shipped_text("sim-net").replace("127.0.0.1", host)
+    line = next(t for t in text.splitlines() if t.startswith("  trigger:"))
+    variant = load_cell(write_cell(tmp_path, text.replace(
+        line, f"  trigger: {{driver: ur_digital_input, host: {host}, channels: [0, 1]}}")))
+    truth = truth_of_cell(variant, load_robot(variant.robot))
+    latency, jitter, cycle = truth.trigger_latency_s, truth.trigger_jitter_s, 0.002
+    with open_drivers(variant) as drivers:
+        rows = sweeps_with_delays(drivers, variant, net_tool_body(sim, truth), truth)
+        for speed, events, delays, _, _ in rows:
+            for event, delay in zip(events, delays):
+                assert abs(event.t_s / cycle - round(event.t_s / cycle)) < 1e-6  # a controller cycle
+                assert latency - jitter - 1e-6 <= delay <= latency + jitter + cycle + 1e-6, (speed, delays)
+                late_m = np.linalg.norm(tcp_at(drivers.robot, event.t_s) - tcp_at(drivers.robot, event.t_s - delay))
+                assert late_m <= speed * (latency + cycle + jitter) + 1e-6
+    # the quantisation shows: some edges come more than the jitter after the latency
+    assert max(d for row in rows for d in row[2]) > latency + jitter
 
 
 def test_sim_cell_command_prints_one_line_and_stops_on_sigterm(tmp_path):

@@ -287,3 +287,36 @@ def test_control_script_on_the_upper_register_range_is_served(fake):
         control.stopScript()
         control.disconnect()
         receive.disconnect()
+
+
+def test_a_fake_given_a_cell_file_touches_with_the_real_tool_on_the_real_stylus(start_fake, connect, tmp_path):
+    """With the cell's truth (repeatability 0 here, so the arm goes exactly where the controller
+    puts it), moveUntilContact ends where the real tool, on the arm as built, touches the real
+    stylus: the controller backs off to the last cycle before the contact, so the real gap is
+    between 0 and one cycle's travel; the drawing (tool and stylus as the file says) would put
+    the contact elsewhere."""
+    from cellcal.config.cells import read_cell, shipped_cells
+    from cellcal.sims.arm_motion import ArmKinematics
+    from cellcal.sims.truth import segment_point_distance, truth_of_cell
+
+    text = shipped_cells()["sim-net"].read_text().replace("repeatability_mm: 0.03", "repeatability_mm: 0.0")
+    assert "repeatability_mm: 0.0\n" in text
+    path = tmp_path / "cell.yaml"
+    path.write_text(text)
+    cell = read_cell(path)
+    truth = truth_of_cell(cell, load_robot(cell.robot))
+    fake = start_fake(cell_file=str(path))
+    robot = connect(UrRtdeRobot, fake.host)
+    robot.set_tcp(cell.tool.tcp_pose)
+    stylus, speed = cell.stylus["centre_m"], 0.01
+    robot.move_l(np.concatenate([stylus + [0.0, 0.0, 0.01], robot.actual_tcp_pose()[3:]]), 0.25, 1.0)
+    result = robot.move_until_contact([0.0, 0.0, -speed], timeout_s=5.0)
+    assert result.contact
+    physics = ArmKinematics(load_robot(cell.robot), truth.arm_params)
+    front, back = truth.tool.segment(*physics.flange(result.q_rad))
+    gap = segment_point_distance(front, back, truth.stylus.centre_m) - truth.stylus.radius_m - truth.tool.radius_m
+    assert -1e-9 <= gap <= speed * 0.002 + 1e-6, gap
+    assert np.allclose(fake.request(cmd="tool")["tool_body_m"][0], front, atol=1e-9)
+    drawn_front = robot.actual_tcp_pose()[:3] - np.array([0.0, 0.0, -1.0]) * cell.tool.radius_m
+    drawn_gap = np.linalg.norm(drawn_front - stylus) - cell.stylus["radius_m"] - cell.tool.radius_m
+    assert abs(drawn_gap - gap) > 0.1e-3, (drawn_gap, gap)
