@@ -28,37 +28,49 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return np.divide(v, n, out=np.zeros_like(v), where=n > 1e-12)
 
 
-def _regressor(model, obs: Observations, f: Finding):
-    """(x values, x label, unit direction per row) for the named effect."""
+MAX_POINTS = 4000  # a scatter of more points draws no more information, only slower and larger files
+
+
+def plotted_rows(n: int) -> np.ndarray:
+    """The rows a scatter plot draws: all of them, or an even random sample of MAX_POINTS."""
+    if n <= MAX_POINTS:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(0).choice(n, MAX_POINTS, replace=False))
+
+
+def _regressor(model, obs: Observations, f: Finding, rows: np.ndarray):
+    """(x values, x label, unit direction per row) for the named effect, at the given rows."""
     named = f.extended
     term = named.terms[0]
     layout = Layout(model, obs.target_names)
-    _, jx, jq = jacobian(layout, f.baseline.x, obs, with_joints=True)
+    sub = obs.subset(rows)
+    effect_mm = named.effect_mm[rows]
+    _, jx, jq = jacobian(layout, f.baseline.x, sub, with_joints=True)
     if term.param_basis:  # trees: many joints sag together; show the sag along gravity
         b = f.baseline.x[layout.base]
         down = rotvec_to_matrix(b[3:]) @ model.gravity
-        down = np.broadcast_to(down / np.linalg.norm(down), named.effect_mm.shape)
-        return np.einsum("ni,ni->n", named.effect_mm, down), \
+        down = np.broadcast_to(down / np.linalg.norm(down), effect_mm.shape)
+        return np.einsum("ni,ni->n", effect_mm, down), \
             "sag along gravity predicted by the elastic model (mm)", down
     joint = term.where.get("joint", (term.where.get("joints") or [None])[0])
     if term.cause == "thermal_drift":
-        x = term.extra["dT"]
+        x = term.extra["dT"][rows]
         label = "temperature change (K)" if term.where.get("driver") == "temp_c" else "warm-up fraction"
-        return x, label, _unit(term.cart_basis[:, :, 0])
+        return x, label, _unit(term.cart_basis[rows, :, 0])
     if term.cause == "trigger_latency":
-        speed = np.einsum("nij,nj->ni", jq, -term.joint_basis[:, :, 0])
+        speed = np.einsum("nij,nj->ni", jq, -term.joint_basis[rows].delta(np.ones(1)))
         return np.linalg.norm(speed, axis=1), "TCP speed at the trigger (mm/s)", _unit(speed)
     if term.cause == "parallel_axis_tilt":
-        return np.rad2deg(obs.q[:, joint]), f"joint {joint + 1} angle (deg)", _unit(named.effect_mm)
+        return np.rad2deg(sub.q[:, joint]), f"joint {joint + 1} angle (deg)", _unit(effect_mm)
     direction = _unit(jq[:, :, joint - 1])
     if term.cause == "joint_compliance":
-        return np.rad2deg(named.joint_delta[:, joint - 1]), \
+        return np.rad2deg(named.joint_delta[rows, joint - 1]), \
             f"fitted gravity deflection of joint {joint} (deg, follows its gravity torque)", direction
     if term.cause == "backlash":
-        s = np.sign(term.joint_basis[:, joint - 1, 0])
+        s = np.sign(term.joint_basis[rows].delta(np.ones(1))[:, joint - 1])
         jitter = np.random.default_rng(0).uniform(-0.15, 0.15, len(s))
         return s + jitter, f"approach direction of joint {joint} (-1 / +1)", direction
-    return np.rad2deg(obs.q[:, joint - 1]), f"joint {joint} angle (deg)", direction
+    return np.rad2deg(sub.q[:, joint - 1]), f"joint {joint} angle (deg)", direction
 
 
 REPORT_FILES = ("residual_vs_regressor.png", "heldout_histogram.png", "candidates.png", "report.md", "report.html")
@@ -84,16 +96,18 @@ def write_report(folder, model, obs: Observations, f: Finding, text: str) -> Pat
     images = []
 
     if f.cause != "none":
-        x, xlabel, u = _regressor(model, obs, f)
-        before = -np.einsum("ni,ni->n", f.baseline.residuals, u)  # measured - model, along the effect
-        after = -np.einsum("ni,ni->n", f.extended.residuals, u)
+        rows = plotted_rows(len(obs))
+        x, xlabel, u = _regressor(model, obs, f, rows)
+        before = -np.einsum("ni,ni->n", f.baseline.residuals[rows], u)  # measured - model, along the effect
+        after = -np.einsum("ni,ni->n", f.extended.residuals[rows], u)
         fig, ax = plt.subplots(figsize=(7.5, 4.5))
         ax.scatter(x, before, s=10, alpha=0.6, label="geometric model only")
         ax.scatter(x, after, s=10, alpha=0.6, label=f"with {f.cause}")
         ax.axhline(0.0, color="0.4", lw=0.8)
         ax.set_xlabel(xlabel)
         ax.set_ylabel("residual along the effect (mm)")
-        ax.set_title(f"{f.extended.label}: residual against its regressor")
+        sampled = f" ({len(rows)} of {len(obs)} measurements drawn)" if len(rows) < len(obs) else ""
+        ax.set_title(f"{f.extended.label}: residual against its regressor{sampled}", fontsize=10)
         ax.legend()
         fig.tight_layout()
         fig.savefig(out / "residual_vs_regressor.png", dpi=110)

@@ -83,73 +83,141 @@ class MeasurementTable:
 
 
 def read_measurements(path, n_joints: int) -> MeasurementTable:
-    """Read and validate a measurement file for a robot model with ``n_joints`` joints."""
+    """Read and validate a measurement file for a robot model with ``n_joints`` joints.
+
+    Lean on large files: the text is split into lines once, and the values are parsed a
+    block of rows at a time into one float array per column (no Python object per cell).
+    Every problem is still reported as the first one in the order of the checks (a column's
+    values are checked in column order, each column over all rows), naming line and column.
+    """
     if int(n_joints) < 1:
         raise ValueError(f"n_joints must be >= 1, got {n_joints}")
     name = os.fspath(path)
-    records = _records(name)
-    if not records:
+    lines, records, quoted = _records(name)
+    if not len(records):
         raise DatasetError(f"{name}: empty file: no header line (only comments or blank lines)")
-    header_line, header = records[0]
-    header = [h.strip() for h in header]
-    where = f"{name}:{header_line}"
+    header = [h.strip() for h in _fields(lines, records[0], quoted)]
+    where = f"{name}:{records[0] + 1}"
     cols, joints, unit = _check_header(where, header, int(n_joints))
     rows = records[1:]
-    if not rows:
+    if not len(rows):
         raise DatasetError(f"{where}: header but no measurement rows")
+    for i in rows:
+        count = len(quoted[i]) if i in quoted else lines[i].count(",") + 1
+        if count != len(header):
+            raise DatasetError(f"{name}:{i + 1}: row has {count} fields, header has {len(header)}")
+    lines_1 = rows + 1  # physical line of each row, 1-based
 
-    for lineno, fields_ in rows:
-        if len(fields_) != len(header):
-            raise DatasetError(f"{name}:{lineno}: row has {len(fields_)} fields, header has {len(header)}")
-    lines = np.array([ln for ln, _ in rows], dtype=int)
+    numeric = [*joints, *XYZ, *(c for c in SCALARS if c in cols), *(QUAT if "qw" in cols else ())]
+    text_cols = [c for c in cols if c not in numeric and c not in joints]
+    values = {c: np.empty(len(rows)) for c in numeric}
+    texts: dict[str, list[str]] = {c: [] for c in text_cols}
+    first_bad: dict[str, tuple[int, str]] = {}  # column -> (row, message) of its first unreadable value
+    for start in range(0, len(rows), _BLOCK_ROWS):
+        block = rows[start: start + _BLOCK_ROWS]
+        split = [_fields(lines, i, quoted) for i in block]
+        for c in numeric:
+            if c in first_bad:
+                continue
+            cells = [f[cols[c]] for f in split]
+            parsed, bad = _parse_block(cells)
+            if bad is not None:
+                text = cells[bad]
+                first_bad[c] = (start + bad, f"{name}:{block[bad] + 1}: column {c!r}: {text!r} is "
+                                             f"{_what_is_wrong(text)}")
+            else:
+                values[c][start: start + len(block)] = parsed
+        for c in text_cols:
+            texts[c].extend(f[cols[c]] for f in split)
 
-    def at(column):
-        return [(f"{name}:{ln}", column, r[cols[column]]) for ln, r in rows]
+    def column(c, limit=None, unit_=None, why=None):
+        if c in first_bad:
+            raise DatasetError(first_bad[c][1])
+        if limit is not None:
+            over = np.flatnonzero(np.abs(values[c]) > limit)
+            if over.size:
+                raise DatasetError(f"{name}:{lines_1[over[0]]}: column {c!r}: {_fields(lines, rows[over[0]], quoted)[cols[c]].strip()} "
+                                   f"{unit_} is {why} (|value| must be at most {limit:g})")
+        return values[c]
 
-    q = np.column_stack([_bounded(_numbers(at(c)), at(c), MAX_JOINT[unit], unit, "no joint turns that far")
-                         for c in joints])
-    xyz = np.column_stack([_bounded(_numbers(at(c)), at(c), MAX_POSITION_MM, "mm",
-                                    "not a position a measuring instrument gives (over 100 m away)")
-                           for c in XYZ])
-    scalars = {c: _numbers(at(c)) if c in cols else None for c in SCALARS}
+    q = np.column_stack([column(c, MAX_JOINT[unit], unit, "no joint turns that far") for c in joints])
+    xyz = np.column_stack([column(c, MAX_POSITION_MM, "mm",
+                                  "not a position a measuring instrument gives (over 100 m away)") for c in XYZ])
+    scalars = {c: column(c) if c in cols else None for c in SCALARS}
 
     quat = None
     if "qw" in cols:
-        quat = np.column_stack([_numbers(at(c)) for c in QUAT])
+        quat = np.column_stack([column(c) for c in QUAT])
         norm = np.linalg.norm(quat, axis=1)
         bad = np.flatnonzero(norm < 1e-9)
         if bad.size:
-            raise DatasetError(f"{name}:{lines[bad[0]]}: columns 'qw','qx','qy','qz': quaternion has zero norm")
+            raise DatasetError(f"{name}:{lines_1[bad[0]]}: columns 'qw','qx','qy','qz': quaternion has zero norm")
         quat = quat / norm[:, None]
 
     target_names, target = (DEFAULT_TARGET,), np.zeros(len(rows), dtype=int)
     if "target" in cols:
-        ids = [v.strip() for v in (r[cols["target"]] for _, r in rows)]
-        for ln, v in zip(lines, ids):
-            if not v:
-                raise DatasetError(f"{name}:{ln}: column 'target': empty target id")
+        ids = [v.strip() for v in texts.pop("target")]
+        empty = next((k for k, v in enumerate(ids) if not v), None)
+        if empty is not None:
+            raise DatasetError(f"{name}:{lines_1[empty]}: column 'target': empty target id")
         target_names = tuple(dict.fromkeys(ids))
         index = {t: i for i, t in enumerate(target_names)}
-        target = np.array([index[v] for v in ids], dtype=int)
+        target = np.fromiter((index[v] for v in ids), dtype=int, count=len(ids))
 
-    split = None
+    split_col = None
     if "split" in cols:
-        values = [r[cols["split"]].strip() for _, r in rows]
-        for ln, v in zip(lines, values):
-            if v not in SPLITS:
-                raise DatasetError(f"{name}:{ln}: column 'split': {v!r} is not 'cal' or 'val'")
-        split = np.array(values, dtype=str)
+        given = [v.strip() for v in texts.pop("split")]
+        wrong = next((k for k, v in enumerate(given) if v not in SPLITS), None)
+        if wrong is not None:
+            raise DatasetError(f"{name}:{lines_1[wrong]}: column 'split': {given[wrong]!r} is not 'cal' or 'val'")
+        split_col = np.array(given, dtype=str)
 
-    extra = {c: tuple(r[i] for _, r in rows) for c, i in cols.items() if c not in KNOWN and c not in joints}
+    extra = {c: tuple(texts[c]) for c in text_cols if c in texts}
     return MeasurementTable(
         path=name, q_rad=np.deg2rad(q) if unit == "deg" else q, xyz_mm=xyz, target=target,
-        target_names=target_names, line=lines, quat=quat, split=split, extra=extra,
+        target_names=target_names, line=lines_1.astype(int), quat=quat, split=split_col, extra=extra,
         joint_unit=unit, **scalars,
     )
 
 
-def _records(name: str) -> list[tuple[int, list[str]]]:
-    """(physical line number, fields) of every non-comment, non-blank line."""
+_BLOCK_ROWS = 8192
+# Characters of the numbers the format takes (with separators and surrounding blanks): a block
+# made only of these parses with float() exactly as _NUMBER would judge it, cell by cell.
+_ONLY_NUMBER_CHARS = re.compile(r"[^0-9eE+\-.,\s]")
+
+
+def _parse_block(cells: list[str]):
+    """Floats of one column's cells in a block, and the index of the first unreadable one (or None)."""
+    joined = ",".join(cells)
+    if not _ONLY_NUMBER_CHARS.search(joined) and joined.count(",") == len(cells) - 1:
+        try:
+            out = np.fromiter(map(float, cells), dtype=float, count=len(cells))
+        except ValueError:
+            out = None
+        if out is not None:
+            finite = np.isfinite(out)
+            return out, None if finite.all() else int(np.flatnonzero(~finite)[0])
+    for k, text in enumerate(cells):  # the slow way: find the first bad cell
+        s = text.strip()
+        if not _NUMBER.fullmatch(s) or not np.isfinite(float(s)):
+            return None, k
+    return np.fromiter(map(float, cells), dtype=float, count=len(cells)), None
+
+
+def _what_is_wrong(text: str) -> str:
+    try:
+        return "not finite" if not np.isfinite(float(text.strip())) else "not a number"
+    except ValueError:
+        return "not a number"
+
+
+def _fields(lines, i, quoted) -> list[str]:
+    return quoted[i] if i in quoted else lines[i].split(",")
+
+
+def _records(name: str):
+    """The file's lines (line ending stripped), the 0-based indices of its non-comment,
+    non-blank lines, and the fields of those lines that need a CSV parser (quotes)."""
     try:
         with open(name, "rb") as f:
             if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
@@ -163,19 +231,26 @@ def _records(name: str) -> list[tuple[int, list[str]]]:
     except UnicodeDecodeError as exc:
         lineno = raw[: exc.start].count(b"\n") + 1
         raise DatasetError(f"{name}:{lineno}: not UTF-8 text (byte 0x{raw[exc.start]:02x})") from None
+    del raw
     if "\r" in text and "\n" not in text:
         raise DatasetError(f"{name}: lines end in CR alone (old Mac line endings); save it with LF or "
                            "CRLF line endings")
+    lines = text.split("\n")
+    del text
     records = []
-    for lineno, line in enumerate(text.split("\n"), start=1):
-        line = line.rstrip("\r")
+    quoted: dict[int, list[str]] = {}
+    for i, line in enumerate(lines):
+        if line.endswith("\r"):
+            line = lines[i] = line.rstrip("\r")
         if not line.strip() or line.startswith("#"):
             continue
-        try:
-            records.append((lineno, next(csv.reader([line], strict=True))))
-        except csv.Error as exc:
-            raise DatasetError(f"{name}:{lineno}: malformed CSV: {exc}") from None
-    return records
+        records.append(i)
+        if '"' in line or "\r" in line or "\0" in line:
+            try:
+                quoted[i] = next(csv.reader([line], strict=True))
+            except csv.Error as exc:
+                raise DatasetError(f"{name}:{i + 1}: malformed CSV: {exc}") from None
+    return lines, np.array(records, dtype=int), quoted
 
 
 def _check_header(where: str, header: list[str], n_joints: int):
@@ -218,16 +293,6 @@ def _check_header(where: str, header: list[str], n_joints: int):
         raise DatasetError(f"{where}: column {missing!r} missing: partial quaternion "
                            f"(has {', '.join(present)}); give all of qw, qx, qy, qz or none")
     return cols, joints, unit
-
-
-def _bounded(values: np.ndarray, cells, limit: float, unit: str, why: str) -> np.ndarray:
-    """Refuse the first value beyond +-limit, naming its line and column."""
-    bad = np.flatnonzero(np.abs(values) > limit)
-    if bad.size:
-        where, column, text = cells[bad[0]]
-        raise DatasetError(f"{where}: column {column!r}: {text.strip()} {unit} is {why} "
-                           f"(|value| must be at most {limit:g})")
-    return values
 
 
 def check_joint_limits(table: MeasurementTable, joint_limits, model_name: str) -> None:

@@ -23,11 +23,11 @@ from typing import Sequence
 
 import numpy as np
 
-from . import crossval, identifiability
+from . import crossval, identifiability, lsq
 from .effects import CAUSES, Context, Term
 from .identify import Identification, IdentifyOptions, identify
-from .extended_model import ExtendedFit, column_scale, embed, fit_extended, param_columns, stack_param_bases
-from .measurement_model import Layout, Observations, jacobian, predict
+from .extended_model import ExtendedFit, embed, fit_extended, norm_scale, param_columns, stack_param_bases
+from .measurement_model import Layout, Observations, jacobian_chunks, predict
 
 MIN_GAIN = 0.10  # held-out mean error must drop by 10% against geometry alone
 MIN_MARGIN = 0.08  # ... and the best other cause must stay 8% above the named one
@@ -107,17 +107,18 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     say = progress or (lambda msg: None)
     folds = crossval.fold_ids(obs.q, options.folds, options.seed, NEIGHBOUR_RAD)
     geometric_fit = _geometric_baseline(model, obs, folds, options)
-    scorer = LinearisedScorer(model, geometric_fit, obs, folds, options.prior_mm)
+    terms = [term for cause in options.causes
+             for term in CAUSES[cause].terms(model, geometric_fit.layout, geometric_fit.x, obs, ctx)]
+    scorer = LinearisedScorer(model, geometric_fit, obs, folds, options.prior_mm, terms)
     say(f"geometric model: {len(obs)} measurements, residual "
         f"{np.linalg.norm(scorer.baseline_residuals_mm, axis=1).mean():.3f} mm mean")
 
-    baseline = Scored(label="geometry only", cause="none", where={}, heldout_errors=scorer.heldout_errors_mm(()),
+    # geometry alone and every candidate in one pass over the rows
+    errors = scorer.heldout_errors_many([()] + [(t,) for t in terms])
+    baseline = Scored(label="geometry only", cause="none", where={}, heldout_errors=errors[0],
                       theta=np.zeros(0), magnitude={}, x=geometric_fit.x, residuals=scorer.baseline_residuals_mm)
     say(f"held-out mean, geometry only: {baseline.heldout_mean_mm:.3f} mm")
-
-    terms = [term for cause in options.causes
-             for term in CAUSES[cause].terms(model, geometric_fit.layout, geometric_fit.x, obs, ctx)]
-    candidates = score_candidates(terms, scorer)
+    candidates = score_candidates(terms, scorer, errors[1:])
     say(f"scored {len(candidates)} candidates")
     naming = name_cause(candidates, baseline, scorer)
 
@@ -143,76 +144,105 @@ class LinearisedScorer:
     """Held-out errors of geometry plus effect terms, one Gauss-Newton step from the geometric fit.
 
     A term's parameters enter only where this data can separate them from the
-    geometry; each term's Jacobian columns are computed once and reused.
+    geometry. The Jacobian columns of the geometry and of every term are computed a
+    block of rows at a time and kept only as one R factor per fold (with the baseline
+    residuals as last column): every candidate's identifiability analysis and fold
+    steps come from these small factors, and the held-out errors of many candidates
+    take one more pass over the rows together.
     """
 
     def __init__(self, model, geometric_fit: Identification, obs: Observations, folds: np.ndarray,
-                 prior_mm: float):
+                 prior_mm: float, terms=()):
         self.model, self.geometric_fit, self.obs, self.folds, self.prior_mm = model, geometric_fit, obs, folds, prior_mm
         self.baseline_residuals_mm = geometric_fit.residuals_mm
-        _, self.jacobian_x, self.jacobian_q = jacobian(geometric_fit.layout, geometric_fit.x, obs, with_joints=True)
-        self.geometry_columns = self.jacobian_x[:, :, geometric_fit.free]
-        flat = self.geometry_columns.reshape(-1, self.n_geometry)
-        self.geometry_basis = identifiability.nuisance_basis(flat / column_scale(flat),
-                                                             np.ones(self.n_geometry, bool))
-        self._term_columns: dict[int, np.ndarray] = {}
+        self.n_geometry = int(geometric_fit.free.sum())
+        self.terms = list(terms)
+        self._at: dict[int, slice] = {}
+        col = self.n_geometry
+        for t in self.terms:
+            self._at[id(t)] = slice(col, col + t.size)
+            col += t.size
+        self.n_columns = col
+        self._structural: dict[int, np.ndarray] = {}  # columns of terms that change the rigid model, (N, 3, m)
+        self.factors = crossval.FoldFactors(folds, col)
+        for rows, j in self._columns():
+            self.factors.add(rows, j, self.baseline_residuals_mm[rows])
+        self.r = self.factors.r_all()[:col, :col]  # R factor of all columns, all rows
+        self.scale = norm_scale(np.linalg.norm(self.r, axis=0), len(obs))
 
-    @property
-    def n_geometry(self) -> int:
-        return self.geometry_columns.shape[2]
+    def _columns(self):
+        """(rows, [geometry | every term] columns (n, 3, n_columns)) over all rows in blocks."""
+        fit, obs = self.geometric_fit, self.obs
+        for rows, _, jx, jq in jacobian_chunks(fit.layout, fit.x, obs, with_joints=True):
+            out = np.empty((len(jx), 3, self.n_columns))
+            out[:, :, : self.n_geometry] = jx[:, :, fit.free]
+            for t in self.terms:
+                out[:, :, self._at[id(t)]] = self._term_columns(t, rows, jx, jq)
+            yield rows, out
+
+    def _term_columns(self, term: Term, rows, jacobian_x, jacobian_q) -> np.ndarray:
+        """d p / d theta of a term at the geometric fit, for these rows (n, 3, m)."""
+        fit, obs = self.geometric_fit, self.obs
+        if term.model is not None:  # one new rigid parameter: its Jacobian column in the new layout
+            if id(term) not in self._structural:
+                layout = Layout(term.model, obs.target_names)
+                x = embed(fit.x, fit.layout.n_kin, term.model.n_params - self.model.n_params)
+                columns = np.empty((len(obs), 3, term.size))
+                for block, _, j in jacobian_chunks(layout, x, obs):
+                    columns[block] = j[:, :, self.model.n_params: term.model.n_params]
+                self._structural[id(term)] = columns
+            return self._structural[id(term)][rows]
+        columns = np.zeros((len(jacobian_x), 3, term.size))
+        if term.joint_basis is not None:
+            columns += term.joint_basis[rows].columns(jacobian_q)
+        if term.cart_basis is not None:
+            columns += term.cart_basis[rows]
+        if term.param_basis:
+            params, basis = stack_param_bases(term.param_basis)
+            columns += param_columns(jacobian_x, (params, basis[rows]))
+        return columns
+
+    def _cols(self, terms: tuple[Term, ...]) -> np.ndarray:
+        return np.concatenate([np.arange(self.n_geometry)]
+                              + [np.arange(self.n_columns)[self._at[id(t)]] for t in terms]).astype(int)
+
+    def estimated(self, terms: tuple[Term, ...]) -> np.ndarray:
+        """Columns (into all columns) of geometry and of the terms' parameters this data separates from it."""
+        cols = self._cols(terms)
+        r = np.linalg.qr(self.r[:, cols], mode="r")  # R factor of these columns alone
+        geometry = np.arange(len(cols)) < self.n_geometry
+        keep = identifiability.analyse(r / self.scale[cols], geometry, ~geometry, noise_mm=None,
+                                       prior_mm=self.prior_mm, with_condition=False, n_rows=3 * len(self.obs)).keep
+        keep[geometry] = True
+        return cols[keep]
+
+    def heldout_errors_many(self, term_sets) -> np.ndarray:
+        """(len(term_sets), N) held-out error of each measurement, for each set of terms with geometry."""
+        steps = np.concatenate([self.factors.steps(self.estimated(tuple(ts))) for ts in term_sets])
+        return crossval.heldout_errors(self._columns(), self.baseline_residuals_mm, self.factors, steps)
 
     def heldout_errors_mm(self, terms: tuple[Term, ...]) -> np.ndarray:
         """(N,) held-out error of each measurement with geometry and these terms."""
-        columns = [self.term_columns(t) for t in terms]
-        term_columns = np.concatenate(columns, axis=2) if columns else np.zeros((len(self.obs), 3, 0))
-        n_theta = term_columns.shape[2]
-        j = np.concatenate([self.geometry_columns, term_columns], axis=2)
-        flat = j.reshape(-1, j.shape[2])
-        geometry = np.r_[np.ones(self.n_geometry, bool), np.zeros(n_theta, bool)]
-        basis = (self.geometry_basis[0], np.r_[self.geometry_basis[1], np.zeros(n_theta, bool)])
-        estimated = identifiability.analyse(flat / column_scale(flat), geometry, ~geometry, noise_mm=None,
-                                            prior_mm=self.prior_mm, basis=basis, with_condition=False).keep
-        estimated[: self.n_geometry] = True
-        return crossval.one_step_heldout(j[:, :, estimated], self.baseline_residuals_mm, self.folds)[0]
+        return self.heldout_errors_many([terms])[0]
 
     def is_nested(self, inner: Term, outer: Term) -> bool:
         """Does geometry + outer span every column of inner? (Then outer explains nothing
         that inner cannot, wherever the two tie.)"""
-        a = np.concatenate([self.geometry_columns, self.term_columns(outer)], axis=2)
-        a = a.reshape(-1, a.shape[2])
-        b = self.term_columns(inner).reshape(len(a), -1)
+        a = self.r[:, self._cols((outer,))]
+        b = self.r[:, self._at[id(inner)]]
         coef = np.linalg.lstsq(a, b, rcond=None)[0]
         return bool(np.linalg.norm(a @ coef - b) <= NESTED_RTOL * np.linalg.norm(b))
 
-    def term_columns(self, term: Term) -> np.ndarray:
-        """d p / d theta of a term at the geometric fit (N, 3, m)."""
-        if id(term) not in self._term_columns:
-            self._term_columns[id(term)] = self._linear_columns(term)
-        return self._term_columns[id(term)]
 
-    def _linear_columns(self, term: Term) -> np.ndarray:
-        fit, obs = self.geometric_fit, self.obs
-        if term.model is not None:  # one new rigid parameter: its Jacobian column in the new layout
-            layout = Layout(term.model, obs.target_names)
-            x = embed(fit.x, fit.layout.n_kin, term.model.n_params - self.model.n_params)
-            _, j = jacobian(layout, x, obs)
-            return j[:, :, self.model.n_params: term.model.n_params]
-        columns = np.zeros((len(obs), 3, term.size))
-        if term.joint_basis is not None:
-            columns += np.einsum("nij,njm->nim", self.jacobian_q, term.joint_basis)
-        if term.cart_basis is not None:
-            columns += term.cart_basis
-        if term.param_basis:
-            columns += param_columns(self.jacobian_x, stack_param_bases(term.param_basis))
-        return columns
-
-
-def score_candidates(terms: Sequence[Term], scorer: LinearisedScorer) -> list[Scored]:
-    """Each term scored alone with the geometry; best (lowest held-out mean) first."""
+def score_candidates(terms: Sequence[Term], scorer: LinearisedScorer, errors=None) -> list[Scored]:
+    """Each term scored alone with the geometry; best (lowest held-out mean) first.
+    errors: the terms' held-out errors when already computed (one row per term)."""
     x = scorer.geometric_fit.x
-    ranked = [Scored(label=t.label(), cause=t.cause, where=t.where, heldout_errors=scorer.heldout_errors_mm((t,)),
+    if errors is None:
+        errors = scorer.heldout_errors_many([(t,) for t in terms])
+    ranked = [Scored(label=t.label(), cause=t.cause, where=t.where, heldout_errors=e,
                      theta=np.zeros(t.size), magnitude={}, x=x, terms=(t,))
-              for t in terms]
+              for t, e in zip(terms, errors)]
     ranked.sort(key=lambda s: s.heldout_mean_mm)
     _prefer_single_place(ranked, lambda c: c.heldout_mean_mm, lambda c: c.terms[0])
     return ranked
@@ -270,7 +300,9 @@ def find_second_effect(named: Scored, terms: Sequence[Term], candidates: Sequenc
                        scorer: LinearisedScorer) -> Scored | None:
     """With the named effect in the model, the candidate of another cause that lowers the
     held-out mean by MIN_GAIN more, or None."""
-    with_named = [(scorer.heldout_errors_mm(named.terms + (t,)).mean(), t) for t in terms if t.cause != named.cause]
+    others = [t for t in terms if t.cause != named.cause]
+    errors = scorer.heldout_errors_many([named.terms + (t,) for t in others]) if others else []
+    with_named = [(e.mean(), t) for e, t in zip(errors, others)]
     with_named.sort(key=lambda pair: pair[0])
     _prefer_single_place(with_named, lambda pair: pair[0], lambda pair: pair[1])
     if not with_named or with_named[0][0] >= (1.0 - MIN_GAIN) * named.heldout_mean_mm:
@@ -302,10 +334,20 @@ def _geometric_baseline(model, obs, folds, options) -> Identification:
         return above_noise
 
     def heldout_mean_mm(fit: Identification) -> float:
-        _, j = jacobian(fit.layout, fit.x, obs)
-        return crossval.one_step_heldout(j[:, :, fit.free], fit.residuals_mm, folds)[0].mean()
+        return _heldout(lambda: ((rows, j[:, :, fit.free]) for rows, _, j in jacobian_chunks(fit.layout, fit.x, obs)),
+                        fit.residuals_mm, folds).mean()
 
     return min((above_noise, structural), key=heldout_mean_mm)
+
+
+def _heldout(columns, residuals_mm: np.ndarray, folds: np.ndarray) -> np.ndarray:
+    """(N,) held-out errors of a linearised model with every column estimated. columns()
+    yields (rows, Jacobian rows (n, 3, p)) over all rows in blocks; it is called twice."""
+    factors = None
+    for rows, j in columns():
+        factors = factors or crossval.FoldFactors(folds, j.shape[2])
+        factors.add(rows, j, residuals_mm[rows])
+    return crossval.heldout_errors(columns(), residuals_mm, factors, factors.steps(np.arange(factors.p)))[0]
 
 
 def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[Term, ...], prior_mm: float,
@@ -320,7 +362,6 @@ def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[
         x = embed(geometric_fit.x, geometric_fit.layout.n_kin, extra)
         free = embed(geometric_fit.free, geometric_fit.layout.n_kin, extra, fill=True)
     fit = fit_extended(layout, obs, x, free, tuple(t for t in terms if t.model is None), prior_mm)
-    heldout_errors_mm = crossval.one_step_heldout(fit.jacobian, fit.residuals_mm, folds)[0]
     sizes = _physical_sizes(model, terms, fit)
     magnitude = sizes[terms[0].cause] if len(terms) == 1 else sizes
     # what the terms do at the targets: the fitted model with and without them
@@ -328,13 +369,26 @@ def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[
     for t in structural:
         without[model.n_params: t.model.n_params] = 0.0
     effect_mm = (fit.residuals_mm + obs.xyz_mm) - predict(layout, without, obs)
-    if len(terms) == 1:
+    if len(terms) != 1:
+        heldout_errors_mm = _heldout(fit.jacobian_chunks, fit.residuals_mm, folds)
+    else:
         # the size that needs no model to read: how far the effect moves the targets, less what a
         # geometric calibration absorbs anyway (the part the geometric columns can reproduce)
         n_free = int(free.sum())
-        geometry_columns = fit.jacobian[:, :, :n_free].reshape(-1, n_free)
-        absorbed = geometry_columns @ np.linalg.lstsq(geometry_columns, effect_mm.ravel(), rcond=None)[0]
-        effect_mm = (effect_mm.ravel() - absorbed).reshape(-1, 3)
+        absorbed = lsq.RFactor(n_free + 1)
+        for rows, j in fit.jacobian_chunks():
+            absorbed.add(np.concatenate([j[:, :, :n_free].reshape(-1, n_free), effect_mm[rows].reshape(-1, 1)], 1))
+        r = absorbed.r
+        coef = np.linalg.lstsq(r[:n_free, :n_free], r[:n_free, n_free], rcond=None)[0]
+        beyond = np.empty_like(effect_mm)
+
+        def columns():  # the held-out pass also takes what the geometry absorbs off the effect
+            for rows, j in fit.jacobian_chunks():
+                beyond[rows] = effect_mm[rows] - j[:, :, :n_free] @ coef
+                yield rows, j
+
+        heldout_errors_mm = _heldout(columns, fit.residuals_mm, folds)
+        effect_mm = beyond
         magnitude = {**magnitude, "effect_beyond_geometry_rms_mm": float(np.sqrt(np.mean(
             np.sum(effect_mm**2, axis=1))))}
     return Scored(label=label, cause=terms[0].cause, where=terms[0].where, heldout_errors=heldout_errors_mm,
@@ -350,7 +404,9 @@ def _physical_sizes(model, terms: tuple[Term, ...], fit: ExtendedFit) -> dict:
             sizes[t.cause] = CAUSES[t.cause].magnitude(t, fit.x[model.n_params: t.model.n_params], None)
             continue
         theta = fit.theta[col: col + t.size]
-        joint_delta = np.einsum("njm,m->nj", fit.model.bases.joint[:, :, col: col + t.size], theta)
+        own = np.zeros_like(fit.theta)
+        own[col: col + t.size] = theta
+        joint_delta = fit.model.bases.joint.delta(own)
         sizes[t.cause] = CAUSES[t.cause].magnitude(t, theta, joint_delta)
         col += t.size
     return sizes

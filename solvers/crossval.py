@@ -6,6 +6,9 @@ fit has not effectively seen. Each fold's estimate is one Gauss-Newton step from
 a fit to all rows, using only the fold's training rows; near a least-squares
 minimum (and the kinematics is very nearly linear over calibration-sized
 changes) that step is the fold's own solution to second order.
+
+The Jacobian is never needed whole: per-fold R factors (``FoldFactors``) give every
+fold's normal equations, and the held-out errors take one more pass over its rows.
 """
 from __future__ import annotations
 
@@ -13,6 +16,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+
+from .lsq import RFactor, chunks, stacked_r
 
 
 def groups(q: np.ndarray, radius_rad: float = 0.0) -> np.ndarray:
@@ -38,6 +43,80 @@ def fold_ids(q: np.ndarray, folds: int, seed: int = 0, radius_rad: float = 0.0) 
     return fold_of_group[group]
 
 
+class FoldFactors:
+    """The Jacobian J (3 rows per measurement, p columns) and residuals r of a linearised model,
+    kept as one R factor of [J | r] per fold, a block of rows at a time.
+
+    Everything the held-out steps need is in these (p + 1) x (p + 1) factors: the normal
+    equations of any fold's training rows over any subset of columns, and the R factor of
+    all rows (``r_all``) for the identifiability analysis.
+    """
+
+    def __init__(self, folds: np.ndarray, p: int):
+        self.folds = np.asarray(folds)
+        self.ids, self.index = np.unique(self.folds, return_inverse=True)
+        self.index = self.index.ravel()
+        self.p = p
+        self._acc = [RFactor(p + 1) for _ in self.ids]
+        self._grams = None
+
+    def add(self, rows, j: np.ndarray, r: np.ndarray) -> None:
+        """Rows (a slice or indices of the measurements): j (n, 3, p), r (n, 3)."""
+        n = len(r)
+        block = np.concatenate([np.reshape(j, (3 * n, self.p)), np.reshape(r, (3 * n, 1))], axis=1)
+        fold = np.repeat(self.index[rows], 3)
+        for k, acc in enumerate(self._acc):
+            acc.add(block[fold == k])
+        self._grams = None
+
+    @property
+    def factors(self) -> list[np.ndarray]:
+        return [acc.r for acc in self._acc]
+
+    def r_all(self) -> np.ndarray:
+        """R factor of [J | r] over every row."""
+        return stacked_r(self.factors)
+
+    def training(self, k: int):
+        """Normal matrix J^T J and J^T r of every row outside fold k (k indexes self.ids)."""
+        if self._grams is None:
+            self._grams = [f.T @ f for f in self.factors]
+        g = sum(m for i, m in enumerate(self._grams) if i != k)
+        return g[: self.p, : self.p], g[: self.p, self.p]
+
+    def steps(self, cols, penalty=None, deviation=None, lams=(0.0,)) -> np.ndarray:
+        """Gauss-Newton steps over the columns cols on each fold's training rows, (len(lams), folds, p),
+        zero outside cols. Optional L2 prior lam * sum(penalty * (deviation + step)^2) over cols."""
+        cols = np.asarray(cols, dtype=int)
+        penalty = np.zeros(len(cols)) if penalty is None else penalty
+        deviation = np.zeros(len(cols)) if deviation is None else deviation
+        out = np.zeros((len(lams), len(self.ids), self.p))
+        for k in range(len(self.ids)):
+            normal, grad = self.training(k)
+            normal, grad = normal[np.ix_(cols, cols)], grad[cols]
+            for g, lam in enumerate(lams):
+                out[g, k, cols] = -_solve(normal + lam * np.diag(penalty), grad + lam * penalty * deviation)
+        return out
+
+
+def heldout_errors(columns, r: np.ndarray, factors: FoldFactors, steps: np.ndarray) -> np.ndarray:
+    """Held-out point errors (len(steps), N): |r_i + J_i step(fold of i)| for each set of steps.
+
+    columns: iterable of (rows slice, J rows (n, 3, p)), the same columns the factors hold,
+    over all rows in blocks; r (N, 3) residuals (predicted - measured) at the linearisation point.
+    """
+    errs = np.empty((len(steps), len(r)))
+    for rows, j in columns:
+        fold = factors.index[rows]
+        out = errs[:, rows]  # a view: rows is a slice
+        for k in np.unique(fold):
+            sel = np.flatnonzero(fold == k)
+            moved = (j[sel].reshape(-1, factors.p) @ steps[:, k, :].T).reshape(len(sel), 3, len(steps))
+            pred = r[rows][sel][:, :, None] + moved
+            out[:, sel] = np.sqrt(np.einsum("nik,nik->kn", pred, pred))
+    return errs
+
+
 def one_step_heldout(j: np.ndarray, r: np.ndarray, folds: np.ndarray, penalty: np.ndarray | None = None,
                      deviation: np.ndarray | None = None, lams=(0.0,)) -> np.ndarray:
     """Held-out point errors (len(lams), N) of a linearised least-squares model.
@@ -46,24 +125,13 @@ def one_step_heldout(j: np.ndarray, r: np.ndarray, folds: np.ndarray, penalty: n
     all-rows fit; penalty (p,) and deviation (p,): an optional L2 prior
     lam * sum(penalty * (deviation + step)^2), evaluated for every lam.
     """
-    n, _, p = j.shape
-    penalty = np.zeros(p) if penalty is None else penalty
-    deviation = np.zeros(p) if deviation is None else deviation
-    flat = j.reshape(n * 3, p)
-    rows3 = np.repeat(folds, 3)
-    normal_all = flat.T @ flat
-    grad_all = flat.T @ r.ravel()
-    errs = np.empty((len(lams), n))
-    for f in np.unique(folds):
-        held = folds == f
-        jh = flat[rows3 == f]
-        normal = normal_all - jh.T @ jh  # training rows only
-        grad = grad_all - jh.T @ r[held].ravel()
-        for g, lam in enumerate(lams):
-            step = -_solve(normal + lam * np.diag(penalty), grad + lam * penalty * deviation)
-            pred = r[held] + (jh @ step).reshape(-1, 3)
-            errs[g, held] = np.linalg.norm(pred, axis=1)
-    return errs
+    p = j.shape[2]
+    factors = FoldFactors(folds, p)
+    blocks = [(rows, j[rows]) for rows in chunks(len(r))]
+    for rows, jr in blocks:
+        factors.add(rows, jr, r[rows])
+    steps = factors.steps(np.arange(p), penalty, deviation, lams)
+    return heldout_errors(blocks, r, factors, steps)
 
 
 def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -11,30 +11,31 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from scipy.optimize import least_squares
 
-from . import identifiability
-from .effects import Term
+from . import identifiability, lsq
+from .effects import JointBasis, Term
 from .measurement_model import Layout, Observations, jacobian, predict
 
 
 class TermBases(NamedTuple):
     """Several terms' bases side by side, one column per term parameter (m in all)."""
 
-    joint: np.ndarray  # (N, nj, m)
-    cartesian: np.ndarray  # (N, 3, m)
+    joint: JointBasis  # (N, nj, m)
+    cartesian: np.ndarray | None  # (N, 3, m), None without Cartesian terms
     param: tuple | None  # (kinematic parameter indices, (N, P, m)), or None without parameter-space terms
+
+    def rows(self, rows) -> "TermBases":
+        return TermBases(self.joint[rows], None if self.cartesian is None else self.cartesian[rows],
+                         None if self.param is None else (self.param[0], self.param[1][rows]))
 
 
 def combine_bases(terms: tuple[Term, ...], n_rows: int, n_joints: int) -> TermBases:
     m = sum(t.size for t in terms)
-    joint = np.zeros((n_rows, n_joints, m))
-    cartesian = np.zeros((n_rows, 3, m))
+    joint = JointBasis.side_by_side([(t.joint_basis, t.size) for t in terms], n_rows, n_joints)
+    cartesian = np.zeros((n_rows, 3, m)) if any(t.cart_basis is not None for t in terms) else None
     param: dict[int, np.ndarray] = {}
     col = 0
     for t in terms:
-        if t.joint_basis is not None:
-            joint[:, :, col: col + t.size] = t.joint_basis
         if t.cart_basis is not None:
             cartesian[:, :, col: col + t.size] = t.cart_basis
         for p, basis in (t.param_basis or {}).items():
@@ -57,7 +58,12 @@ def param_columns(jacobian_x: np.ndarray, stacked) -> np.ndarray:
 
 def column_scale(flat: np.ndarray) -> np.ndarray:
     """RMS target displacement (mm) per unit of each column; 1 for empty columns."""
-    scale = np.sqrt(np.mean(flat**2, axis=0) * 3)
+    return norm_scale(np.sqrt(np.sum(flat**2, axis=0)), len(flat) // 3)
+
+
+def norm_scale(norms: np.ndarray, n_rows: int) -> np.ndarray:
+    """``column_scale`` from the columns' norms over n_rows measurements (3 coordinates each)."""
+    scale = np.asarray(norms, dtype=float) / np.sqrt(max(n_rows, 1))
     scale[scale == 0] = 1.0
     return scale
 
@@ -65,7 +71,8 @@ def column_scale(flat: np.ndarray) -> np.ndarray:
 class ExtendedModel:
     """Geometry (free entries of x) plus linear effect terms, on one layout.
 
-    Unknowns z = (x[free], theta).
+    Unknowns z = (x[free], theta). Residuals and Jacobian are computed a block of rows
+    at a time (``jacobian_chunks``); the whole Jacobian is never needed.
     """
 
     def __init__(self, layout: Layout, obs: Observations, x: np.ndarray, free: np.ndarray,
@@ -77,52 +84,84 @@ class ExtendedModel:
 
     def joint_delta(self, theta: np.ndarray) -> np.ndarray:
         """(N, nj) joint-space part of the terms, rad."""
-        return np.einsum("njm,m->nj", self.bases.joint, theta)
-
-    def _shifted(self, theta) -> Observations:
-        return Observations(self.obs.q + self.joint_delta(theta), self.obs.xyz_mm, self.obs.target,
-                            self.obs.target_names)
+        return self.bases.joint.delta(theta)
 
     def unpack(self, z):
         x = self.x_start.copy()
         x[self.free] = z[: self.n_free]
         return x, z[self.n_free:]
 
-    def residuals_mm(self, z):
-        x, theta = self.unpack(z)
-        obs = self._shifted(theta)
-        predicted = predict(self.layout, x, obs) + np.einsum("nim,m->ni", self.bases.cartesian, theta)
-        if self.bases.param is not None:
-            _, jacobian_x = jacobian(self.layout, x, obs)
-            predicted = predicted + np.einsum("nim,m->ni", param_columns(jacobian_x, self.bases.param), theta)
-        return predicted - self.obs.xyz_mm
+    def _block(self, theta, rows):
+        obs, bases = self.obs.subset(rows), self.bases.rows(rows)
+        shifted = Observations(obs.q + bases.joint.delta(theta), obs.xyz_mm, obs.target, obs.target_names)
+        return shifted, bases
 
-    def jacobian(self, z):
+    def residuals_mm(self, z) -> np.ndarray:
         x, theta = self.unpack(z)
-        _, jacobian_x, jacobian_q = jacobian(self.layout, x, self._shifted(theta), with_joints=True)
-        term_columns = np.einsum("nij,njm->nim", jacobian_q, self.bases.joint) + self.bases.cartesian
-        if self.bases.param is not None:
-            term_columns = term_columns + param_columns(jacobian_x, self.bases.param)
-        return np.concatenate([jacobian_x[:, :, self.free], term_columns], axis=2)
+        out = np.empty((len(self.obs), 3))
+        for rows in lsq.chunks(len(self.obs)):
+            obs, bases = self._block(theta, rows)
+            predicted = predict(self.layout, x, obs)
+            if bases.cartesian is not None:
+                predicted += bases.cartesian @ theta
+            if bases.param is not None:
+                _, jacobian_x = jacobian(self.layout, x, obs)
+                predicted += param_columns(jacobian_x, bases.param) @ theta
+            out[rows] = predicted - obs.xyz_mm
+        return out
+
+    def jacobian_chunks(self, z, with_residuals: bool = False):
+        """(rows slice, d p / d z (n, 3, len(z))[, residuals (n, 3)]) over all rows in blocks."""
+        x, theta = self.unpack(z)
+        for rows in lsq.chunks(len(self.obs)):
+            obs, bases = self._block(theta, rows)
+            predicted, jacobian_x, jacobian_q = jacobian(self.layout, x, obs, with_joints=True)
+            term_columns = bases.joint.columns(jacobian_q)
+            if bases.cartesian is not None:
+                term_columns += bases.cartesian
+            if bases.param is not None:
+                term_columns += param_columns(jacobian_x, bases.param)
+            j = np.concatenate([jacobian_x[:, :, self.free], term_columns], axis=2)
+            if not with_residuals:
+                yield rows, j
+                continue
+            if bases.cartesian is not None:
+                predicted = predicted + bases.cartesian @ theta
+            if bases.param is not None:
+                predicted = predicted + param_columns(jacobian_x, bases.param) @ theta
+            yield rows, j, predicted - obs.xyz_mm
+
+    def jacobian(self, z) -> np.ndarray:
+        return np.concatenate([j for _, j in self.jacobian_chunks(z)])
 
 
 class ExtendedFit(NamedTuple):
     x: np.ndarray
     theta: np.ndarray  # 0 where this data cannot separate a term parameter from the geometry
-    jacobian: np.ndarray  # (N, 3, estimated unknowns), geometry columns first
+    estimated: np.ndarray  # bool over z = (x[free], theta): the unknowns the fit estimated
+    z: np.ndarray
     residuals_mm: np.ndarray  # (N, 3)
     model: ExtendedModel
+
+    def jacobian_chunks(self):
+        """d p / d (estimated unknowns) at the fit, geometry columns first, in blocks of rows."""
+        for rows, j in self.model.jacobian_chunks(self.z):
+            yield rows, j[:, :, self.estimated]
 
 
 def fit_extended(layout, obs, x, free, terms, prior_mm) -> ExtendedFit:
     """Nonlinear least-squares fit of geometry and terms together."""
     model = ExtendedModel(layout, obs, x, free, terms)
     z_start = np.concatenate([x[free], np.zeros(model.n_theta)])
-    flat = model.jacobian(z_start).reshape(-1, len(z_start))
     # which term parameters can this data separate from the geometry? (scaled: mm per unit)
-    scale = column_scale(flat)
+    start = lsq.RFactor(len(z_start))
+    for _, j in model.jacobian_chunks(z_start):
+        start.add(j.reshape(-1, len(z_start)))
+    r = start.r
+    scale = norm_scale(np.linalg.norm(r, axis=0), len(obs))
     geometry = np.r_[np.ones(model.n_free, bool), np.zeros(model.n_theta, bool)]
-    estimated = identifiability.analyse(flat / scale, geometry, ~geometry, noise_mm=None, prior_mm=prior_mm).keep
+    estimated = identifiability.analyse(r / scale, geometry, ~geometry, noise_mm=None, prior_mm=prior_mm,
+                                        n_rows=3 * len(obs)).keep
     estimated[: model.n_free] = True
 
     def with_estimated(z_estimated):
@@ -130,13 +169,22 @@ def fit_extended(layout, obs, x, free, terms, prior_mm) -> ExtendedFit:
         z[estimated] = z_estimated
         return z
 
-    sol = least_squares(lambda ze: model.residuals_mm(with_estimated(ze)).ravel(), z_start[estimated],
-                        jac=lambda ze: model.jacobian(with_estimated(ze)).reshape(-1, len(z_start))[:, estimated],
-                        method="lm", x_scale=1.0 / scale[estimated], xtol=1e-10, ftol=1e-10)
+    def evaluate(z_estimated, jac):
+        z = with_estimated(z_estimated)
+        ne = lsq.NormalEquations(int(estimated.sum()))
+        if jac:
+            for _, j, residuals in model.jacobian_chunks(z, with_residuals=True):
+                ne.add(j[:, :, estimated].reshape(-1, ne.g.size), residuals.ravel())
+        else:
+            ne.add(None, model.residuals_mm(z).ravel())
+        return ne
+
+    sol = lsq.levenberg_marquardt(evaluate, z_start[estimated], 1.0 / scale[estimated], ftol=1e-10, xtol=1e-10,
+                                  gtol=1e-8)
     z = with_estimated(sol.x)
     x_fit, theta = model.unpack(z)
     theta = np.where(~estimated[model.n_free:], 0.0, theta)
-    return ExtendedFit(x_fit, theta, model.jacobian(z)[:, :, estimated], model.residuals_mm(z), model)
+    return ExtendedFit(x_fit, theta, estimated, z, model.residuals_mm(z), model)
 
 
 def embed(x: np.ndarray, n_kin: int, extra: int, fill=0.0) -> np.ndarray:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from .chain import forward
+from .lsq import chunks
 from .robot_model import KinematicModel
 
 
@@ -38,6 +39,16 @@ def gravity_torques(model: KinematicModel, params: np.ndarray, q: np.ndarray, ma
 
     payload_kg: scalar or (N,) mass on the flange at payload_com_mm in the last link's frame.
     """
+    q = np.atleast_2d(q)
+    out = np.empty((len(q), model.n_joints))
+    per_row = payload_kg is not None and np.ndim(payload_kg) > 0
+    for rows in chunks(len(q)):  # every link frame of every pose at once would be large
+        out[rows] = _gravity_torques(model, params, q[rows], masses_kg, coms_mm,
+                                     payload_kg[rows] if per_row else payload_kg, payload_com_mm)
+    return out
+
+
+def _gravity_torques(model, params, q, masses_kg, coms_mm, payload_kg, payload_com_mm) -> np.ndarray:
     axis, origin, link_rot, link_org = joint_frames(model, params, q)
     n, nj = axis.shape[:2]
     masses = np.array(masses_kg, dtype=float)
@@ -69,6 +80,12 @@ def torque_regressors(model: KinematicModel, params: np.ndarray, q: np.ndarray, 
     centre-of-mass offset along the link frame's x, y, z. Units: m times m/s^2, so a
     coefficient in kg (or kg m) gives N m.
     """
+    q = np.atleast_2d(q)
+    return np.concatenate([_torque_regressors(model, params, q[rows], joint) for rows in chunks(len(q))]) \
+        if len(q) else np.zeros((0, 4 * (model.n_joints - joint)))
+
+
+def _torque_regressors(model, params, q, joint) -> np.ndarray:
     axis, origin, link_rot, link_org = joint_frames(model, params, q)
     g = np.asarray(model.gravity, dtype=float)
     z = axis[:, joint]

@@ -22,6 +22,7 @@ import numpy as np
 from scipy.linalg import qr, svd
 
 STRUCTURAL_RTOL = 1e-7
+TIE_RTOL = 1e-6  # column norms this close count as a tie in the subset selection
 
 
 @dataclass(frozen=True)
@@ -44,11 +45,24 @@ def _svd(a: np.ndarray):
 
 
 def _select(vt: np.ndarray, rank: int) -> np.ndarray:
-    """Indices of `rank` columns that best span the dominant subspace (rows of vt)."""
+    """Indices of `rank` columns that best span the dominant subspace (rows of vt).
+
+    QR with column pivoting, written out so that a tie is settled the same way every
+    time: parameters the data sees only as a sum (offsets along parallel axes) have
+    equal norms here up to rounding, and the first of them in parameter order is kept.
+    """
     if rank == 0:
         return np.array([], dtype=int)
-    _, _, piv = qr(vt[:rank], pivoting=True, mode="economic")
-    return np.sort(piv[:rank])
+    a = np.array(vt[:rank], dtype=float)
+    chosen: list[int] = []
+    for _ in range(rank):
+        norms = np.linalg.norm(a, axis=0)
+        norms[chosen] = -1.0
+        pick = int(np.flatnonzero(norms >= norms.max() * (1.0 - TIE_RTOL))[0])
+        chosen.append(pick)
+        u = a[:, pick] / norms[pick]
+        a -= np.outer(u, u @ a)
+    return np.sort(chosen)
 
 
 def nuisance_basis(j_scaled: np.ndarray, nuisance: np.ndarray):
@@ -70,7 +84,7 @@ def nuisance_basis(j_scaled: np.ndarray, nuisance: np.ndarray):
 
 def analyse(j_scaled: np.ndarray, nuisance: np.ndarray, candidates: np.ndarray,
             noise_mm: float | None = None, prior_mm: float = 1.0, basis=None,
-            with_condition: bool = True) -> Identifiability:
+            with_condition: bool = True, n_rows: int | None = None) -> Identifiability:
     """Decide which candidate columns to estimate.
 
     j_scaled: (m, n) scaled Jacobian; nuisance: bool mask of columns always kept
@@ -79,6 +93,10 @@ def analyse(j_scaled: np.ndarray, nuisance: np.ndarray, candidates: np.ndarray,
     (its singular value below noise_mm / prior_mm) counts as not identifiable:
     estimating it would add more error than it removes. basis: a precomputed
     ``nuisance_basis`` of the same nuisance columns.
+
+    j_scaled may be the R factor of the scaled Jacobian instead (J = Q R with orthonormal
+    Q: the same singular values, subsets and projections); n_rows then gives J's row
+    count, on which the structural tolerance depends.
     """
     qb, keep = nuisance_basis(j_scaled, nuisance) if basis is None else basis
     keep = keep.copy()
@@ -90,7 +108,8 @@ def analyse(j_scaled: np.ndarray, nuisance: np.ndarray, candidates: np.ndarray,
     else:
         s, vt = np.zeros(0), np.zeros((0, 0))
     top = s[0] if len(s) else 0.0
-    structural = int(np.sum(s > STRUCTURAL_RTOL * top * np.sqrt(k.shape[0]))) if top > 0 else 0
+    rows = k.shape[0] if n_rows is None else n_rows
+    structural = int(np.sum(s > STRUCTURAL_RTOL * top * np.sqrt(rows))) if top > 0 else 0
     rank = structural
     if noise_mm is not None and rank:
         rank = min(rank, int(np.sum(s >= noise_mm / prior_mm)))

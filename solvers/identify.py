@@ -24,13 +24,12 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
-from . import crossval, identifiability, se3
+from . import crossval, identifiability, lsq, se3
 from .chain import forward
 from .identifiability import CorrelatedGroup, HeldParameter
 from .identifiability import human as _human
-from .measurement_model import Layout, Observations, jacobian, predict, predict_base
+from .measurement_model import Layout, Observations, jacobian_chunks, predict, predict_base
 from .robot_model import KinematicModel
 
 LOSSES = ("linear", "soft_l1", "huber", "cauchy")
@@ -144,9 +143,12 @@ def scales(layout: Layout, x: np.ndarray, obs: Observations) -> np.ndarray:
     return np.where(layout.is_angle, 1.0 / reach, 1.0)
 
 
-def _residual_fn(layout, obs, x_full, free, lam, scale):
+def _problem(layout, obs, x_full, free, lam, scale, loss="linear", f_scale=1.0):
+    """The least-squares problem over the free entries of x: (unpack, evaluate) for
+    ``lsq.levenberg_marquardt``, the L2 prior on kinematic parameters as extra rows."""
     idx = np.flatnonzero(free)
     kin = idx[idx < layout.n_kin]
+    at = np.searchsorted(idx, kin)
     centre = layout.model.nominal[kin]
     w = np.sqrt(lam) / scale[kin] if lam > 0 else None
 
@@ -155,41 +157,35 @@ def _residual_fn(layout, obs, x_full, free, lam, scale):
         x[idx] = z
         return x
 
-    def fun(z):
+    def evaluate(z, jac):
         x = unpack(z)
-        r = (predict(layout, x, obs) - obs.xyz_mm).ravel()
+        ne = lsq.NormalEquations(len(idx), loss, f_scale)
+        if jac:
+            for rows, p, j in jacobian_chunks(layout, x, obs):
+                ne.add(j.reshape(-1, layout.size)[:, idx], (p - obs.xyz_mm[rows]).ravel())
+        else:
+            ne.add(None, (predict(layout, x, obs) - obs.xyz_mm).ravel())
         if w is not None:
-            r = np.concatenate([r, w * (x[kin] - centre)])
-        return r
+            prior = np.zeros((len(kin), len(idx)))
+            prior[np.arange(len(kin)), at] = w
+            ne.add(prior if jac else None, w * (x[kin] - centre))
+        return ne
 
-    def jac(z):
-        x = unpack(z)
-        _, j = jacobian(layout, x, obs)
-        j = j.reshape(-1, layout.size)[:, idx]
-        if w is not None:
-            reg = np.zeros((len(kin), len(idx)))
-            reg[np.arange(len(kin)), np.searchsorted(idx, kin)] = w
-            j = np.vstack([j, reg])
-        return j
-
-    return fun, jac, unpack
+    return unpack, evaluate
 
 
 def fit(layout: Layout, obs: Observations, x_start: np.ndarray, free: np.ndarray, lam: float = 0.0,
         scale: np.ndarray | None = None, loss: str = "linear", f_scale: float = 1.0) -> Fit:
-    """Least squares over the free entries of x, starting from x_start."""
+    """Least squares over the free entries of x, starting from x_start (Levenberg-Marquardt on
+    normal equations accumulated over blocks of rows: the Jacobian never exists whole)."""
     if scale is None:
         scale = scales(layout, x_start, obs)
-    fun, jac, unpack = _residual_fn(layout, obs, x_start, free, lam, scale)
-    z0 = x_start[free]
-    method = "lm" if loss == "linear" else "trf"
-    kwargs = {} if loss == "linear" else {"loss": loss, "f_scale": f_scale}
-    sol = least_squares(fun, z0, jac=jac, method=method, x_scale=scale[free],
-                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200 if method == "trf" else None,
-                        **kwargs)
+    unpack, evaluate = _problem(layout, obs, x_start, free, lam, scale, loss, f_scale)
+    sol = lsq.levenberg_marquardt(evaluate, x_start[free], scale[free], ftol=1e-12, xtol=1e-12, gtol=1e-12,
+                                  max_nfev=None if loss == "linear" else 200)
     x = unpack(sol.x)
-    return Fit(x=x, residuals_mm=predict(layout, x, obs) - obs.xyz_mm, nfev=int(sol.nfev),
-               status=int(sol.status), message=str(sol.message))
+    return Fit(x=x, residuals_mm=predict(layout, x, obs) - obs.xyz_mm, nfev=sol.nfev,
+               status=sol.status, message=sol.message)
 
 
 def initial_base_and_targets(layout: Layout, obs: Observations, x: np.ndarray | None = None) -> np.ndarray:
@@ -216,10 +212,13 @@ def initial_base_and_targets(layout: Layout, obs: Observations, x: np.ndarray | 
             if not len(rows):
                 continue
             chain = layout.model.chains[layout.model.chain_for(layout.target_names[ti])]
-            rot, org = forward(chain, k, obs.q[rows])
-            a = rot.reshape(-1, 3)
-            b = (local[rows] - org).ravel()
-            off = np.linalg.lstsq(a, b, rcond=None)[0]
+            ata, atb = np.zeros((3, 3)), np.zeros(3)  # normal equations over blocks of rows
+            for block in lsq.chunks(len(rows)):
+                rot, org = forward(chain, k, obs.q[rows[block]])
+                a = rot.reshape(-1, 3)
+                ata += a.T @ a
+                atb += a.T @ (local[rows[block]] - org).ravel()
+            off = np.linalg.lstsq(ata, atb, rcond=None)[0]
             change = max(change, float(np.linalg.norm(off - x[layout.target(ti)])))
             x[layout.target(ti)] = off
         if change < 1e-6:
@@ -231,17 +230,27 @@ def _covariance(layout, obs, x, free, lam, scale) -> tuple[np.ndarray, float]:
     """Covariance of the free entries of x (x's units) from the final Jacobian and the
     residual variance (sandwich form, so a prior shrinks it only as far as it really does),
     and the residual standard deviation per coordinate."""
-    fun, jac, _ = _residual_fn(layout, obs, x, free, lam, scale)
-    z = x[free]
-    j = jac(z)
-    n_data = 3 * len(obs)
-    jd = j[:n_data]
-    r = fun(z)[:n_data]
-    dof = max(n_data - int(free.sum()), 1)
-    s2 = float(r @ r) / dof
-    a_inv = np.linalg.pinv(j.T @ j)
-    cov = a_inv @ (jd.T @ jd) @ a_inv * s2
+    idx = np.flatnonzero(free)
+    data = lsq.NormalEquations(len(idx))
+    for rows, p, j in jacobian_chunks(layout, x, obs):
+        data.add(j.reshape(-1, layout.size)[:, idx], (p - obs.xyz_mm[rows]).ravel())
+    a = data.a.copy()
+    if lam > 0:
+        kin = np.flatnonzero(idx < layout.n_kin)
+        a[kin, kin] += lam / scale[idx[kin]] ** 2
+    dof = max(3 * len(obs) - len(idx), 1)
+    s2 = 2.0 * data.cost / dof
+    a_inv = np.linalg.pinv(a)
+    cov = a_inv @ data.a @ a_inv * s2
     return cov, float(np.sqrt(s2))
+
+
+def _r_factor(layout, x, obs, scale) -> np.ndarray:
+    """R factor of the scaled Jacobian over every unknown (same singular values and subsets)."""
+    acc = lsq.RFactor(layout.size)
+    for _, _, j in jacobian_chunks(layout, x, obs):
+        acc.add(j.reshape(-1, layout.size) * scale)
+    return acc.r
 
 
 def _f_scale(residuals: np.ndarray) -> float:
@@ -312,9 +321,8 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
     for name in options.fixed:
         candidates[model.index(name)] = False
 
-    _, j0 = jacobian(layout, x0, obs)
-    j0 = j0.reshape(-1, layout.size) * scale
-    structural = identifiability.analyse(j0, nuisance, candidates)
+    n_rows = 3 * len(obs)  # the scaled Jacobian's rows; its R factor stands in for it
+    structural = identifiability.analyse(_r_factor(layout, x0, obs, scale), nuisance, candidates, n_rows=n_rows)
     f_scale = _f_scale(before.residuals_mm)
     # first pass over every structurally identifiable parameter: a noise estimate
     first = fit(layout, obs, x0, structural.keep, scale=scale, loss=loss, f_scale=f_scale)
@@ -323,9 +331,15 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
     resid = first.residuals_mm.ravel()
     noise = float(np.sqrt(resid @ resid / dof)) if loss == "linear" else 1.4826 * float(
         np.median(np.abs(resid)))
-    _, j1 = jacobian(layout, first.x, obs)
-    j1 = j1.reshape(-1, layout.size) * scale
-    noisy = identifiability.analyse(j1, nuisance, candidates, noise_mm=noise, prior_mm=options.prior_mm)
+    # the scaled Jacobian at the first fit, as R factors per cross-validation fold
+    folds = crossval.fold_ids(obs.q, options.folds, options.seed) if options.regularize == "cv" \
+        else np.zeros(len(obs), int)
+    j1 = crossval.FoldFactors(folds, layout.size)
+    for rows, p, j in jacobian_chunks(layout, first.x, obs):
+        j1.add(rows, j * scale, first.residuals_mm[rows])
+    r1 = j1.r_all()[: layout.size, : layout.size]
+    noisy = identifiability.analyse(r1, nuisance, candidates, noise_mm=noise, prior_mm=options.prior_mm,
+                                    n_rows=n_rows)
     f_scale = max(2.5 * noise, 1e-6)
     say(f"identifiable: {structural.rank} of {int(candidates.sum())} geometric parameters "
         f"structurally, {noisy.rank} above the noise ({noise * 1000:.1f} um)")
@@ -349,7 +363,7 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
     std[free] = np.sqrt(np.clip(np.diag(trust.cov), 0, None))
     # estimated, but only as well as the prior allows: below the noise on their own
     weak = tuple(n for i, n in enumerate(model.param_names) if free[i] and not noisy.keep[i])
-    sv = np.linalg.svd(j1[:, free], compute_uv=False)
+    sv = np.linalg.svd(r1[:, free], compute_uv=False)
     message = final.message.rstrip(".")
     if trust.held:
         message += ("; held at nominal after the fit because the data cannot pin them down: "
@@ -451,7 +465,7 @@ def _correlated_groups(layout, obs, x, ref, free, cov) -> tuple[CorrelatedGroup,
     return identifiability.correlated_groups(layout.names, np.flatnonzero(free), cov, base, effect_mm)
 
 
-def _choose_lambda(layout, obs, first: Fit, j_scaled, free, scale, options, say):
+def _choose_lambda(layout, obs, first: Fit, factors: "crossval.FoldFactors", free, scale, options, say):
     """Grouped k-fold CV over the lambda grid; returns (lambda, curve).
 
     Every fold and lambda is solved on the model linearised at the unregularised
@@ -459,16 +473,17 @@ def _choose_lambda(layout, obs, first: Fit, j_scaled, free, scale, options, say)
     from it on the fold's training rows. The parameter changes involved are far
     inside the range where the kinematics is linear, so this is each fold's own
     solution to second order, and the whole grid costs a few small solves per
-    fold instead of one nonlinear fit per fold and lambda.
+    fold instead of one nonlinear fit per fold and lambda. factors: the scaled
+    Jacobian and residuals at ``first``, as R factors per fold.
     """
-    folds = crossval.fold_ids(obs.q, options.folds, options.seed)
     grid = sorted(set([0.0, *options.lambdas]))
     idx = np.flatnonzero(free)
-    j = j_scaled[:, idx].reshape(len(obs), 3, len(idx))
     # the prior acts on kinematic parameters only, in scaled units (mm at the target)
     prior = (idx < layout.n_kin).astype(float)
     dev = prior * (first.x[idx] - layout.initial()[idx]) / scale[idx]
-    errs = crossval.one_step_heldout(j, first.residuals_mm, folds, prior, dev, grid)
+    steps = factors.steps(idx, prior, dev, grid)
+    columns = ((rows, j * scale) for rows, _, j in jacobian_chunks(layout, first.x, obs))
+    errs = crossval.heldout_errors(columns, first.residuals_mm, factors, steps)
     curve = [(float(lam), float(e)) for lam, e in zip(grid, errs.mean(axis=1))]
     best = min(curve, key=lambda c: c[1])
     say(f"cross-validation: lambda {best[0]:.3g}, held-out mean {best[1]:.3f} mm")

@@ -13,6 +13,7 @@ import numpy as np
 
 from . import se3
 from .chain import forward, point_jacobians
+from .lsq import chunks
 from .robot_model import KinematicModel
 
 BASE_NAMES = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
@@ -35,7 +36,7 @@ class Observations:
         return len(self.q)
 
     def subset(self, rows) -> "Observations":
-        rows = np.asarray(rows)
+        rows = rows if isinstance(rows, slice) else np.asarray(rows)
         return Observations(self.q[rows], self.xyz_mm[rows], self.target[rows], self.target_names)
 
 
@@ -107,9 +108,12 @@ def predict_base(layout: Layout, x: np.ndarray, obs: Observations) -> np.ndarray
     k = x[: layout.n_kin]
     offsets = layout.offsets(x)
     out = np.empty((len(obs), 3))
-    for chain, rows in _groups(layout, obs):
-        rot, org = forward(chain, k, obs.q[rows])
-        out[rows] = org + np.einsum("nij,nj->ni", rot, offsets[obs.target[rows]])
+    for block in chunks(len(obs)):
+        sub = obs.subset(block)
+        part = out[block]
+        for chain, rows in _groups(layout, sub):
+            rot, org = forward(chain, k, sub.q[rows])
+            part[rows] = org + np.einsum("nij,nj->ni", rot, offsets[sub.target[rows]])
     return out
 
 
@@ -118,6 +122,12 @@ def predict(layout: Layout, x: np.ndarray, obs: Observations) -> np.ndarray:
     b = x[layout.base]
     r = se3.rotvec_to_matrix(b[3:])
     return predict_base(layout, x, obs) @ r.T + b[:3]
+
+
+def jacobian_chunks(layout: Layout, x: np.ndarray, obs: Observations, with_joints: bool = False):
+    """``jacobian`` a block of rows at a time: yields (rows slice, p, d p / d x[, d p / d q])."""
+    for block in chunks(len(obs)):
+        yield (block, *jacobian(layout, x, obs.subset(block), with_joints))
 
 
 def jacobian(layout: Layout, x: np.ndarray, obs: Observations, with_joints: bool = False):

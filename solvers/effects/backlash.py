@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Cause, Term
+from .base import Cause, JointBasis, Term
 
 
 class Backlash(Cause):
@@ -19,11 +19,10 @@ class Backlash(Cause):
             s = ctx.direction[:, j]
             if np.count_nonzero(s > 0) < 3 or np.count_nonzero(s < 0) < 3:
                 continue  # always approached from one side: backlash is a constant offset
-            basis = np.zeros((len(obs), model.n_joints, 1))
-            basis[:, j, 0] = 0.5 * s
+            basis = JointBasis.single(0.5 * s, j, model.n_joints)
             out.append(Term(self.id, {"joint": j + 1}, (f"b{j + 1}",), joint_basis=basis, units=("rad",)))
         if len(out) > 1:
-            basis = np.concatenate([t.joint_basis for t in out], axis=2)
+            basis = JointBasis.side_by_side([(t.joint_basis, 1) for t in out], len(obs), model.n_joints)
             out.append(Term(self.id, {"joints": [t.where["joint"] for t in out]},
                             tuple(t.names[0] for t in out), joint_basis=basis,
                             units=("rad",) * len(out), multi=True))

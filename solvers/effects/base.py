@@ -41,12 +41,87 @@ def approach_directions(q: np.ndarray) -> np.ndarray:
     """Sign of each joint's last change before every row; 0 where none is known yet."""
     q = np.asarray(q, dtype=float)
     out = np.zeros_like(q)
-    last = np.zeros(q.shape[1])
-    for i in range(1, len(q)):
-        step = np.sign(np.round(q[i] - q[i - 1], 9))
-        last = np.where(step != 0, step, last)
-        out[i] = last
+    if len(q) < 2:
+        return out
+    step = np.sign(np.round(np.diff(q, axis=0), 9))  # step[i]: from row i to row i + 1
+    moved = np.where(step != 0, np.arange(1, len(q))[:, None], 0)
+    last = np.maximum.accumulate(moved, axis=0)  # row after the last change, 0 for none yet
+    out[1:] = np.where(last > 0, np.take_along_axis(step, np.maximum(last - 1, 0), axis=0), 0.0)
     return out
+
+
+class JointBasis:
+    """A joint-space basis B (N, nj, m) kept as its non-zero parts: B[n] = sum_r values[n, r] * mix[r].
+
+    A term on one joint stores one column of values per parameter instead of N x nj x m
+    numbers that are zero but for one joint. Rows are picked with ``basis[rows]`` (a
+    JointBasis again); ``np.asarray(basis)`` gives the dense array.
+    """
+
+    def __init__(self, values: np.ndarray, mix: np.ndarray):
+        self.values = np.asarray(values, dtype=float)  # (N, r)
+        self.mix = np.asarray(mix, dtype=float)  # (r, nj, m)
+
+    @classmethod
+    def single(cls, values: np.ndarray, joint: int, n_joints: int) -> "JointBasis":
+        """Column k of values moves joint `joint` (0-based), one parameter per column."""
+        values = np.asarray(values, dtype=float).reshape(len(values), -1)
+        m = values.shape[1]
+        mix = np.zeros((m, n_joints, m))
+        mix[np.arange(m), joint, np.arange(m)] = 1.0
+        return cls(values, mix)
+
+    @classmethod
+    def dense_array(cls, basis: np.ndarray) -> "JointBasis":
+        basis = np.asarray(basis, dtype=float)
+        n, nj, m = basis.shape
+        return cls(basis.reshape(n, nj * m), np.eye(nj * m).reshape(nj * m, nj, m))
+
+    @classmethod
+    def side_by_side(cls, parts, n_rows: int, n_joints: int) -> "JointBasis":
+        """Bases (or None for m zero columns) given as (basis, m) pairs, columns side by side."""
+        m_all = sum(m for _, m in parts)
+        r_all = sum(b.values.shape[1] for b, _ in parts if b is not None)
+        values, mix = np.zeros((n_rows, r_all)), np.zeros((r_all, n_joints, m_all))
+        r = col = 0
+        for b, m in parts:
+            if b is not None:
+                k = b.values.shape[1]
+                values[:, r: r + k] = b.values
+                mix[r: r + k, :, col: col + m] = b.mix
+                r += k
+            col += m
+        return cls(values, mix)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (len(self.values),) + self.mix.shape[1:]
+
+    ndim = 3
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+    def __getitem__(self, index):
+        if isinstance(index, tuple):
+            return self.dense()[index]
+        return JointBasis(self.values[index], self.mix)
+
+    def dense(self) -> np.ndarray:
+        return np.einsum("nr,rjm->njm", self.values, self.mix)
+
+    def __array__(self, dtype=None, copy=None):
+        return self.dense() if dtype is None else self.dense().astype(dtype)
+
+    def delta(self, theta: np.ndarray) -> np.ndarray:
+        """(N, nj) joint displacement B @ theta."""
+        per_value = self.mix @ np.asarray(theta, dtype=float)  # (r, nj)
+        return self.values @ per_value if len(per_value) else np.zeros((len(self.values), self.mix.shape[1]))
+
+    def columns(self, jq: np.ndarray) -> np.ndarray:
+        """d p / d theta = (d p / d q) @ B, (N, 3, m), from d p / d q (N, 3, nj) of the same rows."""
+        per_value = np.einsum("nij,rjm->nrim", jq, self.mix)
+        return np.einsum("nr,nrim->nim", self.values, per_value)
 
 
 @dataclass(frozen=True)
@@ -56,7 +131,7 @@ class Term:
     cause: str
     where: dict
     names: tuple[str, ...]
-    joint_basis: np.ndarray | None = None  # (N, nj, m)
+    joint_basis: JointBasis | None = None  # (N, nj, m); a dense array is converted
     cart_basis: np.ndarray | None = None  # (N, 3, m)
     model: KinematicModel | None = None  # a structurally different rigid model (parallel_axis_tilt)
     # parameter-space terms: parameter index -> (N, m); the term moves that parameter (a frame's
@@ -65,6 +140,10 @@ class Term:
     units: tuple[str, ...] = ()  # physical unit of each theta entry
     multi: bool = False  # the same cause at several places at once (e.g. every joint)
     extra: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.joint_basis is not None and not isinstance(self.joint_basis, JointBasis):
+            object.__setattr__(self, "joint_basis", JointBasis.dense_array(self.joint_basis))
 
     @property
     def size(self) -> int:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Cause, Term
+from .base import Cause, JointBasis, Term
 
 ORDERS = (1, 2, 3)
 MIN_RANGE_RAD = np.deg2rad(60.0)  # a joint that barely moves shows no period
@@ -23,9 +23,7 @@ class CyclicJointError(Cause):
             if np.ptp(qj) < MIN_RANGE_RAD:
                 continue
             for n in ORDERS:
-                basis = np.zeros((len(obs), model.n_joints, 2))
-                basis[:, j, 0] = np.sin(n * qj)
-                basis[:, j, 1] = np.cos(n * qj)
+                basis = JointBasis.single(np.stack([np.sin(n * qj), np.cos(n * qj)], axis=1), j, model.n_joints)
                 out.append(Term(self.id, {"joint": j + 1, "order": n}, (f"s{j + 1}_{n}", f"c{j + 1}_{n}"),
                                 joint_basis=basis, units=("rad", "rad")))
         return out

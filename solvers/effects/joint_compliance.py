@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..gravity import gravity_torques, point_mass_regressors, torque_regressors, tree_sites
-from .base import Cause, Term
+from .base import Cause, JointBasis, Term
 
 MIN_TORQUE_SPREAD = 1e-6  # a joint whose gravity torque never changes (vertical axis) has no candidate
 
@@ -24,12 +24,9 @@ class JointCompliance(Cause):
         return (len(links) == model.n_joints and all(l.mass_kg is not None and l.com_mm is not None
                                                         for l in links))
 
-    def _columns(self, model, k, q, ctx, joint):
+    def _columns(self, model, k, q, ctx, joint, torques=None):
         if self._known_masses(model):
-            tau = gravity_torques(model, k, q, [l.mass_kg for l in model.links],
-                                  [l.com_mm for l in model.links],
-                                  payload_kg=ctx.payload_kg)[:, joint]
-            return tau[:, None], ("compliance",), ("rad/Nm",)
+            return torques[:, joint, None], ("compliance",), ("rad/Nm",)
         cols = torque_regressors(model, k, q, joint)
         names = [f"moment{i}" for i in range(cols.shape[1])]
         if ctx.payload_kg is not None and np.ptp(ctx.payload_kg) > 0:
@@ -89,19 +86,22 @@ class JointCompliance(Cause):
         if not model.joint_elements:
             return self._tree_terms(model, layout, x, obs)
         k = x[: layout.n_kin]
+        torques = None
+        if self._known_masses(model):  # every joint's torque in one pass over the rows
+            torques = gravity_torques(model, k, obs.q, [l.mass_kg for l in model.links],
+                                      [l.com_mm for l in model.links], payload_kg=ctx.payload_kg)
         out, all_cols, all_joints = [], [], []
         for j in range(model.n_joints):
-            cols, names, units = self._columns(model, k, obs.q, ctx, j)
+            cols, names, units = self._columns(model, k, obs.q, ctx, j, torques)
             if np.ptp(cols, axis=0).max() < MIN_TORQUE_SPREAD:
                 continue
-            basis = np.zeros((len(obs), model.n_joints, cols.shape[1]))
-            basis[:, j, :] = cols
+            basis = JointBasis.single(cols, j, model.n_joints)
             out.append(Term(self.id, {"joint": j + 1}, tuple(f"c{j + 1}.{n}" for n in names),
                             joint_basis=basis, units=units))
-            all_cols.append(basis)
+            all_cols.append((basis, cols.shape[1]))
             all_joints.append(j + 1)
         if len(all_cols) > 1:
-            basis = np.concatenate(all_cols, axis=2)
+            basis = JointBasis.side_by_side(all_cols, len(obs), model.n_joints)
             names = tuple(n for t in out for n in t.names)
             out.append(Term(self.id, {"joints": all_joints}, names, joint_basis=basis,
                             units=tuple(u for t in out for u in t.units), multi=True))

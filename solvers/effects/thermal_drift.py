@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..measurement_model import jacobian
+from ..measurement_model import jacobian_chunks
 from .base import Cause, Term
 
 WARMUP_TAU_S = (600.0, 1800.0, 3600.0, 7200.0)
@@ -20,9 +20,11 @@ class ThermalDrift(Cause):
     id = "thermal_drift"
 
     def _growth_direction(self, layout, x, obs):
-        _, j = jacobian(layout, x, obs)
-        lengths = ~layout.model.param_is_angle
-        return np.einsum("nip,p->ni", j[:, :, : layout.n_kin][:, :, lengths], x[: layout.n_kin][lengths])
+        lengths = np.flatnonzero(~layout.model.param_is_angle)
+        out = np.empty((len(obs), 3))
+        for rows, _, j in jacobian_chunks(layout, x, obs):
+            out[rows] = j[:, :, lengths] @ x[lengths]
+        return out
 
     def terms(self, model, layout, x, obs, ctx):
         drivers = []

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Cause, Term
+from .base import Cause, JointBasis, Term
 
 
 class TriggerLatency(Cause):
@@ -18,7 +18,8 @@ class TriggerLatency(Cause):
     def terms(self, model, layout, x, obs, ctx):
         if ctx.dq_rad_s is None or not np.any(ctx.dq_rad_s):
             return []
-        return [Term(self.id, {}, ("tau",), joint_basis=-ctx.dq_rad_s[:, :, None], units=("s",))]
+        basis = JointBasis(-ctx.dq_rad_s, np.eye(model.n_joints)[:, :, None])  # every joint, one parameter
+        return [Term(self.id, {}, ("tau",), joint_basis=basis, units=("s",))]
 
     def unscorable(self, model, ctx):
         if ctx.dq_rad_s is None:
