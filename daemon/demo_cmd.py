@@ -1,0 +1,143 @@
+"""``cellcal demo``: the whole product on the simulated cell, as ``make demo`` runs it.
+
+Starts the network fakes (``cellcal sim-cell``), starts the service on them (``cellcal
+daemon``, waiting for its systemd READY), plays the operator: selects the routine and
+presses start through Modbus, as a panel would; waits for the run to end, prints the
+tool frame written back to the (fake) controller beside the simulation's hidden truth and
+the report's path, and stops everything cleanly.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+from pymodbus.client import ModbusTcpClient
+
+from ..config.robot_files import load_robot
+from ..drivers import registry as drivers_registry
+from ..routines.base import tool_frame_json
+from .cells import load_cell
+from .cli_common import UsageError, print_progress
+from .service import PANEL_ROUTINES, RESULT_MEANINGS, ResultCode
+
+RUN_TIMEOUT_S = 180.0
+
+
+def _cellcal(*args: str) -> list[str]:
+    return [sys.executable, "-m", "cellcal.daemon.cli", *args]
+
+
+def _echo(stream, prefix: str) -> threading.Thread:
+    def pump():
+        for line in stream:
+            print(f"{prefix}{line.rstrip()}", file=sys.stderr, flush=True)
+    thread = threading.Thread(target=pump, daemon=True)
+    thread.start()
+    return thread
+
+
+def _stop(proc: subprocess.Popen | None) -> None:
+    if proc is None or proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def cmd_demo(args) -> int:
+    cell = load_cell(args.cell)
+    number = next((k for k, v in PANEL_ROUTINES.items() if v == args.routine), None)
+    if number is None:
+        raise UsageError(f"--routine {args.routine}: not on the panel's selector ({', '.join(PANEL_ROUTINES.values())})")
+    panel = cell.drivers.get("panel")
+    if panel is None or panel.name != "modbus":
+        raise UsageError(f"{cell.path}: the demo presses start through a Modbus panel; this cell has none")
+    host, port = panel.options.get("host", "127.0.0.1"), panel.options.get("port", 502)
+    work = Path(tempfile.mkdtemp(prefix="cellcal-demo-"))
+    fakes = daemon = None
+    notify_path = work / "notify.sock"
+    try:
+        print_progress(f"starting the simulated cell's fakes ({cell.path})")
+        fakes = subprocess.Popen(_cellcal("sim-cell", "--cell", cell.path), stdout=subprocess.PIPE,
+                                 stderr=subprocess.PIPE, text=True)
+        line = fakes.stdout.readline()
+        if "listening" not in line:
+            raise RuntimeError(f"the fakes did not start: {line}{fakes.stderr.read()}")
+        print_progress(line.strip().removeprefix("cellcal "))
+        _echo(fakes.stderr, "  fakes: ")
+        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as notify:
+            notify.bind(str(notify_path))
+            notify.settimeout(60.0)
+            env = dict(os.environ, NOTIFY_SOCKET=str(notify_path))
+            daemon = subprocess.Popen(_cellcal("daemon", "--cell", cell.path, "--state-dir", str(work / "state")),
+                                      env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+            _echo(daemon.stderr, "  daemon: ")
+            while b"READY=1" not in notify.recv(4096):
+                pass
+        print_progress(f"the daemon is ready; the operator selects {args.routine} ({number}) and presses start")
+        operator = ModbusTcpClient(host, port=port, timeout=2.0)
+        if not operator.connect():
+            raise RuntimeError(f"cannot reach the panel at {host}:{port}")
+        try:
+            counter = operator.read_holding_registers(2, count=1).registers[0]
+            operator.write_register(0, number)
+            operator.write_coil(0, True)
+            deadline = time.monotonic() + RUN_TIMEOUT_S
+            while operator.read_holding_registers(2, count=1).registers[0] == counter:
+                if time.monotonic() > deadline or daemon.poll() is not None:
+                    raise RuntimeError("the run did not end in time" if daemon.poll() is None
+                                       else "the daemon ended during the run")
+                time.sleep(0.2)
+            code = ResultCode(operator.read_holding_registers(1, count=1).registers[0])
+        finally:
+            operator.close()
+        shown = subprocess.run(_cellcal("runs", "list", "--json", "--limit", "1", "--state-dir",
+                                        str(work / "state")), capture_output=True, text=True, check=True)
+        run_id = json.loads(shown.stdout)[0]["id"]
+        detail = json.loads(subprocess.run(_cellcal("runs", "show", str(run_id), "--json", "--state-dir",
+                                                    str(work / "state")), capture_output=True, text=True,
+                                           check=True).stdout)
+        print(f"\nrun {run_id}: {args.routine} -> {detail['state']}, result code {int(code)} "
+              f"({RESULT_MEANINGS[code]})")
+        result = detail.get("result") or {}
+        frame = (result.get("tool_frame") or {}).get("pose_m_rad")
+        truth = drivers_registry.simulated_truth(cell, load_robot(cell.robot))
+        if frame is not None:
+            f = tool_frame_json(frame)
+            t = tool_frame_json(truth.tool.tcp_pose)
+            print("                       x mm       y mm       z mm     rx deg     ry deg     rz deg")
+            for label, v in (("written back", f), ("hidden truth", t)):
+                print(f"  {label:<14}" + "".join(f"{v[k]:11.4f}" for k in ("x_mm", "y_mm", "z_mm", "rx_deg",
+                                                                         "ry_deg", "rz_deg")))
+            score = truth.score_tool_frame(frame)
+            print(f"  error against the truth: TCP {score['position_error_mm']:.4f} mm, "
+                  f"axis {score['axis_error_deg']:.4f} deg")
+        for g in result.get("gates", []):
+            print(f"  [{'pass' if g['passed'] else 'FAIL'}] {g['name']}: {g['why']}")
+        print(f"  report: {detail.get('report')}\n  dataset: {detail.get('dataset')}\n  store: {work / 'state'}")
+        return 0 if code is ResultCode.OK else 1
+    finally:
+        _stop(daemon)
+        _stop(fakes)
+        print_progress("stopped the daemon and the fakes")
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("demo", help="the whole product on the simulated network cell (make demo)",
+                       description="Start the simulated cell's network fakes and the daemon on them, press start "
+                                   "through the Modbus panel, and print the written-back tool frame beside the "
+                                   "hidden truth and the run's report.")
+    p.add_argument("--cell", default="sim-net", metavar="CELL.yaml", help="a networked simulated cell (default sim-net)")
+    p.add_argument("--routine", default="tcp-laser", help="the routine the operator selects (default tcp-laser)")
+    p.set_defaults(func=cmd_demo)
