@@ -21,6 +21,8 @@ from ..config.robot_files import load_robot
 from ..drivers import registry as drivers_registry
 from ..routines import registry, runner
 from ..routines.base import PlanRefused, Result, tool_frame_json
+from ..routines.records import read_dataset
+from ..solvers.measurement_model import Layout, Observations, predict
 from .cells import load_cell, open_drivers
 from .cli_common import UsageError, print_progress
 
@@ -32,7 +34,32 @@ def _score(result: Result, cell) -> None:
     score = truth.report()
     if result.tool_frame is not None:
         score.update(truth.score_tool_frame(result.tool_frame))
+    if result.routine == "tracker" and result.dataset and truth.tool is not None:
+        score.update(_score_kinematics(result, truth, load_robot(cell.robot)))
     result.sim_truth = score
+
+
+def _score_kinematics(result: Result, truth, model) -> dict:
+    """A kinematic calibration against the arm as built and the real tool tip (where the
+    simulated tracker's target sits, measured in the robot base frame), on the validation
+    rows of its dataset: the mean error the identified model and the true one leave on the
+    measured positions, and the identified model's distance from the true positions."""
+    data = read_dataset(result.dataset, result.routine, ("split", "target"))
+    val = np.asarray(data["split"]) == "val"
+    if not val.any():
+        return {}
+    layout = Layout(model, tuple(dict.fromkeys(np.asarray(data["target"])[~val]))[:1])
+    value = {p.name: p.value for p in result.parameters}
+    found = np.array([np.deg2rad(value[n]) if a else value[n] for n, a in zip(layout.names, layout.is_angle)])
+    true = layout.initial(base=np.zeros(6), offsets=[truth.tool.tcp_m * 1e3])
+    true[: layout.n_kin] = truth.arm_params
+    q = data.stack(*[f"q{j}_rad" for j in range(1, model.n_joints + 1)])[val]
+    obs = Observations(q, data.stack("x_mm", "y_mm", "z_mm")[val], np.zeros(len(q), int), layout.target_names)
+    p_found, p_true = predict(layout, found, obs), predict(layout, true, obs)
+    after, floor = (float(np.linalg.norm(p - obs.xyz_mm, axis=1).mean()) for p in (p_found, p_true))
+    error = np.linalg.norm(p_found - p_true, axis=1)
+    return {"validation_mean_mm": after, "floor_mean_mm": floor, "validation_over_floor": after / floor,
+            "model_error_mean_mm": float(error.mean()), "model_error_max_mm": float(error.max())}
 
 
 def _text(result: Result) -> str:

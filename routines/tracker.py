@@ -166,9 +166,7 @@ class TrackerCampaign(Routine):
             moves.append(Move.joint(label, stop.q_rad, speed, accel))
             self._stops[label] = stop
             q_at = stop.q_rad
-        if moves:
-            if not path_clear(self.model, q_at, home, box, tool_mm):
-                raise RoutineError("internal: the way home from the last pose leaves the box")
+        if moves:  # every pose was kept only with a clear straight path from home, and so back
             moves.append(Move.joint("back home", home, speed, accel))
         return moves
 
@@ -176,10 +174,7 @@ class TrackerCampaign(Routine):
 
     def resume(self, dataset: Dataset) -> None:
         """Continue an incomplete campaign: its rows are kept and its poses not measured again."""
-        needed = ["pose", "split", "target", *self._joint_columns(), "x_mm", "y_mm", "z_mm"]
-        missing = [c for c in needed if c not in dataset.columns]
-        if missing:
-            raise RoutineError(f"{dataset.path}: cannot resume: column(s) {', '.join(missing)} missing")
+        _check_columns(dataset, self.model.n_joints, "pose")
         self.resumed = dataset
 
     def _remaining(self, stops: list[Stop]) -> list[Stop]:
@@ -253,8 +248,8 @@ class TrackerCampaign(Routine):
                "t_s": np.array([r["t_s"] for r in rows], dtype=float),
                "sigma_mm": np.array([r["sigma_mm"] for r in rows], dtype=float)}
         if old is not None:
-            new = {c: np.concatenate([np.asarray(old[c], dtype=v.dtype) if c in old.columns else
-                                      np.full(n_old, np.nan), v]) for c, v in new.items()}
+            new = {c: np.concatenate([old[c] if c in old.columns else np.full(n_old, np.nan), v])
+                   for c, v in new.items()}
         motion_s = self._motion_s + (float(old.meta.get("motion_s", 0.0)) if old is not None else 0.0)
         n = n_old + len(rows)
         meta = {"plan_id": self.plan_id, "target": o.target, "poses": o.poses,
@@ -320,9 +315,18 @@ class TrackerCampaign(Routine):
                       notes=notes, extra=extra, cycle_time_s=dataset.meta.get("cycle_time_s"))
 
 
+def _check_columns(dataset: Dataset, n_joints: int, *more: str) -> None:
+    needed = ["split", "target", *[f"q{j}_rad" for j in range(1, n_joints + 1)], "x_mm", "y_mm", "z_mm", *more]
+    missing = [c for c in needed if c not in dataset.columns]
+    if missing:
+        raise RoutineError(f"{dataset.path}: not a tracker campaign's dataset: column(s) {', '.join(missing)} "
+                           "missing")
+
+
 def _observations(dataset: Dataset, n_joints: int) -> tuple[Observations, Observations]:
     """Calibration and validation rows; targets numbered by first appearance in the
     calibration rows, as ``cellcal identify`` numbers them."""
+    _check_columns(dataset, n_joints)
     q = dataset.stack(*[f"q{j}_rad" for j in range(1, n_joints + 1)])
     xyz = dataset.stack("x_mm", "y_mm", "z_mm")
     split = np.asarray(dataset["split"], dtype=str)

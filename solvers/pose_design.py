@@ -5,6 +5,11 @@ log det(sum_i J_i^T J_i) over the chosen poses, i.e. shrink the volume of the
 parameter confidence ellipsoid, so fewer measurements reach the same accuracy.
 A greedy pass (rank-3 updates of the information matrix) is followed by
 Fedorov exchanges until no swap improves the determinant.
+
+The candidates a tracker campaign chooses from (:func:`sighted_candidates`): random
+configurations on the nominal model that keep the arm in the cell's box and the
+target in the instrument's sight, facing it, with the beam clear of the arm; and a
+short round trip through the chosen ones (:func:`tour`).
 """
 from __future__ import annotations
 

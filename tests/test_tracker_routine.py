@@ -70,11 +70,15 @@ def run_cli(capsys, *argv) -> tuple[int, dict]:
     return code, json.loads(capsys.readouterr().out)
 
 
-def true_positions(cell, q: np.ndarray) -> np.ndarray:
+def world_truth(cell):
+    """The hidden truth of an in-process simulated cell, as its world has it."""
+    with open_drivers(cell) as drivers:
+        return drivers.world.truth
+
+
+def true_positions(cell, truth, q: np.ndarray) -> np.ndarray:
     """Where the real tool tip (the target) is at joints q, noise-free: the hidden truth."""
     model = load_robot(cell.robot)
-    with open_drivers(cell) as drivers:
-        truth = drivers.world.truth
     layout = Layout(model, ("smr1",))
     x = layout.initial(base=np.zeros(6), offsets=[truth.tool.tcp_m * 1e3])
     x[: layout.n_kin] = truth.arm_params
@@ -108,7 +112,7 @@ def test_the_campaign_reaches_the_floor_the_true_model_leaves(campaign):
     table = read_measurements(doc["dataset"], 6)
     val = table.rows(table.split == "val")
     assert len(val) == 30 and int(np.sum(table.split == "cal")) == 60
-    truth_mm = true_positions(cell, val.q_rad)
+    truth_mm = true_positions(cell, world_truth(cell), val.q_rad)
     floor = float(np.linalg.norm(truth_mm - val.xyz_mm, axis=1).mean())
     after = doc["validation_mean_mm"]
     print(f"validation mean: before {doc['validation_before_mean_mm']:.4f} mm, after {after:.4f} mm, "
@@ -121,6 +125,10 @@ def test_the_campaign_reaches_the_floor_the_true_model_leaves(campaign):
     model_error = np.linalg.norm(predict(layout, x, obs) - truth_mm, axis=1)
     assert np.allclose(np.linalg.norm(predict(layout, x, obs) - val.xyz_mm, axis=1).mean(), after, rtol=1e-9)
     assert model_error.mean() <= 0.5 * floor, model_error.mean()
+    # the run's own report against the truth says the same
+    score = doc["sim_truth"]
+    assert score["validation_over_floor"] == pytest.approx(after / floor, rel=1e-6)
+    assert score["model_error_mean_mm"] == pytest.approx(model_error.mean(), rel=1e-6)
     assert doc["write_back"] and all(g["passed"] for g in doc["gates"])
 
 
@@ -339,3 +347,4 @@ def test_a_tracker_that_cannot_see_the_arm_is_refused_before_anything_moves(tmp_
                                        "  poses: 10\n  validation_poses: 0\n  candidates: 20\n"))
     with pytest.raises(RoutineError, match=r"only 0 configurations"):
         runner.prepare("tracker", cell)
+
