@@ -136,8 +136,9 @@ def read_measurements(path, n_joints: int) -> MeasurementTable:
         if limit is not None:
             over = np.flatnonzero(np.abs(values[c]) > limit)
             if over.size:
-                raise DatasetError(f"{name}:{lines_1[over[0]]}: column {c!r}: {_fields(lines, rows[over[0]], quoted)[cols[c]].strip()} "
-                                   f"{unit_} is {why} (|value| must be at most {limit:g})")
+                text = _fields(lines, rows[over[0]], quoted)[cols[c]].strip()
+                raise DatasetError(f"{name}:{lines_1[over[0]]}: column {c!r}: {text} {unit_} is {why} "
+                                   f"(|value| must be at most {limit:g})")
         return values[c]
 
     q = np.column_stack([column(c, MAX_JOINT[unit], unit, "no joint turns that far") for c in joints])

@@ -25,7 +25,7 @@ import numpy as np
 
 from . import crossval, identifiability, lsq
 from .effects import CAUSES, Context, Term
-from .identify import Identification, IdentifyOptions, identify
+from .identify import Identification, IdentifyOptions, identify_variants
 from .extended_model import ExtendedFit, embed, fit_extended, norm_scale, param_columns, stack_param_bases
 from .measurement_model import Layout, Observations, jacobian_chunks, predict
 
@@ -328,8 +328,9 @@ def _geometric_baseline(model, obs, folds, options) -> Identification:
     """The geometric fit to compare against: the parameters above the noise, or every
     structurally identifiable one, whichever predicts held-out data better. (When an
     unmodelled effect dominates the residual, the noise criterion is too strict.)"""
-    above_noise = identify(model, obs, IdentifyOptions(regularize="none", prior_mm=options.prior_mm))
-    structural = identify(model, obs, IdentifyOptions(regularize="cv", prior_mm=options.prior_mm))
+    variants = (IdentifyOptions(regularize="none", prior_mm=options.prior_mm),
+                IdentifyOptions(regularize="cv", prior_mm=options.prior_mm))
+    above_noise, structural = identify_variants(model, obs, variants)  # one nominal and first fit for both
     if np.array_equal(above_noise.free, structural.free):
         return above_noise
 

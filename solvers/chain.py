@@ -59,17 +59,49 @@ class Chain:
         return out
 
 
-def _apply(rot: np.ndarray, org: np.ndarray, el: Element, v: np.ndarray):
-    """Right-multiply frames (rot, org) by the elementary transform of value v."""
-    i = el.axis
-    if el.is_rotation:
-        j, k = (i + 1) % 3, (i + 2) % 3
-        c, s = np.cos(v)[..., None], np.sin(v)[..., None]
-        new = rot.copy()
-        new[..., :, j] = c * rot[..., :, j] + s * rot[..., :, k]
-        new[..., :, k] = -s * rot[..., :, j] + c * rot[..., :, k]
-        return new, org
-    return rot, org + v[..., None] * rot[..., :, i]
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b for vectors stored component-major, (3, N)."""
+    return np.stack([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _frames(chain: Chain, params: np.ndarray, q: np.ndarray, keep_frames: bool):
+    """End frame as its three axes and origin, each (..., 3, N): component-major, so that every
+    operation runs along the poses; with keep_frames the same before each element plus after
+    the last one (before ``end``).
+
+    Each elementary rotation recombines two axes, each translation moves the origin along one.
+    """
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    params = np.asarray(params, dtype=float)
+    lead = params.shape[:-1]
+    n = q.shape[0]
+    axes = [np.broadcast_to(np.eye(3)[i][:, None], lead + (3, n)) for i in range(3)]
+    org = np.zeros(lead + (3, n))
+    frames = []
+    for el, v in zip(chain.elements, chain.values(params, q)):
+        if keep_frames:
+            frames.append((axes, org))
+        i = el.axis
+        v = v[..., None, :]
+        if el.is_rotation:
+            j, k = (i + 1) % 3, (i + 2) % 3
+            c, s = np.cos(v), np.sin(v)
+            axes = list(axes)
+            axes[j], axes[k] = c * axes[j] + s * axes[k], -s * axes[j] + c * axes[k]
+        else:
+            org = org + v * axes[i]
+    if keep_frames:
+        frames.append((axes, org))
+    end = chain.end
+    if not np.array_equal(end, np.eye(4)):
+        org = org + axes[0] * end[0, 3] + axes[1] * end[1, 3] + axes[2] * end[2, 3]
+        axes = [axes[0] * end[0, c] + axes[1] * end[1, c] + axes[2] * end[2, c] for c in range(3)]
+    return axes, org, frames
+
+
+def _pose_major(axes, org):
+    """Frames as the rest of the code keeps them: rot (..., N, 3, 3), org (..., N, 3)."""
+    return np.stack([np.swapaxes(a, -1, -2) for a in axes], axis=-1), np.swapaxes(org, -1, -2).copy()
 
 
 def forward(chain: Chain, params: np.ndarray, q: np.ndarray, keep_frames: bool = False):
@@ -78,23 +110,10 @@ def forward(chain: Chain, params: np.ndarray, q: np.ndarray, keep_frames: bool =
     Returns (rot (..., N, 3, 3), org (..., N, 3)) and, with keep_frames, the list of
     frames *before* each element plus the frame after the last one (before ``end``).
     """
-    q = np.atleast_2d(np.asarray(q, dtype=float))
-    params = np.asarray(params, dtype=float)
-    lead = params.shape[:-1] + (q.shape[0],)
-    rot = np.broadcast_to(np.eye(3), lead + (3, 3)).copy()
-    org = np.zeros(lead + (3,))
-    frames = []
-    for el, v in zip(chain.elements, chain.values(params, q)):
-        if keep_frames:
-            frames.append((rot, org))
-        rot, org = _apply(rot, org, el, v)
+    axes, org, frames = _frames(chain, params, q, keep_frames)
+    rot, org = _pose_major(axes, org)
     if keep_frames:
-        frames.append((rot, org))
-    end = chain.end
-    org = org + rot @ end[:3, 3]
-    rot = rot @ end[:3, :3]
-    if keep_frames:
-        return rot, org, frames
+        return rot, org, [_pose_major(a, o) for a, o in frames]
     return rot, org
 
 
@@ -106,15 +125,18 @@ def point_jacobians(chain: Chain, params: np.ndarray, q: np.ndarray, offset: np.
     Returns p (N, 3), dp/dparams (N, 3, n_params), dp/dq (N, 3, n_joints),
     end rotation (N, 3, 3).
     """
-    rot, org, frames = forward(chain, params, q, keep_frames=True)
-    p = org + np.einsum("nij,nj->ni", rot, offset)
-    jp = np.zeros(p.shape[:1] + (3, n_params))
-    jq = np.zeros(p.shape[:1] + (3, n_joints))
-    for el, (r, o) in zip(chain.elements, frames):
-        axis = r[..., :, el.axis]
-        col = np.cross(axis, p - o) if el.is_rotation else axis
+    axes, org, frames = _frames(chain, params, q, keep_frames=True)
+    offset = np.asarray(offset, dtype=float)
+    p = org + axes[0] * offset[:, 0] + axes[1] * offset[:, 1] + axes[2] * offset[:, 2]  # (3, N)
+    n = p.shape[-1]
+    jp = np.zeros((n_params, 3, n))
+    jq = np.zeros((n_joints, 3, n))
+    for el, (a, o) in zip(chain.elements, frames):
+        axis = a[el.axis]
+        col = _cross(axis, p - o) if el.is_rotation else axis
         if el.param >= 0:
-            jp[:, :, el.param] += col
+            jp[el.param] += col
         for j, c in el.joints:
-            jq[:, :, j] += c * col
-    return p, jp, jq, rot
+            jq[j] += c * col
+    rot, p = _pose_major(axes, p)
+    return p, np.transpose(jp, (2, 1, 0)), np.transpose(jq, (2, 1, 0)), rot

@@ -113,7 +113,7 @@ def heldout_errors(columns, r: np.ndarray, factors: FoldFactors, steps: np.ndarr
             sel = np.flatnonzero(fold == k)
             moved = (j[sel].reshape(-1, factors.p) @ steps[:, k, :].T).reshape(len(sel), 3, len(steps))
             pred = r[rows][sel][:, :, None] + moved
-            out[:, sel] = np.sqrt(np.einsum("nik,nik->kn", pred, pred))
+            out[:, sel] = np.sqrt(np.sum(pred * pred, axis=1)).T
     return errs
 
 

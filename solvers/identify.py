@@ -143,10 +143,13 @@ def scales(layout: Layout, x: np.ndarray, obs: Observations) -> np.ndarray:
     return np.where(layout.is_angle, 1.0 / reach, 1.0)
 
 
-def _problem(layout, obs, x_full, free, lam, scale, loss="linear", f_scale=1.0):
+def _problem(layout, obs, x_full, free, lam, scale, loss="linear", f_scale=1.0, cache=None):
     """The least-squares problem over the free entries of x: (unpack, evaluate) for
-    ``lsq.levenberg_marquardt``, the L2 prior on kinematic parameters as extra rows."""
+    ``lsq.levenberg_marquardt``, the L2 prior on kinematic parameters as extra rows.
+    cache: x.tobytes() -> Gram matrix of [J | r] over every unknown at x, made earlier
+    (least squares only)."""
     idx = np.flatnonzero(free)
+    kinematic = bool(np.any(idx < layout.n_kin))  # else only base and target columns are needed
     kin = idx[idx < layout.n_kin]
     at = np.searchsorted(idx, kin)
     centre = layout.model.nominal[kin]
@@ -160,8 +163,11 @@ def _problem(layout, obs, x_full, free, lam, scale, loss="linear", f_scale=1.0):
     def evaluate(z, jac):
         x = unpack(z)
         ne = lsq.NormalEquations(len(idx), loss, f_scale)
-        if jac:
-            for rows, p, j in jacobian_chunks(layout, x, obs):
+        gram = cache.get(x.tobytes()) if jac and cache is not None and loss == "linear" else None
+        if gram is not None:
+            ne.a, ne.g, ne.cost = gram[np.ix_(idx, idx)].copy(), gram[idx, -1].copy(), 0.5 * float(gram[-1, -1])
+        elif jac:
+            for rows, p, j in jacobian_chunks(layout, x, obs, kinematic=kinematic):
                 ne.add(j.reshape(-1, layout.size)[:, idx], (p - obs.xyz_mm[rows]).ravel())
         else:
             ne.add(None, (predict(layout, x, obs) - obs.xyz_mm).ravel())
@@ -175,12 +181,12 @@ def _problem(layout, obs, x_full, free, lam, scale, loss="linear", f_scale=1.0):
 
 
 def fit(layout: Layout, obs: Observations, x_start: np.ndarray, free: np.ndarray, lam: float = 0.0,
-        scale: np.ndarray | None = None, loss: str = "linear", f_scale: float = 1.0) -> Fit:
+        scale: np.ndarray | None = None, loss: str = "linear", f_scale: float = 1.0, cache=None) -> Fit:
     """Least squares over the free entries of x, starting from x_start (Levenberg-Marquardt on
     normal equations accumulated over blocks of rows: the Jacobian never exists whole)."""
     if scale is None:
         scale = scales(layout, x_start, obs)
-    unpack, evaluate = _problem(layout, obs, x_start, free, lam, scale, loss, f_scale)
+    unpack, evaluate = _problem(layout, obs, x_start, free, lam, scale, loss, f_scale, cache)
     sol = lsq.levenberg_marquardt(evaluate, x_start[free], scale[free], ftol=1e-12, xtol=1e-12, gtol=1e-12,
                                   max_nfev=None if loss == "linear" else 200)
     x = unpack(sol.x)
@@ -245,12 +251,17 @@ def _covariance(layout, obs, x, free, lam, scale) -> tuple[np.ndarray, float]:
     return cov, float(np.sqrt(s2))
 
 
-def _r_factor(layout, x, obs, scale) -> np.ndarray:
-    """R factor of the scaled Jacobian over every unknown (same singular values and subsets)."""
+def _at_start(layout, x, obs, scale) -> tuple[np.ndarray, np.ndarray]:
+    """R factor of the scaled Jacobian over every unknown (same singular values and subsets),
+    and the Gram matrix of [J | r] (unscaled) for the fits that start here."""
     acc = lsq.RFactor(layout.size)
-    for _, _, j in jacobian_chunks(layout, x, obs):
-        acc.add(j.reshape(-1, layout.size) * scale)
-    return acc.r
+    gram = np.zeros((layout.size + 1, layout.size + 1))
+    for rows, p, j in jacobian_chunks(layout, x, obs):
+        j = j.reshape(-1, layout.size)
+        acc.add(j * scale)
+        a = np.concatenate([j, (p - obs.xyz_mm[rows]).reshape(-1, 1)], axis=1)
+        gram += a.T @ a
+    return acc.r, gram
 
 
 def _f_scale(residuals: np.ndarray) -> float:
@@ -296,14 +307,54 @@ def check_fit(errors_mm: np.ndarray) -> None:
 def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions = IdentifyOptions(),
              x_start: np.ndarray | None = None, progress=None) -> Identification:
     """Identify geometric parameters, base and target offsets from measured positions."""
+    return identify_variants(model, obs, (options,), x_start, progress)[0]
+
+
+SHARED = ("loss", "fixed", "prior_mm")  # options the first stage depends on
+
+
+def identify_variants(model: KinematicModel, obs: Observations, variants, x_start: np.ndarray | None = None,
+                      progress=None) -> list[Identification]:
+    """``identify`` under several options that differ only in how the final fit is regularised
+    and trusted: the nominal fit, the identifiability analysis and the first fit, which do not
+    depend on those, are made once. Cross-validating variants must share folds and seed."""
     t0 = time.perf_counter()
     say = progress or (lambda msg: None)
+    variants = tuple(variants)
+    if any(getattr(v, k) != getattr(variants[0], k) for v in variants for k in SHARED):
+        raise ValueError(f"identify_variants: the options must agree in {', '.join(SHARED)}")
+    cv = {(v.folds, v.seed) for v in variants if v.regularize == "cv"}
+    if len(cv) > 1:
+        raise ValueError("identify_variants: cross-validating variants must share folds and seed")
     layout = Layout(model, obs.target_names)
-    unknown = sorted(set(options.fixed) - set(model.param_names))
+    unknown = sorted(set(variants[0].fixed) - set(model.param_names))
     if unknown:
         raise ValueError(f"cannot fix unknown parameter(s) {', '.join(unknown)}; "
                          f"the model's parameters are {', '.join(model.param_names)}")
     check_data(layout, obs)
+    start = _first_stage(layout, obs, variants[0], x_start, next(iter(cv), None), say)
+    return [_final_stage(start, obs, v, say, t0) for v in variants]
+
+
+@dataclass(frozen=True)
+class _Start:
+    """What every variant of an identification shares: the nominal fit, the analysis, the first fit."""
+
+    layout: Layout
+    before: Fit
+    scale: np.ndarray
+    candidates: np.ndarray
+    structural: identifiability.Identifiability
+    noisy: identifiability.Identifiability
+    first: Fit
+    noise: float
+    factors: crossval.FoldFactors  # scaled Jacobian and residuals at the first fit, per fold
+    r1: np.ndarray  # R factor of the scaled Jacobian at the first fit
+    cache: dict  # Gram matrices of [J | r] at points fits start from
+
+
+def _first_stage(layout, obs, options, x_start, cv, say) -> _Start:
+    model = layout.model
     if x_start is None:
         x_start = initial_base_and_targets(layout, obs)
     nuisance = np.zeros(layout.size, bool)
@@ -322,39 +373,45 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
         candidates[model.index(name)] = False
 
     n_rows = 3 * len(obs)  # the scaled Jacobian's rows; its R factor stands in for it
-    structural = identifiability.analyse(_r_factor(layout, x0, obs, scale), nuisance, candidates, n_rows=n_rows)
-    f_scale = _f_scale(before.residuals_mm)
+    r0, gram0 = _at_start(layout, x0, obs, scale)
+    cache = {x0.tobytes(): gram0}
+    structural = identifiability.analyse(r0, nuisance, candidates, n_rows=n_rows)
     # first pass over every structurally identifiable parameter: a noise estimate
-    first = fit(layout, obs, x0, structural.keep, scale=scale, loss=loss, f_scale=f_scale)
+    first = fit(layout, obs, x0, structural.keep, scale=scale, loss=loss, f_scale=_f_scale(before.residuals_mm),
+                cache=cache)
     check_fit(first.errors)
     dof = max(3 * len(obs) - int(structural.keep.sum()), 1)
     resid = first.residuals_mm.ravel()
     noise = float(np.sqrt(resid @ resid / dof)) if loss == "linear" else 1.4826 * float(
         np.median(np.abs(resid)))
     # the scaled Jacobian at the first fit, as R factors per cross-validation fold
-    folds = crossval.fold_ids(obs.q, options.folds, options.seed) if options.regularize == "cv" \
-        else np.zeros(len(obs), int)
-    j1 = crossval.FoldFactors(folds, layout.size)
+    folds = crossval.fold_ids(obs.q, cv[0], cv[1]) if cv else np.zeros(len(obs), int)
+    factors = crossval.FoldFactors(folds, layout.size)
     for rows, p, j in jacobian_chunks(layout, first.x, obs):
-        j1.add(rows, j * scale, first.residuals_mm[rows])
-    r1 = j1.r_all()[: layout.size, : layout.size]
+        factors.add(rows, j * scale, first.residuals_mm[rows])
+    r1 = factors.r_all()[: layout.size, : layout.size]
     noisy = identifiability.analyse(r1, nuisance, candidates, noise_mm=noise, prior_mm=options.prior_mm,
                                     n_rows=n_rows)
-    f_scale = max(2.5 * noise, 1e-6)
     say(f"identifiable: {structural.rank} of {int(candidates.sum())} geometric parameters "
         f"structurally, {noisy.rank} above the noise ({noise * 1000:.1f} um)")
+    return _Start(layout, before, scale, candidates, structural, noisy, first, noise, factors, r1, cache)
 
+
+def _final_stage(start: _Start, obs, options, say, t0) -> Identification:
+    layout, before, scale, first, noisy = start.layout, start.before, start.scale, start.first, start.noisy
+    model, x0, loss = layout.model, start.before.x, options.loss
+    f_scale = max(2.5 * start.noise, 1e-6)
     cv_curve: list[tuple[float, float]] = []
     lam = 0.0
     if options.regularize == "none":
         free = noisy.keep
     else:
-        free = structural.keep
-        lam, cv_curve = _choose_lambda(layout, obs, first, j1, free, scale, options, say)
-    unident = tuple(n for i, n in enumerate(model.param_names) if candidates[i] and not free[i])
+        free = start.structural.keep
+        lam, cv_curve = _choose_lambda(layout, obs, first, start.factors, free, scale, options, say)
+    unident = tuple(n for i, n in enumerate(model.param_names) if start.candidates[i] and not free[i])
 
     def refit(mask: np.ndarray) -> Fit:
-        return fit(layout, obs, x0, mask, lam=lam, scale=scale, loss=loss, f_scale=f_scale)
+        return fit(layout, obs, x0, mask, lam=lam, scale=scale, loss=loss, f_scale=f_scale, cache=start.cache)
 
     final = refit(free)
     trust = _hold_untrustworthy(layout, obs, before, final, free, lam, scale, options, refit, say)
@@ -363,7 +420,7 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
     std[free] = np.sqrt(np.clip(np.diag(trust.cov), 0, None))
     # estimated, but only as well as the prior allows: below the noise on their own
     weak = tuple(n for i, n in enumerate(model.param_names) if free[i] and not noisy.keep[i])
-    sv = np.linalg.svd(r1[:, free], compute_uv=False)
+    sv = np.linalg.svd(start.r1[:, free], compute_uv=False)
     message = final.message.rstrip(".")
     if trust.held:
         message += ("; held at nominal after the fit because the data cannot pin them down: "
@@ -376,7 +433,7 @@ def identify(model: KinematicModel, obs: Observations, options: IdentifyOptions 
         correlated=_correlated_groups(layout, obs, final.x, x0, free, trust.cov),
         weakly_identifiable=weak, fixed=tuple(options.fixed), lam=float(lam), cv_curve=tuple(cv_curve),
         residuals_mm=final.residuals_mm, residuals_nominal_mm=before.residuals_mm, noise_mm=trust.noise_mm,
-        first_pass_noise_mm=noise, structural_rank=structural.rank, noise_rank=noisy.rank,
+        first_pass_noise_mm=start.noise, structural_rank=start.structural.rank, noise_rank=noisy.rank,
         condition=float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf"),
         status=final.status, message=message, nfev=final.nfev, seconds=time.perf_counter() - t0,
     )

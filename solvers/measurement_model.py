@@ -124,17 +124,20 @@ def predict(layout: Layout, x: np.ndarray, obs: Observations) -> np.ndarray:
     return predict_base(layout, x, obs) @ r.T + b[:3]
 
 
-def jacobian_chunks(layout: Layout, x: np.ndarray, obs: Observations, with_joints: bool = False):
+def jacobian_chunks(layout: Layout, x: np.ndarray, obs: Observations, with_joints: bool = False,
+                    kinematic: bool = True):
     """``jacobian`` a block of rows at a time: yields (rows slice, p, d p / d x[, d p / d q])."""
     for block in chunks(len(obs)):
-        yield (block, *jacobian(layout, x, obs.subset(block), with_joints))
+        yield (block, *jacobian(layout, x, obs.subset(block), with_joints, kinematic))
 
 
-def jacobian(layout: Layout, x: np.ndarray, obs: Observations, with_joints: bool = False):
+def jacobian(layout: Layout, x: np.ndarray, obs: Observations, with_joints: bool = False,
+             kinematic: bool = True):
     """Predicted positions (N, 3) and d p / d x as (N, 3, size).
 
     With ``with_joints`` also d p / d q (N, 3, n_joints), for effect models that
-    act through joint values.
+    act through joint values. ``kinematic=False`` leaves the kinematic columns (and
+    d p / d q) zero, for fits of base and target offsets alone: much less work.
     """
     n = len(obs)
     k = x[: layout.n_kin]
@@ -146,11 +149,15 @@ def jacobian(layout: Layout, x: np.ndarray, obs: Observations, with_joints: bool
     jac = np.zeros((n, 3, layout.size))
     jq = np.zeros((n, 3, nj)) if with_joints else None
     for chain, rows in _groups(layout, obs):
-        p, jp, jqq, rot = point_jacobians(chain, k, obs.q[rows], offsets[obs.target[rows]], layout.n_kin, nj)
+        if kinematic:
+            p, jp, jqq, rot = point_jacobians(chain, k, obs.q[rows], offsets[obs.target[rows]], layout.n_kin, nj)
+            jac[rows, :, : layout.n_kin] = jp
+            if with_joints:
+                jq[rows] = jqq
+        else:
+            rot, org = forward(chain, k, obs.q[rows])
+            p = org + np.einsum("nij,nj->ni", rot, offsets[obs.target[rows]])
         p_base[rows] = p
-        jac[rows, :, : layout.n_kin] = jp
-        if with_joints:
-            jq[rows] = jqq
         for i in np.unique(obs.target[rows]):
             sel = rows[obs.target[rows] == i]
             jac[sel, :, layout.target(i)] = rot[obs.target[rows] == i]

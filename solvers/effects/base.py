@@ -120,8 +120,10 @@ class JointBasis:
 
     def columns(self, jq: np.ndarray) -> np.ndarray:
         """d p / d theta = (d p / d q) @ B, (N, 3, m), from d p / d q (N, 3, nj) of the same rows."""
-        per_value = np.einsum("nij,rjm->nrim", jq, self.mix)
-        return np.einsum("nr,nrim->nim", self.values, per_value)
+        out = np.zeros(jq.shape[:2] + self.mix.shape[2:])
+        for r, j, m in zip(*np.nonzero(self.mix)):  # a handful: one per parameter and joint it moves
+            out[:, :, m] += (self.mix[r, j, m] * self.values[:, r])[:, None] * jq[:, :, j]
+        return out
 
 
 @dataclass(frozen=True)
