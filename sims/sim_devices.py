@@ -109,7 +109,7 @@ class SimRobot(Robot):
         _positive(self.name, "contact speed", np.linalg.norm(twist[:3]), self.world.limits.tcp_speed_m_s)
         world, arm = self.world, self.world.arm
         arm.start(SpeedLinear(world.kinematics, arm.q, arm.tcp_offset, twist, world.limits.tcp_accel_m_s2))
-        contact = False
+        contact, pivot = False, None
         for _ in range(int(np.ceil(timeout_s / world.cycle_s))):
             world.step()
             if world.state is not RobotState.READY:
@@ -119,10 +119,13 @@ class SimRobot(Robot):
                 arm.halt()
                 raise DeviceError(self.name, f"contact search left the workspace box at "
                                              f"{np.round(position, 4).tolist()} m")
-            if world.touching() or any(c.distance_m(position) <= 0.0 for c in self.contacts):
+            pivot = world.pivot_touch()
+            if pivot or world.touching() or any(c.distance_m(position) <= 0.0 for c in self.contacts):
                 contact = True
                 break
         arm.halt()
+        if contact and pivot == "seat":  # compliant: the socket's cone guides the tip to its seat
+            world.settle_in_pivot(self.name)
         return ContactResult(contact, world.tcp_pose, world.q)
 
     def stop(self) -> None:

@@ -18,6 +18,11 @@ controller does. Beam edges are timed between cycles, where the tool's straight 
 crosses the beam, not at the cycle that first shows the new level: a real light
 barrier switches when the tool gets there. The edge's timestamp adds the sensor's
 latency and a jitter drawn uniformly from [-jitter, +jitter].
+
+The pivot is a conical socket (:class:`PivotSocket`). A contact search that meets it
+ends as a compliant one (force mode) does: the cone guides the tip's rounding to its
+seat and the arm comes to rest there, off by its repeatability; a tip that lands on the
+flat beside the socket stays where it landed.
 """
 from __future__ import annotations
 
@@ -30,13 +35,17 @@ from ..config.cells import Cell
 from ..config.robot_files import load_robot
 from ..drivers.interfaces import DeviceError, RobotSample, RobotState, TriggerEvent
 from ..solvers.robot_model import KinematicModel
-from .arm_motion import ArmKinematics, MovingArm, MotionFault
+from .arm_motion import ArmKinematics, JointMove, MovingArm, MotionFault
 from .scene import LightBeam
 from .truth import (CellTruth, beam_blocked, beam_edges, real_tool_body, real_tool_tip, repeat_offset_m, touching,
                     truth_of_cell)
 
 HOME_Q = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
 SAMPLE_BUFFER_S = 120.0
+PIVOT_CONE_DEG = 90.0  # included angle of the pivot socket (a countersink)
+PIVOT_RIM_RADIUS_M = 0.004  # its opening: a rounding whose centre is over it slides to the seat
+PIVOT_FACE_RADIUS_M = 0.020  # the fixture's flat top around the socket
+PIVOT_SLIDE_SPEED_RAD_S = 0.05  # how fast the compliant arm follows the socket to rest
 
 
 @dataclass(frozen=True)
@@ -77,6 +86,8 @@ class SimWorld:
         self.cycle_s = cycle_s
         self.beams: list[LightBeam] = list(self.truth.beams)
         self.contacts = [c for c in (self.truth.stylus, *self.truth.contacts) if c is not None]
+        self.pivot = pivot_socket(self.truth)
+        self._pivot_fouling: list[np.ndarray] = []
         self.workspace = workspace
         self.limits = limits
         self.rng = np.random.default_rng(seed)
@@ -119,6 +130,32 @@ class SimWorld:
 
     def touching(self) -> bool:
         return any(touching(c, self._body, self.tool_radius_m) for c in self.contacts)
+
+    def pivot_touch(self) -> str | None:
+        """'seat' or 'face' when the real tip's rounding touches the pivot fixture (see
+        :meth:`PivotSocket.touch`), None when clear or the cell has no pivot."""
+        return None if self.pivot is None else self.pivot.touch(self._body[0], self.tool_radius_m)
+
+    def settle_in_pivot(self, device: str = "sim robot") -> None:
+        """The end of a compliant contact search that met the socket: the arm, orientation
+        held, follows the cone until the tip's rounding rests in it. The rest is a new pose,
+        off by the arm's repeatability like every other; the controller reports its joints."""
+        offset = repeat_offset_m(self.truth, self.rng)
+        seat = self.pivot.seat_m + (self._pivot_fouling.pop(0) if self._pivot_fouling else 0.0)
+        rotation, position = self.physics.flange(self.arm.q)
+        centre = self.truth.tool.segment(rotation, position)[0]
+        try:
+            q_rest = self.physics.ik(rotation, position + seat - offset - centre, self.arm.q, np.zeros(6))
+        except MotionFault as exc:
+            raise DeviceError(device, f"cannot settle in the pivot: {exc}") from None
+        slide = JointMove(self.arm.q, q_rest, PIVOT_SLIDE_SPEED_RAD_S, self.limits.joint_accel_rad_s2)
+        self.arm.start(slide)
+        self._motion, self._repeat_offset_m = slide, offset  # this rest's draw, not a fresh one
+        self.run_motion(slide.profile.duration + 1.0, device)
+
+    def foul_pivot(self, offset_m) -> None:
+        """Swarf in the socket: the next seat comes to rest `offset_m` (base frame) off."""
+        self._pivot_fouling.append(np.asarray(offset_m, dtype=float))
 
     def digital_inputs(self) -> int:
         bits = 0
@@ -199,6 +236,58 @@ class SimWorld:
             waited += self.cycle_s
         self._edges = [e for e in self._edges if e.t_s > self.t_s]
         return sorted(ready, key=lambda e: e.t_s)
+
+
+@dataclass(frozen=True)
+class PivotSocket:
+    """The pivot as built: a conical socket opening upwards in a flat-topped fixture, cut so
+    that a vertical tool of `tool_radius_m` rests with its tip at `point_m` (the pivot's
+    real place). A rounded tip rests with its centre on the socket's axis at the depth the
+    cone and its radius give, whatever the tool's tilt (up to where the shank meets the
+    rim, 90 deg minus half the cone angle)."""
+
+    point_m: np.ndarray
+    tool_radius_m: float
+    half_angle_rad: float = np.deg2rad(PIVOT_CONE_DEG / 2.0)
+    rim_radius_m: float = PIVOT_RIM_RADIUS_M
+    face_radius_m: float = PIVOT_FACE_RADIUS_M
+
+    @property
+    def seat_m(self) -> np.ndarray:
+        """Where the centre of the tip's rounding rests."""
+        return np.asarray(self.point_m, dtype=float) + [0.0, 0.0, self.tool_radius_m]
+
+    @property
+    def apex_m(self) -> np.ndarray:
+        return self.seat_m - [0.0, 0.0, self.tool_radius_m / np.sin(self.half_angle_rad)]
+
+    def touch(self, centre_m, radius_m: float) -> str | None:
+        """Whether a rounding of `radius_m` centred at `centre_m` touches the fixture: 'seat'
+        when its centre is over the opening (the contact pushes it towards the axis, so a
+        compliant search slides it to the seat: the capture range is the rim's radius),
+        'face' when it lands on the flat top beside the socket (it stays there, off-centre),
+        None when clear. Judged in the fixture's section through the centre: the cone's
+        wall from the apex to the rim, then the top face to the fixture's edge."""
+        d = np.asarray(centre_m, dtype=float) - self.apex_m
+        rho, h = float(np.hypot(d[0], d[1])), float(d[2])
+        depth = self.rim_radius_m / np.tan(self.half_angle_rad)
+        section = (((0.0, 0.0), (self.rim_radius_m, depth)), ((self.rim_radius_m, depth), (self.face_radius_m, depth)))
+        if min(_distance_2d((rho, h), a, b) for a, b in section) > radius_m:
+            return None
+        return "seat" if rho < self.rim_radius_m else "face"
+
+
+def _distance_2d(point, a, b) -> float:
+    p, a, b = np.asarray(point), np.asarray(a), np.asarray(b)
+    t = float(np.clip((p - a) @ (b - a) / ((b - a) @ (b - a)), 0.0, 1.0))
+    return float(np.linalg.norm(a + t * (b - a) - p))
+
+
+def pivot_socket(truth: CellTruth) -> PivotSocket | None:
+    """The truth's pivot as a socket for its tool (None without a pivot or a tool)."""
+    if truth.pivot_m is None or truth.tool is None:
+        return None
+    return PivotSocket(np.asarray(truth.pivot_m, dtype=float), truth.tool.radius_m)
 
 
 def world_of_cell(cell: Cell) -> SimWorld:
