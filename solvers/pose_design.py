@@ -157,7 +157,9 @@ def path_clear(model: KinematicModel, q_from, q_to, box_mm, tool_mm) -> bool:
 
 
 def _sight_clear(pts: np.ndarray, target: np.ndarray, sight: Sight) -> np.ndarray:
-    """Whether the line from each target to the instrument keeps `clearance_mm` from the skeleton."""
+    """Whether the line from each target to the instrument, the target included, keeps
+    `clearance_mm` from the skeleton `pts` (N, F, 3): an arm folded back onto its tool
+    blocks the beam, and touches the tool."""
     c = sight.clearance_mm
     if c <= 0 or not len(target):
         return np.ones(len(target), bool)
@@ -171,9 +173,9 @@ def _sight_clear(pts: np.ndarray, target: np.ndarray, sight: Sight) -> np.ndarra
     u = d / dist[:, None]
     tu = np.einsum("ni,ni->n", target, u)
     along = -tu + np.sqrt(np.maximum(tu**2 - np.einsum("ni,ni->n", target, target) + reach**2, 0.0))
-    along = np.clip(along, c, dist)
+    along = np.clip(along, 0.0, dist)
     s = np.linspace(0.0, 1.0, int(np.ceil(2 * reach / (c / 2))) + 1)
-    points = target[:, None] + (c + s[None, :] * (along - c)[:, None])[:, :, None] * u[:, None]  # (N, S, 3)
+    points = target[:, None] + (s[None, :] * along[:, None])[:, :, None] * u[:, None]  # (N, S, 3)
     ok = np.ones(len(target), bool)
     for lo in range(0, len(target), 128):
         sl = slice(lo, lo + 128)
@@ -182,6 +184,12 @@ def _sight_clear(pts: np.ndarray, target: np.ndarray, sight: Sight) -> np.ndarra
         gap = np.linalg.norm(ap - t[..., None] * ab[sl, None], axis=-1)
         ok[sl] = gap.min(axis=(1, 2)) >= c
     return ok
+
+
+def up_to_wrist(model: KinematicModel) -> int:
+    """How many skeleton points lead up to the wrist: the frames before the last two joints
+    move. The links after them carry the target and sit behind it (it faces away from them)."""
+    return model.joint_elements[-2] + 1 if len(model.joint_elements) >= 2 else 0
 
 
 def _last_joint_sees(model: KinematicModel, target_mm) -> bool:
@@ -225,7 +233,8 @@ def sighted_candidates(model: KinematicModel, n: int, rng: np.random.Generator, 
         ok = (_arm_in_box(model, q, box_mm, tool_mm, (rot, org, pts)) & _in_box(target, box_mm) & (dist <= sight.max_range_mm)
               & (u @ sight.axis >= cos_view) & (-np.einsum("ni,ni->n", rot @ normal, u) >= cos_accept))
         idx = np.flatnonzero(ok)
-        idx = idx[_sight_clear(pts[idx], target[idx], sight)]
+        wrist = up_to_wrist(model) or pts.shape[1]
+        idx = idx[_sight_clear(pts[idx, :wrist], target[idx], sight)]
         idx = idx[paths_clear(model, home, q[idx], box_mm, tool_mm)]
         found.append(q[idx])
         total = sum(len(f) for f in found)

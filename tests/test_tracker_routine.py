@@ -32,8 +32,10 @@ from cellcal.routines.dataset import read_measurements
 from cellcal.routines.records import read_dataset
 from cellcal.solvers.inverse import tcp_frames
 from cellcal.solvers.measurement_model import Layout, Observations, predict
-from cellcal.solvers.pose_design import move_time_s
+from cellcal.solvers.chain import forward
+from cellcal.solvers.pose_design import Sight, move_time_s, sighted_candidates
 
+HOME = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
 ARM_ERRORS = "  arm_length_error_mm: 0.5\n  arm_angle_error_deg: 0.05\n"
 FLOOR_FACTOR = 1.15
 
@@ -203,6 +205,40 @@ def test_every_pose_is_in_the_trackers_sight_and_the_plan_is_the_same_each_time(
     again = runner.prepare("tracker", cell)
     assert again.routine.plan_id == routine.plan_id
     assert [m.label for m in again.plan] == [m.label for m in prepared.plan]
+
+
+def sight_gap_mm(model, q, target_mm, instrument_mm) -> np.ndarray:
+    """Closest approach of each line of sight (target -> instrument) to the arm's skeleton (the
+    chain's frame origins from the base up to the wrist, the last two joints' links carrying the
+    target behind it), sampled every 5 mm: an independent check."""
+    rot, org, frames = forward(model.chains[model.default_chain], model.nominal, q, keep_frames=True)
+    pts = np.stack([f[1] for f in frames[: model.joint_elements[-2] + 1]], axis=1)
+    target = org + rot @ target_mm
+    out = []
+    for i in range(len(q)):
+        length = np.linalg.norm(instrument_mm - target[i])
+        line = target[i] + np.linspace(0, 1, int(length / 5))[:, None] * (instrument_mm - target[i])
+        a, ab = pts[i, :-1], np.diff(pts[i], axis=0)
+        t = np.clip(np.einsum("sfi,fi->sf", line[:, None] - a, ab) / np.maximum((ab**2).sum(1), 1e-12), 0, 1)
+        out.append(np.linalg.norm(line[:, None] - a - t[..., None] * ab, axis=-1).min())
+    return np.array(out)
+
+
+def test_the_line_of_sight_keeps_clear_of_the_arm():
+    model = load_robot("ur10e")
+    instrument = np.array([-2500.0, 0.0, 1000.0])
+    sight = Sight(instrument, -instrument / np.linalg.norm(instrument), np.deg2rad(60), np.deg2rad(30), 80.0, 15e3)
+    box = (np.array([-1200.0, -1000.0, 50.0]), np.array([1200.0, 1000.0, 1400.0]))
+    target = np.array([0.0, 0.0, 150.0])
+
+    def draw(sight):
+        return sighted_candidates(model, 300, np.random.default_rng(5), target_mm=target, normal=[0, 0, 1],
+                                  sight=sight, box_mm=box, tool_mm=target, home_q=HOME)
+    kept = draw(sight)
+    # the check samples the line every clearance/2: within 3 % of the clearance
+    assert sight_gap_mm(model, kept, target, instrument).min() >= 0.97 * 80.0
+    blind = sight_gap_mm(model, draw(dataclasses.replace(sight, clearance_mm=0.0)), target, instrument)
+    assert np.sum(blind < 40.0) >= 3  # without it, poses whose beam passes through the arm get in
 
 
 class Faulty:
