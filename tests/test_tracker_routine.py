@@ -384,3 +384,33 @@ def test_a_tracker_that_cannot_see_the_arm_is_refused_before_anything_moves(tmp_
     with pytest.raises(RoutineError, match=r"only 0 configurations"):
         runner.prepare("tracker", cell)
 
+
+@pytest.mark.slow
+def test_the_campaign_through_the_network_fakes_reaches_the_same_floor(tmp_path, campaign):
+    """The same cell behind ur_rtde, the tracker socket and the fake UR controller, which obey
+    the same hidden truth: the same plan, the same identification quality (about 2 min: the
+    fake controller moves in real time)."""
+    import os
+
+    from cellcal.sims.net_cell import SimCell
+    from cellcal.sims.truth import truth_of_cell
+
+    cell = load_cell(variant(tmp_path, SECTION, base="sim-net")).on_host(f"127.9.{os.getpid() % 250 + 1}.201")
+    with SimCell(cell):
+        prepared = runner.prepare("tracker", cell)
+        with open_drivers(cell) as drivers:
+            dataset = runner.measure(prepared, drivers, tmp_path / "runs", lambda message: None)
+    assert prepared.routine.plan_id == read_dataset(campaign["doc"]["dataset"], "tracker",
+                                                    ("split", "target")).meta["plan_id"]
+    result = runner.solve("tracker", cell, dataset)
+    assert result.write_back, result.reasons()
+    split = np.asarray(dataset["split"])
+    q = dataset.stack(*[f"q{j}_rad" for j in range(1, 7)])[split == "val"]
+    xyz = dataset.stack("x_mm", "y_mm", "z_mm")[split == "val"]
+    truth = truth_of_cell(cell, load_robot(cell.robot))  # the fakes' truth, built from the same file
+    floor = float(np.linalg.norm(true_positions(cell, truth, q) - xyz, axis=1).mean())
+    after = result.extra["validation_mean_mm"]
+    print(f"sim-net validation mean: before {result.extra['validation_before_mean_mm']:.4f} mm, after "
+          f"{after:.4f} mm, floor {floor:.4f} mm, ratio {after / floor:.3f}")
+    assert after <= FLOOR_FACTOR * floor
+    assert result.extra["validation_before_mean_mm"] >= 5 * after
