@@ -224,8 +224,8 @@ class TcpNpoint(Routine):
             raise RoutineError("the plan given is not this routine's plan for this cell file")
         o = self.options
         design = self.check_design()
-        progress(f"tcp-npoint: {o.orientations} orientations spread +-{o.spread_deg:g} deg about the pivot, "
-                 f"turned +-{o.turn_deg:g} deg about the tool axis: condition {design.condition:.3g}, expected TCP "
+        progress(f"tcp-npoint: {o.orientations} orientations tilted {o.spread_deg:g} and {o.spread_deg / 2:g} deg "
+                 f"about the pivot, turned +-{o.turn_deg:g} deg about the tool axis: condition {design.condition:.3g}, expected TCP "
                  f"error {design.expected_error:.4f} mm (1 sigma) at {o.repeatability_mm:g} mm repeatability")
         before = np.asarray(robot.tcp(), dtype=float)
         robot.set_tcp(self.cell.tool.tcp_pose)
