@@ -18,11 +18,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-CHUNK_ROWS = 4096  # measurements per block: a few MB of Jacobian, large enough for BLAS
+CHUNK_ROWS = 8192  # measurements per block: a few MB of Jacobian, large enough for whole-array operations
 
 
-def chunks(n: int, size: int = CHUNK_ROWS):
-    """Slices covering range(n) in blocks of at most `size`."""
+def chunks(n: int, size: int | None = None):
+    """Slices covering range(n) in blocks of at most `size` (default CHUNK_ROWS)."""
+    size = size or CHUNK_ROWS
     for start in range(0, n, size):
         yield slice(start, min(start + size, n))
 
