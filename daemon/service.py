@@ -128,7 +128,8 @@ class Service:
         self.state = state
         tag = f"run {run_id}: " if run_id is not None else ""
         log.info("%s%s%s", tag, state, f": {message}" if message else "")
-        if run_id is not None and state not in ("done", "fault", "refused", "aborted"):
+        # begin_run records "checking" and finish_run the final state, each in its own transaction
+        if run_id is not None and state not in ("checking", "done", "fault", "refused", "aborted"):
             self.store.record_state(run_id, state, message)
         self.notifier.status(f"{state}{f' (run {run_id})' if run_id is not None else ''}")
         busy = state not in ("idle", "done", "fault", "refused", "aborted")

@@ -74,20 +74,22 @@ WRITER = textwrap.dedent("""
 def test_the_store_survives_sigkill_in_the_middle_of_writes(tmp_path):
     """Killed many times at random points of a write: integrity ok, every finished run kept."""
     rng = random.Random(7)
-    finished_before = 0
+    finished_before, cut_short = 0, 0
     for _ in range(25):
         proc = subprocess.Popen([sys.executable, "-c", WRITER, str(tmp_path)], stdout=subprocess.PIPE, text=True)
         assert proc.stdout.readline().strip() == "ready"
-        time.sleep(rng.uniform(0.005, 0.08))
+        time.sleep(rng.uniform(0.01, 0.15))
         proc.kill()
         proc.wait()
         store = Store.open(tmp_path)
         assert store.integrity() == "ok"
-        finished = [r for r in store.runs(100000) if r.state == "done"]
+        runs = store.runs(100000)
+        finished = [r for r in runs if r.state == "done"]
         assert len(finished) >= finished_before  # nothing recorded before a kill is lost
         finished_before = len(finished)
+        cut_short += sum(r.state != "done" for r in runs[:1])  # the kill came in the middle of a run
         store.close()
-    assert finished_before > 25  # the writer did get work done between kills
+    assert finished_before >= 1 and cut_short >= 1, (finished_before, cut_short)
 
 
 # -- the state machine on the simulated cell ----------------------------------------------
