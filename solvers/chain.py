@@ -78,11 +78,14 @@ def _frames(chain: Chain, params: np.ndarray, q: np.ndarray, keep_frames: bool):
     axes = [np.broadcast_to(np.eye(3)[i][:, None], lead + (3, n)) for i in range(3)]
     org = np.zeros(lead + (3, n))
     frames = []
-    for el, v in zip(chain.elements, chain.values(params, q)):
+    for el in chain.elements:
         if keep_frames:
             frames.append((axes, org))
         i = el.axis
-        v = v[..., None, :]
+        v = np.asarray(params[..., el.param] if el.param >= 0 else el.constant)[..., None]
+        for j, c in el.joints:
+            v = v + c * q[:, j]
+        v = v[..., None, :]  # (..., 1, N or 1): broadcasts over the three coordinates and the poses
         if el.is_rotation:
             j, k = (i + 1) % 3, (i + 2) % 3
             c, s = np.cos(v), np.sin(v)

@@ -13,6 +13,7 @@ fold's normal equations, and the held-out errors take one more pass over its row
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -21,14 +22,31 @@ from .lsq import RFactor, chunks, stacked_r
 
 
 def groups(q: np.ndarray, radius_rad: float = 0.0) -> np.ndarray:
-    """Group id per row: rows within radius_rad (max over joints) of each other are linked."""
+    """Group id per row: rows within radius_rad (max over joints) of each other are linked.
+
+    Ids are numbered in order of each group's first row. The links are found a block of
+    rows at a time and merged into the groups found so far, so a log that lingers at one
+    configuration (thousands of rows within the radius) never holds all its pairs at once.
+    """
     q = np.asarray(q, dtype=float)
     if radius_rad <= 0:
         _, ids = np.unique(np.round(q, 6), axis=0, return_inverse=True)
         return np.asarray(ids).ravel()
-    pairs = cKDTree(q).query_pairs(radius_rad, p=np.inf, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(q), len(q)))
-    return connected_components(graph, directed=False)[1]
+    n = len(q)
+    tree = cKDTree(q)
+    label = np.arange(n)  # a row of each group stands for it; merged block by block
+    for rows in chunks(n, GROUP_BLOCK_ROWS):
+        pairs = cKDTree(q[rows]).sparse_distance_matrix(tree, radius_rad, p=np.inf, output_type="ndarray")
+        a, b = label[pairs["i"] + rows.start], label[pairs["j"]]
+        linked = a != b
+        if linked.any():
+            graph = coo_matrix((np.ones(int(linked.sum())), (a[linked], b[linked])), shape=(n, n))
+            label = connected_components(graph, directed=False)[1][label]
+    _, first, inverse = np.unique(label, return_index=True, return_inverse=True)
+    return np.argsort(np.argsort(first))[inverse.ravel()]
+
+
+GROUP_BLOCK_ROWS = 2048
 
 
 def fold_ids(q: np.ndarray, folds: int, seed: int = 0, radius_rad: float = 0.0) -> np.ndarray:
@@ -137,7 +155,6 @@ def one_step_heldout(j: np.ndarray, r: np.ndarray, folds: np.ndarray, penalty: n
 def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Normal equations: Cholesky when positive definite, least squares when (near) singular."""
     try:
-        c = np.linalg.cholesky(a)
-        return np.linalg.solve(c.T, np.linalg.solve(c, b))
+        return cho_solve(cho_factor(a, lower=True, check_finite=False), b, check_finite=False)
     except np.linalg.LinAlgError:
         return np.linalg.lstsq(a, b, rcond=None)[0]

@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
 
 CHUNK_ROWS = 8192  # measurements per block: a few MB of Jacobian, large enough for whole-array operations
 
@@ -181,7 +182,6 @@ def _solve_damped(a: np.ndarray, g: np.ndarray, mu: float) -> np.ndarray:
     """-(a + mu I)^-1 g; Cholesky, least squares when (near) singular."""
     m = a + mu * np.eye(len(a))
     try:
-        c = np.linalg.cholesky(m)
-        return -np.linalg.solve(c.T, np.linalg.solve(c, g))
+        return -cho_solve(cho_factor(m, lower=True, check_finite=False), g, check_finite=False)
     except np.linalg.LinAlgError:
         return -np.linalg.lstsq(m, g, rcond=None)[0]
