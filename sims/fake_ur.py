@@ -7,16 +7,12 @@ natively (:mod:`.fake_ur_script`). A fake-only JSON port (30199) lets tests read
 true arm state and inject faults: a protective or emergency stop, optionally once the
 arm has been moving for a given time, dropped connections, or a stalled controller.
 
-Given a cell file (``--cell-file``), the controller obeys that cell's hidden truth
-(:func:`.truth.truth_of_cell`, the same object the in-process cell and the run's score
-are built from): it computes and reports with the arm's drawing, but the real tool on
-the arm as built, off by the repeatability drawn for each motion, blocks the real beams
-and touches the real stylus, with the physics the in-process cell runs
-(:mod:`.truth`). A beam's sensor switches where the tool crosses it plus its latency
-and jitter; the digital inputs sample the sensors once per cycle, and the control port's
-``edges`` command gives each switch's exact time (the IO module of a networked cell
-stamps its trigger ring with them). Without a cell file the truth is the drawing, with
-no tool, beams or fixtures.
+Given a cell file (``--cell-file``), it obeys that cell's hidden truth with the in-process
+cell's physics (:mod:`.truth`): it reports with the arm's drawing, while the real tool on
+the arm as built, off by each motion's repeatability, blocks the real beams and touches
+the real stylus. The beams' sensors switch late (latency, jitter); the digital inputs
+sample them once per cycle; the control port's ``edges`` gives each switch's exact time
+(for a networked cell's IO module). Without a cell file the truth is the drawing.
 
 The ur_rtde constructors hold Python's GIL while they wait for the controller, so the
 fake must live in another process; the ports are fixed, so parallel fakes need distinct
@@ -83,6 +79,7 @@ class FakeUrController:
         self.contacts = [c for c in (self.truth.stylus, *self.truth.contacts) if c is not None]
         self.arm = MovingArm(ArmKinematics(model), q0, 1.0 / frequency_hz, contact=self._touching)
         self._motion, self._repeat_offset_m = None, np.zeros(3)
+        self._body_for: tuple = (None, None, None)
         self._body = self.tool_body()
         self._blocked = {id(b): beam_blocked(b, self._body, self._tool_radius_m) for b in self.truth.beams}
         self.sensors = SwitchingSensors({b.channel: self._blocked[id(b)] for b in self.truth.beams})
@@ -105,7 +102,8 @@ class FakeUrController:
                             actual_main_voltage=48.0, actual_robot_voltage=48.0, actual_robot_current=0.6,
                             actual_joint_voltage=(47.9,) * 6, actual_tool_accelerometer=(0.0, 0.0, 9.81),
                             actual_execution_time=0.35, tool_temperature=33.0, payload=0.0)
-        self._published: deque = deque([(0, self._snapshot())], maxlen=250)  # recent (cycle, snapshot)
+        # recent (cycle, snapshot): 5 s, so a sender starved on a busy machine still sends every cycle
+        self._published: deque = deque([(0, self._snapshot())], maxlen=2500)
         self._cycle_cond = threading.Condition()
         self._sockets: set[socket.socket] = set()
         self._listeners: list[socket.socket] = []
@@ -126,8 +124,15 @@ class FakeUrController:
         TCP on a surface added to the scene."""
         if self.cell.touching(tcp_position):
             return True
-        body = self.tool_body()
-        return any(touching(c, body, self._tool_radius_m) for c in self.contacts)
+        return any(touching(c, self._body_now(), self._tool_radius_m) for c in self.contacts)
+
+    def _body_now(self) -> tuple[np.ndarray, np.ndarray]:
+        """The real tool body now, computed again only when the joints, the repeatability offset
+        or the tool frame were replaced (an arm at rest costs nothing)."""
+        inputs = (self.arm.q, self._repeat_offset_m, self.arm.tcp_offset)
+        if any(a is not b for a, b in zip(inputs, self._body_for)):
+            self._body_for, self._body_cache = inputs, self.tool_body()
+        return self._body_cache
 
     def _input_bits(self) -> int:
         bits = self.cell.input_bits(self.arm.tcp_pose, self.t_s)
@@ -158,9 +163,10 @@ class FakeUrController:
             t_old = self.t_s
             self.cycle += 1
             self.t_s = self.cycle / self.frequency_hz
-            self._body = self.tool_body()
-            self.sensors.schedule(beam_edges(self.truth, self.truth.beams, self._blocked, body_old, self._body,
-                                             t_old, 1.0 / self.frequency_hz, self.rng))
+            self._body = self._body_now()
+            if self._body is not body_old:
+                self.sensors.schedule(beam_edges(self.truth, self.truth.beams, self._blocked, body_old, self._body,
+                                                 t_old, 1.0 / self.frequency_hz, self.rng))
             self.sensors.advance(self.t_s)  # the inputs sample the sensors once per cycle
             self.digital_inputs = self._input_bits()
             published = (self.cycle, self._snapshot())
@@ -173,7 +179,12 @@ class FakeUrController:
         a sender that was held up sends them all, as a real controller sends every cycle."""
         with self._cycle_cond:
             self._cycle_cond.wait_for(lambda: self._published[-1][0] > seen or self.closing, timeout_s)
-            return [entry for entry in self._published if entry[0] > seen]
+            new = []
+            for entry in reversed(self._published):  # the newest few, without walking the whole buffer
+                if entry[0] <= seen:
+                    break
+                new.append(entry)
+            return new[::-1]
 
     def _snapshot(self) -> dict:
         arm, running = self.arm, self.program_running
@@ -278,6 +289,8 @@ class FakeUrController:
                         "moving": arm.moving, "safety": self.safety, "program_running": self.program_running,
                         "digital_inputs": self.digital_inputs, "digital_outputs": self.digital_outputs,
                         "stalled": self.stalled, "messages": list(self.messages)[-20:]}
+            if cmd == "truth":  # what the controller obeys, as a simulated run's report gives it
+                return {"ok": True, "truth": self.truth.report(), "arm_params": self.truth.arm_params.tolist()}
             if cmd == "tool":
                 return {"ok": True, "t_s": self.t_s, "q": self.arm.q.tolist(),
                         "tool_tip_m": real_tool_tip(self.truth, self.physics, self.arm.q, self._body).tolist(),
@@ -302,7 +315,7 @@ class FakeUrController:
                 self._blocked = {id(b): beam_blocked(b, self._body, self._tool_radius_m) for b in self.truth.beams}
                 self.sensors.reset({b.channel: self._blocked[id(b)] for b in self.truth.beams})
                 return {"ok": True}
-        return {"ok": False, "error": f"unknown command {cmd!r} (state, tool, edges, fault, add_model, set_q)"}
+        return {"ok": False, "error": f"unknown command {cmd!r} (state, truth, tool, edges, fault, add_model, set_q)"}
 
     def _fire_faults(self) -> None:
         for fault in list(self.faults):
