@@ -16,7 +16,7 @@ from cellcal.sims.physical_arm import HiddenEffect
 from cellcal.sims.workspace import full_workspace
 from cellcal.solvers import crossval, lsq
 from cellcal.solvers.analyze import analyze
-from cellcal.solvers.effects import Context, JointBasis, approach_directions
+from cellcal.solvers.effects import JointBasis, approach_directions
 from cellcal.solvers.identify import IdentifyOptions, fit, identify, initial_base_and_targets, scales
 from cellcal.solvers.measurement_model import Layout, jacobian, predict
 
