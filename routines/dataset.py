@@ -316,23 +316,6 @@ def check_joint_limits(table: MeasurementTable, joint_limits, model_name: str) -
                 f"lines {lines}")
 
 
-def _numbers(cells) -> np.ndarray:
-    """Parse (where, column, text) cells of one column into floats, refusing bad values."""
-    out = np.empty(len(cells))
-    for i, (where, column, text) in enumerate(cells):
-        s = text.strip()
-        if not _NUMBER.fullmatch(s):
-            try:
-                kind = "not finite" if not np.isfinite(float(s)) else "not a number"
-            except ValueError:
-                kind = "not a number"
-            raise DatasetError(f"{where}: column {column!r}: {text!r} is {kind}")
-        out[i] = float(s)
-        if not np.isfinite(out[i]):
-            raise DatasetError(f"{where}: column {column!r}: {text!r} is not finite")
-    return out
-
-
 def write_measurements(path, *, q_rad, xyz_mm, target_names=None, target=None, t_s=None, temp_c=None,
                        payload_kg=None, split=None, quat=None, extra=None, comment: str | None = None,
                        joint_unit: str = "rad") -> None:
@@ -415,7 +398,15 @@ def joint_velocities(table: MeasurementTable) -> np.ndarray | None:
             missing = next(c for c in names if c not in table.extra)
             raise DatasetError(f"{table.path}: column {missing!r} missing: joint velocities need "
                                f"all of {names[0]} .. {names[-1]}")
-        cols = [_numbers([(f"{table.path}:{line}", c, text) for line, text in zip(table.line, table.extra[c])])
-                for c in names]
-        return np.stack(cols, axis=1) * factor
+        out = np.empty((len(table), n))
+        for k, c in enumerate(names):
+            texts = table.extra[c]
+            for start in range(0, len(texts), _BLOCK_ROWS):
+                cells = list(texts[start: start + _BLOCK_ROWS])
+                parsed, bad = _parse_block(cells)
+                if bad is not None:
+                    raise DatasetError(f"{table.path}:{table.line[start + bad]}: column {c!r}: {cells[bad]!r} is "
+                                       f"{_what_is_wrong(cells[bad])}")
+                out[start: start + len(cells), k] = parsed
+        return out * factor
     return None

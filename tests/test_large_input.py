@@ -176,3 +176,20 @@ def test_neighbour_groups_found_block_by_block_are_the_connected_components_of_a
     got = crossval.groups(q, 0.03)
     assert 1 < want.max() < 2999  # neither one group nor all alone: the test means something
     np.testing.assert_array_equal(got, want)
+
+
+def test_joint_velocity_columns_are_read_in_blocks_and_a_bad_value_is_named(tmp_path, monkeypatch):
+    import cellcal.routines.dataset as dataset
+
+    monkeypatch.setattr(dataset, "_BLOCK_ROWS", 2)
+    header = "q1_rad,q2_rad,q3_rad,q4_rad,q5_rad,q6_rad,x_mm,y_mm,z_mm," + ",".join(f"dq{j}_deg_s" for j in range(1, 7))
+    rows = [f"{ROW}," + ",".join(f"{10 * i + j}" for j in range(1, 7)) for i in range(5)]
+    path = tmp_path / "trig.csv"
+    path.write_text(header + "\n" + "\n".join(rows) + "\n")
+    dq = dataset.joint_velocities(read_measurements(path, 6))
+    np.testing.assert_allclose(dq, np.deg2rad([[10 * i + j for j in range(1, 7)] for i in range(5)]), rtol=1e-15)
+    rows[3] = rows[3].replace(",34,", ",3.4.1,")
+    path.write_text(header + "\n" + "\n".join(rows) + "\n")
+    with pytest.raises(DatasetError) as err:
+        dataset.joint_velocities(read_measurements(path, 6))
+    assert str(err.value) == f"{path}:5: column 'dq4_deg_s': '3.4.1' is not a number"
