@@ -15,7 +15,10 @@ by at most ``touch_speed_m_s`` x 2 ms (4 um at 2 mm/s; the solver takes off the 
 
 Solving is one least-squares fit (:func:`cellcal.solvers.stylus.fit`) of the axis line (4),
 the stylus (3), the contact radius (1) and the end's place along the axis (1). The turn of
-the tool frame about its axis is a convention (the smallest turn from flange z).
+the tool frame about its axis is a convention (the smallest turn from flange z). On a
+simulated cell ``sim_truth.position_error_mm`` is therefore the TCP's full 3-D error (its
+place along the axis measured by the end-face touches; with ``face_touches: 0`` it would
+hold the convention's error too) and ``axis_error_deg`` the angle between the axes.
 """
 from __future__ import annotations
 
