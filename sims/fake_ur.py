@@ -33,10 +33,11 @@ import numpy as np
 from ..config.cells import read_cell
 from ..config.robot_files import load_robot
 from . import fake_ur_rtde as rtde
-from .arm_motion import ArmKinematics, MovingArm, MotionFault, StopMotion
+from .arm_motion import ArmKinematics, JointMove, MovingArm, MotionFault, StopMotion
 from .scene import SwitchingSensors, scene_from_spec
-from .truth import (CellTruth, beam_blocked, beam_edges, real_tool_body, real_tool_tip, repeat_offset_m, touching,
-                    truth_of_cell)
+from .sim_world import PIVOT_SLIDE_SPEED_RAD_S, pivot_socket
+from .truth import (CellTruth, beam_blocked, beam_edges, pivot_rest_q, real_tool_body, real_tool_tip, repeat_offset_m,
+                    touching, truth_of_cell)
 from .fake_ur_script import ControlScript
 from .fake_ur_sessions import ControlSession, DashboardSession, RtdeSession, ScriptSession
 
@@ -77,6 +78,8 @@ class FakeUrController:
         self.physics = ArmKinematics(model, self.truth.arm_params)  # the arm as built
         self.rng = np.random.default_rng(seed)  # repeatability and sensor jitter
         self.contacts = [c for c in (self.truth.stylus, *self.truth.contacts) if c is not None]
+        self.pivot, self._pivot_touch = pivot_socket(self.truth), None
+        self._joint_accel = cell_spec.limits["joint_accel_rad_s2"] if cell_spec is not None else 4.0
         self.arm = MovingArm(ArmKinematics(model), q0, 1.0 / frequency_hz, contact=self._touching)
         self._motion, self._repeat_offset_m = None, np.zeros(3)
         self._body_for: tuple = (None, None, None)
@@ -124,7 +127,26 @@ class FakeUrController:
         TCP on a surface added to the scene."""
         if self.cell.touching(tcp_position):
             return True
-        return any(touching(c, self._body_now(), self._tool_radius_m) for c in self.contacts)
+        body = self._body_now()
+        kind = None if self.pivot is None else self.pivot.touch(body[0], self._tool_radius_m)
+        if kind:
+            if not self.arm.contact_history[-1]:  # the contact begins: what was touched, in which motion
+                self._pivot_touch = (kind, self.arm.motion)
+            return True
+        return any(touching(c, body, self._tool_radius_m) for c in self.contacts)
+
+    def _settle(self, search):
+        """After the contact `search` (a motion): one that met the pivot's socket slides,
+        orientation held, until the tip rests in its seat (the in-process cell's compliance), a
+        new rest with its own repeatability draw; None otherwise."""
+        if self._pivot_touch != ("seat", search):
+            return None
+        self._pivot_touch = None
+        offset = repeat_offset_m(self.truth, self.rng)
+        q_rest = pivot_rest_q(self.truth, self.physics, self.arm.q, self.pivot.seat_m, offset)
+        self._motion = slide = JointMove(self.arm.q, q_rest, PIVOT_SLIDE_SPEED_RAD_S, self._joint_accel)
+        self._repeat_offset_m = offset
+        return slide
 
     def _body_now(self) -> tuple[np.ndarray, np.ndarray]:
         """The real tool body now, computed again only when the joints, the repeatability offset
@@ -253,7 +275,7 @@ class FakeUrController:
                 _first(r"reg_offset_float\s*=\s*(?:#[^\n]*\n)?\s*(\d+)", text))]
             self.script = ControlScript(self.arm, self.inputs, self.outputs, int_offset=offsets[0],
                                         float_offset=offsets[1], protective_stop=self.protective_stop,
-                                        log=self.log)
+                                        log=self.log, settle=self._settle)
             self.log(f"control script started (register offsets {offsets[0]}/{offsets[1]})")
 
     def protective_stop(self, why: str) -> None:

@@ -50,10 +50,11 @@ class ControlScript:
 
     def __init__(self, arm: MovingArm, inputs: dict, outputs: dict, *, int_offset: int = 0,
                  float_offset: int = 0, protective_stop: Callable[[str], None] = lambda why: None,
-                 log: Callable[[str], None] = lambda text: None):
+                 log: Callable[[str], None] = lambda text: None, settle: Callable = lambda search: None):
         self.arm, self.inputs, self.outputs = arm, inputs, outputs
         self.int_offset, self.float_offset = int_offset, float_offset
         self.protective_stop, self.log = protective_stop, log
+        self.settle = settle  # after a contact search: the motion the cell's compliance adds (a seat), or None
         self.running = True
         self.fault: str | None = None
         self.executing = False
@@ -245,6 +246,9 @@ class ControlScript:
                 return
             yield
         yield from self._back_to_contact(step_back)
+        slide = self.settle(motion)
+        if slide is not None:
+            yield from self._run(slide)
 
     def _back_to_contact(self, step_back: int) -> Iterator:
         """Stop, then return to the joints of the last cycle before the contact began."""

@@ -37,8 +37,8 @@ from ..drivers.interfaces import DeviceError, RobotSample, RobotState, TriggerEv
 from ..solvers.robot_model import KinematicModel
 from .arm_motion import ArmKinematics, JointMove, MovingArm, MotionFault
 from .scene import LightBeam
-from .truth import (CellTruth, beam_blocked, beam_edges, real_tool_body, real_tool_tip, repeat_offset_m, touching,
-                    truth_of_cell)
+from .truth import (CellTruth, beam_blocked, beam_edges, pivot_rest_q, real_tool_body, real_tool_tip, repeat_offset_m,
+                    touching, truth_of_cell)
 
 HOME_Q = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
 SAMPLE_BUFFER_S = 120.0
@@ -142,10 +142,8 @@ class SimWorld:
         off by the arm's repeatability like every other; the controller reports its joints."""
         offset = repeat_offset_m(self.truth, self.rng)
         seat = self.pivot.seat_m + (self._pivot_fouling.pop(0) if self._pivot_fouling else 0.0)
-        rotation, position = self.physics.flange(self.arm.q)
-        centre = self.truth.tool.segment(rotation, position)[0]
         try:
-            q_rest = self.physics.ik(rotation, position + seat - offset - centre, self.arm.q, np.zeros(6))
+            q_rest = pivot_rest_q(self.truth, self.physics, self.arm.q, seat, offset)
         except MotionFault as exc:
             raise DeviceError(device, f"cannot settle in the pivot: {exc}") from None
         slide = JointMove(self.arm.q, q_rest, PIVOT_SLIDE_SPEED_RAD_S, self.limits.joint_accel_rad_s2)

@@ -239,3 +239,12 @@ def beam_edges(truth: CellTruth, beams, blocked: dict, body_old, body_new, t_old
         t_edge += truth.trigger_latency_s + (rng.uniform(-jitter, jitter) if jitter > 0 else 0.0)
         edges.append(TriggerEvent(t_edge, beam.channel, Edge.BLOCKED if now else Edge.CLEARED, True))
     return edges
+
+
+def pivot_rest_q(truth: CellTruth, physics, q, seat_m, offset_m) -> np.ndarray:
+    """The joints at which the real tool, its orientation held as at joints q, rests with the
+    centre of its tip's rounding at `seat_m` (a socket's seat), the arm off by `offset_m`
+    (that rest's repeatability draw). Raises MotionFault when the arm cannot get there."""
+    rotation, position = physics.flange(q)
+    centre = truth.tool.segment(rotation, position)[0]
+    return physics.ik(rotation, position + np.asarray(seat_m) - offset_m - centre, q, np.zeros(6))

@@ -289,22 +289,31 @@ def test_control_script_on_the_upper_register_range_is_served(fake):
         receive.disconnect()
 
 
+def exact_cell(tmp_path):
+    """The sim-net cell file with the arm's repeatability 0 (it goes exactly where it is sent),
+    its truth and its path."""
+    from cellcal.config.cells import read_cell, shipped_cells
+    from cellcal.sims.truth import truth_of_cell
+
+    text = shipped_cells()["sim-net"].read_text()
+    sim_truth = text[text.index("sim_truth:"):]  # the section, not a routine's option of that name
+    path = tmp_path / "cell.yaml"
+    path.write_text(text.replace(sim_truth, sim_truth.replace("repeatability_mm: 0.03", "repeatability_mm: 0.0", 1)))
+    cell = read_cell(path)
+    assert cell.sim_truth.repeatability_mm == 0.0
+    return cell, truth_of_cell(cell, load_robot(cell.robot)), path
+
+
 def test_a_fake_given_a_cell_file_touches_with_the_real_tool_on_the_real_stylus(start_fake, connect, tmp_path):
     """With the cell's truth (repeatability 0 here, so the arm goes exactly where the controller
     puts it), moveUntilContact ends where the real tool, on the arm as built, touches the real
     stylus: the controller backs off to the last cycle before the contact, so the real gap is
     between 0 and one cycle's travel; the drawing (tool and stylus as the file says) would put
     the contact elsewhere."""
-    from cellcal.config.cells import read_cell, shipped_cells
     from cellcal.sims.arm_motion import ArmKinematics
-    from cellcal.sims.truth import segment_point_distance, truth_of_cell
+    from cellcal.sims.truth import segment_point_distance
 
-    text = shipped_cells()["sim-net"].read_text().replace("repeatability_mm: 0.03", "repeatability_mm: 0.0")
-    assert "repeatability_mm: 0.0\n" in text
-    path = tmp_path / "cell.yaml"
-    path.write_text(text)
-    cell = read_cell(path)
-    truth = truth_of_cell(cell, load_robot(cell.robot))
+    cell, truth, path = exact_cell(tmp_path)
     fake = start_fake(cell_file=str(path))
     robot = connect(UrRtdeRobot, fake.host)
     robot.set_tcp(cell.tool.tcp_pose)
@@ -320,3 +329,26 @@ def test_a_fake_given_a_cell_file_touches_with_the_real_tool_on_the_real_stylus(
     drawn_front = robot.actual_tcp_pose()[:3] - np.array([0.0, 0.0, -1.0]) * cell.tool.radius_m
     drawn_gap = np.linalg.norm(drawn_front - stylus) - cell.stylus["radius_m"] - cell.tool.radius_m
     assert abs(drawn_gap - gap) > 0.1e-3, (drawn_gap, gap)
+
+
+def test_a_fake_given_a_cell_file_seats_the_tool_in_the_pivot_as_the_in_process_cell_does(start_fake, connect,
+                                                                                         tmp_path):
+    """A contact search onto the real pivot's socket: the tip slides into the seat (the cell's
+    compliance), so the real tip's rounding rests centred on the seat, and the controller
+    reports the same pose as the in-process cell built from the same file."""
+    from cellcal.sims.sim_devices import SimRobot
+    from cellcal.sims.sim_world import world_of_cell
+
+    cell, truth, path = exact_cell(tmp_path)
+    fake = start_fake(cell_file=str(path))
+    robots = [connect(UrRtdeRobot, fake.host), SimRobot(world_of_cell(cell))]
+    results = []
+    for robot in robots:
+        robot.set_tcp(cell.tool.tcp_pose)
+        robot.move_l(np.concatenate([cell.pivot_m + [0.0, 0.0, 0.005], robot.actual_tcp_pose()[3:]]), 0.25, 1.0)
+        results.append(robot.move_until_contact([0.0, 0.0, -0.01], timeout_s=5.0))
+    assert all(r.contact for r in results)
+    seat = truth.pivot_m + [0.0, 0.0, truth.tool.radius_m]
+    assert np.linalg.norm(np.array(fake.request(cmd="tool")["tool_body_m"][0]) - seat) < 1e-6
+    assert np.linalg.norm(results[0].tcp_pose[:3] - results[1].tcp_pose[:3]) < 1e-6
+    assert np.linalg.norm(results[0].tcp_pose[:3] - (cell.pivot_m + [0.0, 0.0, 0.005])) > 0.004  # it went down
