@@ -128,9 +128,18 @@ def point_jacobians(chain: Chain, params: np.ndarray, q: np.ndarray, offset: np.
     Returns p (N, 3), dp/dparams (N, 3, n_params), dp/dq (N, 3, n_joints),
     end rotation (N, 3, 3).
     """
+    p, jp, jq, axes = point_jacobians_by_component(chain, params, q, offset, n_params, n_joints)
+    rot, p = _pose_major(axes, p)
+    return p, np.transpose(jp, (2, 1, 0)), np.transpose(jq, (2, 1, 0)), rot
+
+
+def point_jacobians_by_component(chain: Chain, params: np.ndarray, q: np.ndarray, offset: np.ndarray,
+                                 n_params: int, n_joints: int):
+    """``point_jacobians`` component-major: p (3, N), dp/dparams (n_params, 3, N),
+    dp/dq (n_joints, 3, N) and the end frame's axes (three (3, N) arrays)."""
     axes, org, frames = _frames(chain, params, q, keep_frames=True)
     offset = np.asarray(offset, dtype=float)
-    p = org + axes[0] * offset[:, 0] + axes[1] * offset[:, 1] + axes[2] * offset[:, 2]  # (3, N)
+    p = org + axes[0] * offset[:, 0] + axes[1] * offset[:, 1] + axes[2] * offset[:, 2]
     n = p.shape[-1]
     jp = np.zeros((n_params, 3, n))
     jq = np.zeros((n_joints, 3, n))
@@ -141,5 +150,4 @@ def point_jacobians(chain: Chain, params: np.ndarray, q: np.ndarray, offset: np.
             jp[el.param] += col
         for j, c in el.joints:
             jq[j] += c * col
-    rot, p = _pose_major(axes, p)
-    return p, np.transpose(jp, (2, 1, 0)), np.transpose(jq, (2, 1, 0)), rot
+    return p, jp, jq, axes

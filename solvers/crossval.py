@@ -35,9 +35,10 @@ def groups(q: np.ndarray, radius_rad: float = 0.0) -> np.ndarray:
     n = len(q)
     tree = cKDTree(q)
     label = np.arange(n)  # a row of each group stands for it; merged block by block
-    for rows in chunks(n, GROUP_BLOCK_ROWS):
+    for block in chunks(n, GROUP_BLOCK_ROWS):
+        rows = tree.indices[block]  # in the tree's order: each block is a compact region
         pairs = cKDTree(q[rows]).sparse_distance_matrix(tree, radius_rad, p=np.inf, output_type="ndarray")
-        a, b = label[pairs["i"] + rows.start], label[pairs["j"]]
+        a, b = label[rows[pairs["i"]]], label[pairs["j"]]
         linked = a != b
         if linked.any():
             graph = coo_matrix((np.ones(int(linked.sum())), (a[linked], b[linked])), shape=(n, n))

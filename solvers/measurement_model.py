@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import se3
-from .chain import forward, point_jacobians
+from .chain import forward, point_jacobians_by_component
 from .lsq import chunks
 from .robot_model import KinematicModel
 
@@ -145,28 +145,41 @@ def jacobian(layout: Layout, x: np.ndarray, obs: Observations, with_joints: bool
     rb = se3.rotvec_to_matrix(b[3:])
     offsets = layout.offsets(x)
     nj = layout.model.n_joints
-    p_base = np.empty((n, 3))
-    jac = np.zeros((n, 3, layout.size))
-    jq = np.zeros((n, 3, nj)) if with_joints else None
+    # built component-major, (unknown, coordinate, pose): every operation runs along the poses
+    p_base = np.empty((3, n))
+    jac = np.zeros((layout.size, 3, n))
+    jq = np.zeros((nj, 3, n)) if with_joints else None
     for chain, rows in _groups(layout, obs):
+        whole = len(rows) == n
+        at = slice(None) if whole else rows
         if kinematic:
-            p, jp, jqq, rot = point_jacobians(chain, k, obs.q[rows], offsets[obs.target[rows]], layout.n_kin, nj)
-            jac[rows, :, : layout.n_kin] = jp
+            p, jp, jqq, axes = point_jacobians_by_component(chain, k, obs.q[rows], offsets[obs.target[rows]],
+                                                             layout.n_kin, nj)
+            jac[: layout.n_kin, :, at] = jp
             if with_joints:
-                jq[rows] = jqq
+                jq[:, :, at] = jqq
         else:
             rot, org = forward(chain, k, obs.q[rows])
-            p = org + np.einsum("nij,nj->ni", rot, offsets[obs.target[rows]])
-        p_base[rows] = p
+            axes = [rot[..., c].T for c in range(3)]
+            p = (org + np.einsum("nij,nj->ni", rot, offsets[obs.target[rows]])).T
+        p_base[:, at] = p
         for i in np.unique(obs.target[rows]):
-            sel = rows[obs.target[rows] == i]
-            jac[sel, :, layout.target(i)] = rot[obs.target[rows] == i]
+            mine = obs.target[rows] == i
+            cols = layout.target(i)
+            for c in range(3):
+                if mine.all():
+                    jac[cols.start + c][:, at] = axes[c]
+                else:
+                    jac[cols.start + c][:, rows[mine]] = axes[c][:, mine]
     # everything so far is in the base frame: rotate into the instrument frame
-    jac = np.einsum("ij,njk->nik", rb, jac)
+    jac = np.matmul(rb, jac)
+    rp = rb @ p_base
+    jac[layout.base.start: layout.base.start + 3] = np.eye(3)[:, :, None]
+    left = se3.left_jacobian(b[3:])
+    for c in range(3):  # -[rp]x J_l: column c is J_l[:, c] x rp
+        jac[layout.base.start + 3 + c] = np.cross(left[:, c], rp, axisb=0).T
+    p = (rp + b[:3, None]).T
+    jac = np.ascontiguousarray(jac.transpose(2, 1, 0))
     if with_joints:
-        jq = np.einsum("ij,njk->nik", rb, jq)
-    rp = p_base @ rb.T
-    jac[:, :, layout.base.start: layout.base.start + 3] = np.eye(3)
-    jac[:, :, layout.base.start + 3: layout.base.stop] = -se3.skew(rp) @ se3.left_jacobian(b[3:])
-    p = rp + b[:3]
+        jq = np.ascontiguousarray(np.matmul(rb, jq).transpose(2, 1, 0))
     return (p, jac, jq) if with_joints else (p, jac)
