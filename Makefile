@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-fast bench clean
+.PHONY: demo demo-identify test test-fast bench clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -13,7 +13,12 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	@touch $(STAMP)
 
+# the whole product on the simulated cell: fakes, daemon, start button, tcp-laser, write-back
 demo: $(STAMP)
+	$(BIN)/cellcal demo --cell sim-net --routine tcp-laser
+
+# the kinematic identification on a simulated tracker campaign
+demo-identify: $(STAMP)
 	$(BIN)/cellcal sim-campaign --robot ur10e --poses 60 --out out/demo
 
 test: $(STAMP)
