@@ -331,7 +331,13 @@ class FakeUrController:
             if cmd == "set_q":
                 if self.arm.moving:
                     return {"ok": False, "error": "the arm is moving"}
-                self.arm.q = np.array(request["q"], dtype=float)
+                q = np.asarray(request.get("q"), dtype=float)
+                limits = self.arm.kin.model.joint_limits
+                if q.shape != self.arm.q.shape or not np.all(np.isfinite(q)):
+                    return {"ok": False, "error": f"q must be {len(self.arm.q)} finite numbers"}
+                if limits is not None and np.any((q < limits[:, 0]) | (q > limits[:, 1])):
+                    return {"ok": False, "error": "q is outside the joint limits"}
+                self.arm.q = q
                 self.arm.set_tcp(self.arm.tcp_offset)
                 self._body = self.tool_body()  # put there, not moved: no edges
                 self._blocked = {id(b): beam_blocked(b, self._body, self._tool_radius_m) for b in self.truth.beams}

@@ -108,6 +108,24 @@ class RtdeSession:
             pass
 
 
+MAX_LINE_CHARS = 4096  # a dashboard command or a control request is far shorter; more is refused
+MAX_PROGRAM_CHARS = 1 << 20  # a URScript program the fake will hold while waiting for its "end"
+
+
+def _lines(sock: socket.socket):
+    """The connection's lines; a line longer than MAX_LINE_CHARS ends the connection (as a
+    controller drops a client that floods it), so nothing is buffered without bound."""
+    reader = sock.makefile("r", encoding="utf-8", newline="\n")
+    while True:
+        line = reader.readline(MAX_LINE_CHARS + 1)
+        if not line:
+            return
+        if len(line) > MAX_LINE_CHARS and not line.endswith("\n"):
+            sock.sendall(b"error: line too long; closing\n")
+            return
+        yield line
+
+
 class DashboardSession:
     BANNER = "Connected: Universal Robots Dashboard Server"
 
@@ -116,9 +134,8 @@ class DashboardSession:
 
     def serve(self) -> None:
         try:
-            reader = self.sock.makefile("r", encoding="utf-8", newline="\n")
             self.sock.sendall((self.BANNER + "\n").encode())
-            for line in reader:
+            for line in _lines(self.sock):
                 command = line.strip()
                 if self.controller.stalled:
                     continue
@@ -184,6 +201,10 @@ class ScriptSession:
             while chunk := self.sock.recv(65536):
                 pending += chunk.decode("utf-8", errors="replace")
                 pending = self._take_programs(pending)
+                if len(pending) > MAX_PROGRAM_CHARS:
+                    self.controller.log(f"script: over {MAX_PROGRAM_CHARS} characters without a program's "
+                                        "end; connection closed")
+                    break
         except OSError:
             pass
         finally:
@@ -211,8 +232,7 @@ class ControlSession:
 
     def serve(self) -> None:
         try:
-            reader = self.sock.makefile("r", encoding="utf-8", newline="\n")
-            for line in reader:
+            for line in _lines(self.sock):
                 try:
                     reply = self.controller.control(json.loads(line))
                 except Exception as exc:  # a bad request must not kill the fake

@@ -170,6 +170,9 @@ class TrackerServer:
                     continue
                 line = bytes(buffer[:end]).removesuffix(b"\r")
                 del buffer[:end + 1]
+                if len(line) > MAX_LINE_BYTES:  # the protocol's limit holds for a terminated line too
+                    connection.sendall(with_checksum(f"ERR - {BAD_REQUEST} line too long"))
+                    continue
                 reply = self.reply_to(line)
                 if self.silent:
                     continue

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import json
 import math
+import socket
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from cellcal.daemon.cli import main
@@ -229,3 +231,40 @@ def test_a_fit_far_worse_than_any_arm_says_the_data_are_wrong(ok, tmp_path, caps
     assert main(["identify", "--robot", "ur10e", "--data", str(swapped_joints(ok, tmp_path))]) == 1
     err = capsys.readouterr().err
     assert "something is wrong with the data" in err and "Traceback" not in err
+
+
+# -- the fakes refuse what the real devices would -----------------------------------------
+
+def test_the_fake_tracker_refuses_a_request_line_over_the_protocols_512_bytes():
+    from cellcal.sims.tracker_server import TrackerServer
+
+    server = TrackerServer(lambda target: np.zeros(3)).start()
+    try:
+        with socket.create_connection((server.host, server.port), timeout=2.0) as conn:
+            conn.sendall(b"MEAS " + b"x" * 3000 + b" 1\n")
+            reply = conn.makefile("rb").readline()
+        assert reply.startswith(b"ERR") and b"line too long" in reply
+    finally:
+        server.stop()
+
+
+def test_a_fake_ur_session_drops_a_client_that_sends_an_endless_line():
+    from cellcal.sims.fake_ur_sessions import MAX_LINE_CHARS, _lines
+
+    ours, theirs = socket.socketpair()
+    with ours, theirs:
+        theirs.sendall(b'{"cmd": "state"}\n' + b"y" * (MAX_LINE_CHARS * 4))
+        theirs.shutdown(socket.SHUT_WR)
+        lines = list(_lines(ours))
+        assert lines == ['{"cmd": "state"}\n']  # the flood ends the connection, it is not buffered
+        assert theirs.recv(100).startswith(b"error: line too long")
+
+
+def test_the_fake_ur_refuses_joint_values_no_robot_has():
+    from cellcal.sims.fake_ur import FakeUrController
+
+    controller = FakeUrController("127.0.0.1")
+    for q in ([float("nan")] * 6, [0.0] * 5, [0.0, 0.0, 0.0, 0.0, 0.0, 99.0]):
+        reply = controller.control({"cmd": "set_q", "q": q})
+        assert not reply["ok"] and "q " in reply["error"], reply
+    assert np.all(np.isfinite(controller.arm.q))
