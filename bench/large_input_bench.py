@@ -11,7 +11,7 @@ The two answers are compared (training error, prior weight, noise, named cause, 
 errors). Small problems (150 and 1000 rows) are timed in-process, solver calls only,
 median of repeats, so that the interpreter's start-up does not hide a change.
 
-    python -m bench.large_input_bench                       # everything, ~25 min on 2 cores
+    python -m bench.large_input_bench                       # everything, about 20 min on 2 cores
     python -m bench.large_input_bench --rows 10000,30000    # a quick look
     python -m bench.large_input_bench --no-baseline         # ours only
 
