@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 
 from ..config.robot_files import load_robot
+from ..routines.base import jsonable
 from ..routines.dataset import check_joint_limits, joint_velocities, read_measurements
 from ..solvers.analyze import AnalyzeOptions, Finding, Scored, analyze
 from ..solvers.effects import CAUSES, Context, approach_directions
@@ -108,7 +108,7 @@ def run(args) -> int:
         out = finding_json(finding, len(obs))
         out["notes"] = out["notes"] + not_scored
         out["not_scored"] = {c: why for c, why in unscorable.items()}
-        print(json.dumps(out, default=_jsonable), flush=True)
+        print(json.dumps(out, default=jsonable), flush=True)
     else:
         print(text, flush=True)
     if args.report:
@@ -121,11 +121,3 @@ def run(args) -> int:
                               f"{exc.strerror or exc}; the finding above stands") from None
         print_progress(f"report written to {page}")
     return 0
-
-
-def _jsonable(value):
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

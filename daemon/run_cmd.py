@@ -116,18 +116,10 @@ def cmd_run(args) -> int:
         raise UsageError(f"{args.cell}: plan refused, nothing moved: {exc}") from None
     _score(result, cell)
     if args.json:
-        print(json.dumps(result.as_json(), default=_json_default))
+        print(result.json_text())
     else:
         print(_text(result))
     return 0 if result.write_back else 1
-
-
-def _json_default(value):
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, (np.floating, np.integer, np.bool_)):
-        return value.item()
-    raise TypeError(type(value).__name__)
 
 
 def add_parser(sub) -> None:

@@ -178,7 +178,7 @@ class Store:
         with self._tx() as db:
             db.execute("UPDATE runs SET dataset_path = ?, dataset_sha256 = ?, write_back = ?, result_json = ? "
                        "WHERE id = ?", (result.dataset, sha, int(result.write_back),
-                                        json.dumps(result.as_json(), default=_jsonable), run_id))
+                                        result.json_text(), run_id))
             db.executemany("INSERT INTO parameters VALUES (?, ?, ?, ?, ?)",
                            [(run_id, p.name, p.value, p.std, p.unit) for p in result.parameters])
             db.executemany("INSERT INTO gates VALUES (?, ?, ?, ?, ?, ?)",
@@ -254,13 +254,3 @@ def _run(row) -> RunRow:
     values = list(row)
     values[11] = bool(values[11])
     return RunRow(*values)
-
-
-def _jsonable(value):
-    import numpy as np
-
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, (np.floating, np.integer, np.bool_)):
-        return value.item()
-    raise TypeError(type(value).__name__)

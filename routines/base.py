@@ -11,6 +11,7 @@ every command passes the cell's limits. Results of every routine have the same s
 from __future__ import annotations
 
 import abc
+import json
 import math
 from dataclasses import dataclass, field
 from typing import Callable
@@ -156,6 +157,18 @@ class Result:
         if self.sim_truth is not None:
             out["sim_truth"] = self.sim_truth
         return out
+
+    def json_text(self) -> str:
+        return json.dumps(self.as_json(), default=jsonable)
+
+
+def jsonable(value):
+    """``json.dumps(..., default=jsonable)``: numpy arrays and scalars as plain JSON."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return value.item()
+    raise TypeError(f"not JSON-able: {type(value).__name__}")
 
 
 def tool_frame_json(pose) -> dict:

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .base import jsonable
 from .dataset import DatasetError
 
 MAGIC = "# cellcal dataset"
@@ -79,7 +80,7 @@ class Dataset:
         out.write(f"{MAGIC}\n# routine: {self.routine}\n# cell: {self.cell}\n# robot: {self.robot}\n"
                   f"# cellcal: {self.version}\n# created: {self.created}\n"
                   f"# complete: {'true' if self.complete else 'false'}\n"
-                  f"# meta: {json.dumps(self.meta, sort_keys=True, default=_json_default)}\n")
+                  f"# meta: {json.dumps(self.meta, sort_keys=True, default=jsonable)}\n")
         writer = csv.writer(out, lineterminator="\n")
         names = list(self.columns)
         writer.writerow(names)
@@ -98,14 +99,6 @@ class Dataset:
                 tmp.unlink()
         self.path = str(path)
         return path
-
-
-def _json_default(value):
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    raise TypeError(f"not JSON-able: {type(value).__name__}")
 
 
 def _cell_text(value) -> str:

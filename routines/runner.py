@@ -62,7 +62,7 @@ def dataset_path(out_dir: str | Path, name: str) -> Path:
 def measure(prepared: Prepared, drivers, out_dir: str | Path, progress: Progress, abort=None) -> Dataset:
     """Move through the plan and write the dataset; on a device fault or an abort (the
     `abort` event set), stop and raise."""
-    routine, cell = prepared.routine, prepared.routine.cell
+    routine = prepared.routine
     robot = GuardedRobot(drivers.robot, prepared.guard, abort)
     devices = Devices(robot=drivers.robot, trigger=drivers.trigger, tracker=drivers.tracker)
     previous = np.asarray(drivers.robot.tcp(), dtype=float)
