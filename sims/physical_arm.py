@@ -30,6 +30,8 @@ class HiddenEffect:
     rms_mm: float = 0.3  # TCP displacement it causes, rms over the workspace
     order: int = 1  # cyclic_joint_error: periods per turn
     phase_rad: float = 0.0
+    # cyclic_joint_error with several orders: (order, relative amplitude, phase_rad) each, instead of order
+    harmonics: tuple[tuple[int, float, float], ...] = ()
     tau_s: float = 1800.0  # thermal_drift: warm-up time constant
     jitter_s: float = 0.0  # trigger_latency: random part of the latency
     size: float | None = None  # the physical size itself (as hidden_size reports it) instead of rms_mm
@@ -95,7 +97,8 @@ class PhysicalArm(SimulatedArm):
         elif e.cause == "backlash":
             d[:, e.joint] = 0.5 * direction[:, e.joint]
         elif e.cause == "cyclic_joint_error":
-            d[:, e.joint] = np.sin(e.order * q[:, e.joint] + e.phase_rad)
+            for n, weight, phase in e.harmonics or ((e.order, 1.0, e.phase_rad),):
+                d[:, e.joint] += weight * np.sin(n * q[:, e.joint] + phase)
         elif e.cause == "trigger_latency":
             d = -dq
         return d

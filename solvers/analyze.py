@@ -107,9 +107,12 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     say = progress or (lambda msg: None)
     folds = crossval.fold_ids(obs.q, options.folds, options.seed, NEIGHBOUR_RAD)
     geometric_fit = _geometric_baseline(model, obs, folds, options)
-    terms = [term for cause in options.causes
-             for term in CAUSES[cause].terms(model, geometric_fit.layout, geometric_fit.x, obs, ctx)]
-    scorer = LinearisedScorer(model, geometric_fit, obs, folds, options.prior_mm, terms)
+    parts = {cause: CAUSES[cause].terms(model, geometric_fit.layout, geometric_fit.x, obs, ctx)
+             for cause in options.causes}
+    scorer = LinearisedScorer(model, geometric_fit, obs, folds, options.prior_mm,
+                              [t for cause in options.causes for t in parts[cause]])
+    # a cause whose candidates are chosen by cross-validation (orders of a periodic error) composes them
+    terms = [t for cause in options.causes for t in CAUSES[cause].compose(parts[cause], scorer)]
     say(f"geometric model: {len(obs)} measurements, residual "
         f"{np.linalg.norm(scorer.baseline_residuals_mm, axis=1).mean():.3f} mm mean")
 
@@ -135,6 +138,15 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
         cause=extended.cause, where=extended.where, magnitude=extended.magnitude, baseline=baseline,
         extended=extended, candidates=naming.candidates, margin=float(naming.margin), second=second, both=both,
         seconds=time.perf_counter() - started, notes=naming.notes)
+
+
+def heldout_with_terms(model, obs: Observations, terms: Sequence[Term],
+                       options: AnalyzeOptions = AnalyzeOptions()) -> np.ndarray:
+    """(N,) held-out errors of geometry plus these terms, scored as ``analyze`` scores its candidates
+    (same folds, same geometric fit): what a model of known structure reaches on these data."""
+    folds = crossval.fold_ids(obs.q, options.folds, options.seed, NEIGHBOUR_RAD)
+    geometric_fit = _geometric_baseline(model, obs, folds, options)
+    return LinearisedScorer(model, geometric_fit, obs, folds, options.prior_mm, terms).heldout_errors_mm(tuple(terms))
 
 
 # -- scoring: held-out errors on the model linearised at the geometric fit ----------------------------------
@@ -202,9 +214,13 @@ class LinearisedScorer:
             columns += param_columns(jacobian_x, (params, basis[rows]))
         return columns
 
+    def _term_cols(self, term: Term) -> np.ndarray:
+        """Columns of a term, or of the scored parts it was composed of."""
+        return np.concatenate([np.arange(self.n_columns)[self._at[id(t)]]
+                               for t in term.extra.get("parts", (term,))]).astype(int)
+
     def _cols(self, terms: tuple[Term, ...]) -> np.ndarray:
-        return np.concatenate([np.arange(self.n_geometry)]
-                              + [np.arange(self.n_columns)[self._at[id(t)]] for t in terms]).astype(int)
+        return np.concatenate([np.arange(self.n_geometry)] + [self._term_cols(t) for t in terms]).astype(int)
 
     def estimated(self, terms: tuple[Term, ...]) -> np.ndarray:
         """Columns (into all columns) of geometry and of the terms' parameters this data separates from it."""
@@ -229,7 +245,7 @@ class LinearisedScorer:
         """Does geometry + outer span every column of inner? (Then outer explains nothing
         that inner cannot, wherever the two tie.)"""
         a = self.r[:, self._cols((outer,))]
-        b = self.r[:, self._at[id(inner)]]
+        b = self.r[:, self._term_cols(inner)]
         coef = np.linalg.lstsq(a, b, rcond=None)[0]
         return bool(np.linalg.norm(a @ coef - b) <= NESTED_RTOL * np.linalg.norm(b))
 

@@ -165,6 +165,11 @@ class Cause:
               ctx: Context) -> list[Term]:
         raise NotImplementedError
 
+    def compose(self, terms: list[Term], scorer) -> list[Term]:
+        """The candidates to rank, from this cause's scored terms; ``scorer.heldout_errors_many``
+        (term sets -> held-out errors) lets a cause choose among them by cross-validation."""
+        return terms
+
     def magnitude(self, term: Term, theta: np.ndarray, joint_delta: np.ndarray | None) -> dict:
         """Physical size of a fitted term, units in the key names."""
         raise NotImplementedError
