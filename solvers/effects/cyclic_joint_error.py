@@ -18,8 +18,8 @@ between the joint's sorted angles (Nyquist in the spread of its angles), and at 
 MAX_ORDER.
 
 Coverage: the error function is known only where the poses put the joint. A fitted
-term carries its joints' covered angle intervals; ``PeriodicJointError.delta_rad`` is 0
-outside them (the rigid model).
+error carries its joint's covered angle intervals (``fitted_errors``);
+``PeriodicJointError.delta_rad`` is 0 outside them: the rigid model.
 """
 from __future__ import annotations
 
@@ -36,6 +36,7 @@ SPACING_QUANTILE = 0.9
 ORDER_CANDIDATES = 6  # strongest orders per joint that cross-validation chooses among
 KEEP_RTOL = 0.02  # fewer orders win when their held-out mean is within 2% of the best
 JOINT_GAIN = 0.03  # a joint joins a several-joint term only if it lowers the held-out mean 3%
+COVERAGE_GAP_RAD = np.deg2rad(10.0)  # a joint angle range no pose visited is outside the coverage
 
 
 def order_bound(qj: np.ndarray) -> int:
@@ -44,7 +45,7 @@ def order_bound(qj: np.ndarray) -> int:
     if len(angles) < 4 or np.ptp(angles) < MIN_RANGE_RAD:
         return 0
     gap = float(np.quantile(np.diff(angles), SPACING_QUANTILE))
-    return int(min(MAX_ORDER, np.floor(np.pi / max(gap, 1e-9))))
+    return int(min(MAX_ORDER, np.floor(np.pi / max(gap, 1e-9) * (1.0 + 1e-4))))  # angles are rounded to 1e-6
 
 
 def coverage_intervals_rad(qj: np.ndarray, max_gap_rad: float) -> list[tuple[float, float]]:
@@ -231,15 +232,15 @@ class CyclicJointError(Cause):
 
 
 def fitted_errors(term: Term, theta: np.ndarray, q: np.ndarray) -> list[PeriodicJointError]:
-    """The fitted term as one periodic error per joint, each with the angles it covers: split where the
-    sampled angles leave a gap wider than half the period of the joint's highest fitted order."""
+    """The fitted term as one periodic error per joint, each with the angles the data cover (split
+    where the poses left the joint out over more than COVERAGE_GAP_RAD)."""
     pairs = term.extra.get("harmonics") or ((term.where["joint"], term.where["order"]),)
     coef = np.reshape(theta, (-1, 2))
     out = []
     for j in sorted({j for j, _ in pairs}):
         mine = [i for i, (j2, _) in enumerate(pairs) if j2 == j]
         orders = tuple(int(pairs[i][1]) for i in mine)
-        cover = coverage_intervals_rad(q[:, j - 1], np.pi / max(orders))
+        cover = coverage_intervals_rad(q[:, j - 1], COVERAGE_GAP_RAD)
         out.append(PeriodicJointError(j, orders, tuple(float(coef[i, 0]) for i in mine),
                                       tuple(float(coef[i, 1]) for i in mine), tuple(cover)))
     return out
