@@ -88,6 +88,8 @@ def prepare_folder(folder) -> Path:
         raise PermissionError(f"{out}: not writable")
     for name in REPORT_FILES:
         (out / name).unlink(missing_ok=True)
+    for stale in (*out.glob("cyclic_joint*.png"), out / "periodogram.png"):
+        stale.unlink(missing_ok=True)
     return out
 
 
@@ -113,6 +115,10 @@ def write_report(folder, model, obs: Observations, f: Finding, text: str) -> Pat
         fig.savefig(out / "residual_vs_regressor.png", dpi=110)
         plt.close(fig)
         images.append(("residual_vs_regressor.png", "Residual against the regressor of the named effect"))
+    if f.cause == "cyclic_joint_error" or any(t.cause == "cyclic_joint_error" for c in f.candidates for t in c.terms):
+        from .cyclic_report import cyclic_plots
+
+        images += cyclic_plots(out, model, obs, f, plotted_rows(len(obs)))
 
     fig, ax = plt.subplots(figsize=(7.5, 4.0))
     top = max(f.baseline.heldout_errors.max(), f.extended.heldout_errors.max())

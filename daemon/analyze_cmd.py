@@ -9,6 +9,7 @@ from ..routines.base import jsonable
 from ..routines.dataset import check_joint_limits, joint_velocities, read_measurements
 from ..solvers.analyze import AnalyzeOptions, Finding, Scored, analyze
 from ..solvers.effects import CAUSES, Context, approach_directions
+from ..solvers.effects.cyclic_joint_error import order_search
 from .cli_common import ReportError, UsageError, check_folds, print_progress
 
 MIN_MEASUREMENTS = 30
@@ -53,11 +54,44 @@ def finding_json(f: Finding, n: int) -> dict:
         "n": n,
         "seconds": f.seconds,
     }
+    out.update(_coverage_json(f))
     if f.second is not None:
         out["second"] = _scored(f.second)
         out["both"] = {"label": f.both.label, "heldout_mean_mm": f.both.heldout_mean_mm,
                        "magnitude": f.both.magnitude}
     return out
+
+
+def _spectra(f: Finding) -> dict | None:
+    """The cyclic order scan of this analysis, when the cause was scored."""
+    return next((t.extra["spectra"] for c in f.candidates for t in c.terms if "spectra" in t.extra), None)
+
+
+def _coverage_json(f: Finding) -> dict:
+    """Joint angles the data cover, the cyclic orders scanned, and the fitted effect for later use."""
+    out = {"joint_coverage_deg": {str(j + 1): list(r) for j, r in enumerate(f.joint_range_deg)}}
+    if (spectra := _spectra(f)) is not None:
+        out["cyclic_order_search"] = order_search(spectra)
+    if f.extended.details is not None:
+        out["effect"] = f.extended.details
+    return out
+
+
+def _coverage_text(f: Finding) -> list[str]:
+    lines = []
+    for err in (f.extended.details or {}).get("errors", []):
+        cover = ", ".join(f"{lo:+.1f}..{hi:+.1f}" for lo, hi in err["coverage_deg"])
+        lines.append(f"  joint {err['joint']}: orders {err['orders']}, known over {cover} deg")
+    if lines:
+        lines.append(f"  {f.extended.details['outside_coverage']}")
+    if (spectra := _spectra(f)) is not None:
+        search = order_search(spectra)
+        lines.append("cyclic orders scanned: " + ", ".join(f"joint {j} 1-{v['orders'][1]}"
+                                                          for j, v in search["joints"].items()))
+        lines.append(f"  ({search['rule']})")
+    lines.append("joint coverage (deg): " + ", ".join(f"{j + 1}: {lo:+.1f}..{hi:+.1f}"
+                                                      for j, (lo, hi) in enumerate(f.joint_range_deg)))
+    return lines
 
 
 def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
@@ -71,6 +105,7 @@ def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
             lines.append(f"  {k:32s} {v:.6g}")
     lines.append(f"held-out mean error: geometry only {f.baseline.heldout_mean_mm:.4f} mm, "
                  f"with the effect {f.extended.heldout_mean_mm:.4f} mm (gain {f.gain_pct:.1f}%)")
+    lines += _coverage_text(f)
     if f.second is not None:
         lines.append(f"second effect: {f.second.label}; both fitted: {f.both.heldout_mean_mm:.4f} mm")
     lines += [f"  note: {note}" for note in (*f.notes, *not_scored)]

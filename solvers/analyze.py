@@ -60,6 +60,8 @@ class Scored:
     effect_mm: np.ndarray | None = None  # (N, 3) what the terms move each target by beyond what
     #                                      geometry absorbs (single terms), mm
     joint_delta: np.ndarray | None = None  # (N, nj) joint-space part of the terms, rad
+    details: dict | None = None  # what the fitted terms need for later use beyond their sizes (by cause
+    #                              when several), see ``Cause.details``
 
     @property
     def heldout_mean_mm(self) -> float:
@@ -79,6 +81,7 @@ class Finding:
     both: Scored | None = None
     seconds: float = 0.0
     notes: tuple[str, ...] = field(default_factory=tuple)
+    joint_range_deg: tuple[tuple[float, float], ...] = ()  # angles the data cover, per joint
 
     @property
     def gain_pct(self) -> float:
@@ -137,7 +140,8 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     return Finding(
         cause=extended.cause, where=extended.where, magnitude=extended.magnitude, baseline=baseline,
         extended=extended, candidates=naming.candidates, margin=float(naming.margin), second=second, both=both,
-        seconds=time.perf_counter() - started, notes=naming.notes)
+        seconds=time.perf_counter() - started, notes=naming.notes,
+        joint_range_deg=tuple((float(lo), float(hi)) for lo, hi in np.rad2deg([obs.q.min(0), obs.q.max(0)]).T))
 
 
 def heldout_with_terms(model, obs: Observations, terms: Sequence[Term],
@@ -381,6 +385,8 @@ def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[
     fit = fit_extended(layout, obs, x, free, tuple(t for t in terms if t.model is None), prior_mm)
     sizes = _physical_sizes(model, terms, fit)
     magnitude = sizes[terms[0].cause] if len(terms) == 1 else sizes
+    details = _details(terms, fit, obs)
+    details = details.get(terms[0].cause) if len(terms) == 1 else (details or None)
     # what the terms do at the targets: the fitted model with and without them
     without = fit.x.copy()
     for t in structural:
@@ -410,7 +416,18 @@ def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[
             np.sum(effect_mm**2, axis=1))))}
     return Scored(label=label, cause=terms[0].cause, where=terms[0].where, heldout_errors=heldout_errors_mm,
                   theta=fit.theta, magnitude=magnitude, x=fit.x, terms=terms, residuals=fit.residuals_mm,
-                  effect_mm=effect_mm, joint_delta=fit.model.joint_delta(fit.theta))
+                  effect_mm=effect_mm, joint_delta=fit.model.joint_delta(fit.theta), details=details)
+
+
+def _details(terms: tuple[Term, ...], fit: ExtendedFit, obs) -> dict:
+    """``Cause.details`` of each fitted term that has any, by cause."""
+    out, col = {}, 0
+    for t in (t for t in terms if t.model is None):
+        found = CAUSES[t.cause].details(t, fit.theta[col: col + t.size], obs.q)
+        if found is not None:
+            out[t.cause] = found
+        col += t.size
+    return out
 
 
 def _physical_sizes(model, terms: tuple[Term, ...], fit: ExtendedFit) -> dict:

@@ -2,6 +2,8 @@
 model reaches what the true structure reaches on held-out data, and the wider search raises no alarm
 on effect-free data. The analysis sees only the measured data; the checks use the simulation's truth.
 """
+import json
+
 import numpy as np
 import pytest
 
@@ -116,3 +118,36 @@ def test_periodogram_finds_each_order_and_its_amplitude():
     orders, amplitude, power = periodogram(q, weight * delta, weight, 60)
     assert set(orders[np.argsort(power)[-2:]]) == {5, 37}
     assert amplitude[36] == pytest.approx(2e-3, rel=0.1) and amplitude[4] == pytest.approx(1e-3, rel=0.15)
+
+
+@pytest.mark.slow
+def test_cli_states_orders_coverage_and_the_rigid_fallback_and_plots_them(tmp_path, capsys):
+    from cellcal.daemon.cli import main
+    from cellcal.routines.dataset import write_measurements
+
+    model, effects, visibility = draw_cyclic(0)
+    case = make_case(model, effects, visibility, n=200, seed=7)
+    path = tmp_path / "cyclic.csv"
+    write_measurements(path, q_rad=case.campaign.obs.q, xyz_mm=case.campaign.obs.xyz_mm)
+    assert main(["analyze", "--robot", model.name, "--data", str(path), "--json",
+                 "--report", str(tmp_path / "report")]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["cause"] == "cyclic_joint_error"
+    hidden = sorted(e.joint + 1 for e in case.effects)
+    assert sorted(e["joint"] for e in doc["effect"]["errors"]) == hidden
+    q_deg = np.rad2deg(case.campaign.obs.q)
+    for err in doc["effect"]["errors"]:
+        cover = err["coverage_deg"]
+        assert cover[0][0] == pytest.approx(q_deg[:, err["joint"] - 1].min())
+        assert cover[-1][1] == pytest.approx(q_deg[:, err["joint"] - 1].max())
+        assert len(err["orders"]) == len(err["amplitude_deg"]) == len(err["sin_rad"])
+    assert "rigid model" in doc["effect"]["outside_coverage"]
+    search = doc["cyclic_order_search"]["joints"]
+    assert {j: v["orders"][1] for j, v in search.items()} == {
+        str(j + 1): order_bound(case.campaign.obs.q[:, j]) for j in range(model.n_joints)}
+    assert set(doc["joint_coverage_deg"]) == {str(j) for j in range(1, model.n_joints + 1)}
+    for j in hidden:
+        assert (tmp_path / "report" / f"cyclic_joint{j}.png").stat().st_size > 1000
+    assert (tmp_path / "report" / "periodogram.png").stat().st_size > 1000
+    text = (tmp_path / "report" / "report.md").read_text()  # the text finding, as printed without --json
+    assert "fall back to the rigid model" in text and "cyclic orders scanned" in text

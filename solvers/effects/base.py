@@ -174,6 +174,11 @@ class Cause:
         """Physical size of a fitted term, units in the key names."""
         raise NotImplementedError
 
+    def details(self, term: Term, theta: np.ndarray, q: np.ndarray) -> dict | None:
+        """What a fitted term needs beyond its size to be used later (e.g. a function of a joint's
+        angle with the angles it is known over), as plain numbers; None when the size says it all."""
+        return None
+
     def unscorable(self, model: KinematicModel, ctx: Context) -> str | None:
         """Why these data (or this robot) cannot score the cause at all, naming what is
         missing; None when it can be scored."""

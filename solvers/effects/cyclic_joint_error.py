@@ -220,6 +220,9 @@ class CyclicJointError(Cause):
                 chosen.append((mean, kept))
         return [_term(parts, q, nj, spectra) for parts in _pruned(chosen, scorer)]
 
+    def details(self, term, theta, q):
+        return {"errors": [e.as_dict() for e in fitted_errors(term, theta, q)], "outside_coverage": OUTSIDE_COVERAGE}
+
     def magnitude(self, term, theta, joint_delta):
         if "harmonics" not in term.extra:
             a, b = theta
@@ -229,6 +232,18 @@ class CyclicJointError(Cause):
         for (j, n), (a, b) in zip(term.extra["harmonics"], np.reshape(theta, (-1, 2))):
             out[f"joint{j}_order{n}_amplitude_deg"] = float(np.rad2deg(np.hypot(a, b)))
         return out
+
+
+OUTSIDE_COVERAGE = ("outside its joint's coverage the periodic error is not applied: predictions there "
+                    "fall back to the rigid model")
+BOUND_RULE = (f"orders 1 up to pi over the {SPACING_QUANTILE:.0%} quantile of the gaps between the joint's "
+              f"sampled angles (Nyquist in their spread), at most {MAX_ORDER}")
+
+
+def order_search(spectra: dict) -> dict:
+    """What was scanned, per joint (1-based, as text keys): the order bound and the angles sampled."""
+    return {"rule": BOUND_RULE, "joints": {str(j): {"orders": [1, s.order_bound], "angle_range_deg": list(s.angle_range_deg)}
+                                           for j, s in sorted(spectra.items())}}
 
 
 def fitted_errors(term: Term, theta: np.ndarray, q: np.ndarray) -> list[PeriodicJointError]:
