@@ -6,8 +6,8 @@ gears and sensors give orders in the tens, different on each joint.
 
 Search. For each joint, orders 1 .. ``order_bound`` are scanned by a periodogram of the
 geometric fit's residual projected on the joint's direction of effect (d p / d q_j): the
-least-squares power of each order alone. The ORDER_CANDIDATES strongest orders become
-single-order terms that the analysis scores together with every other candidate; then
+least-squares power of each order alone. The ORDER_CANDIDATES strongest orders, picked one
+at a time from what the orders before leave (``pursuit``), become single-order terms that the analysis scores together with every other candidate; then
 ``compose`` picks, by the analysis' grouped cross-validation, how many of a joint's
 orders to keep (strongest first), and which joints to combine.
 
@@ -90,6 +90,22 @@ def periodogram(q: np.ndarray, projected: np.ndarray, weight: np.ndarray, max_or
     return orders, np.hypot(coef_s, coef_c), power
 
 
+def pursuit(q: np.ndarray, projected: np.ndarray, weight: np.ndarray, max_order: int, count: int) -> list[int]:
+    """The `count` strongest orders, one at a time: the periodogram's peak, then the peak of what is left
+    once the orders picked so far are fitted together (neighbouring orders leak into each other's
+    periodogram; the residual of a joint fit does not)."""
+    picked: list[int] = []
+    left = projected
+    for _ in range(min(count, max_order)):
+        orders, _, power = periodogram(q, left, weight, max_order)
+        power[np.asarray(picked, dtype=int) - 1] = -np.inf
+        picked.append(int(orders[np.argmax(power)]))
+        basis = harmonics(q, picked)
+        coef = np.linalg.lstsq(basis.T @ (basis * weight[:, None]), basis.T @ projected, rcond=None)[0]
+        left = projected - weight * (basis @ coef)
+    return picked
+
+
 @dataclass(frozen=True)
 class JointSpectrum:
     """One joint's scan: what the report plots and the finding states."""
@@ -129,17 +145,32 @@ class PeriodicJointError:
                 "outside_coverage": "rigid model (no correction)"}
 
 
-def _pruned(chosen: list[tuple[float, tuple[Term, ...]]], scorer) -> list[tuple[Term, ...]]:
+def _orders_per_joint(by_joint: dict, others: dict, scorer) -> dict:
+    """For each joint, its first k orders (k by held-out error, the fewest within KEEP_RTOL of the
+    best) with the other joints' chosen orders (others: joint -> parts) in the model too.
+    Returns joint -> (held-out mean with the others, the joint's own parts)."""
+    trials = [(j, k) for j, parts in by_joint.items() for k in range(1, len(parts) + 1)]
+    beside = {j: sum((p for j2, p in others.items() if j2 != j), ()) for j in by_joint}
+    sets = [beside[j] + tuple(by_joint[j][:k]) for j, k in trials]
+    means = dict(zip(trials, scorer.heldout_errors_many(sets).mean(axis=1)))
+    out = {}
+    for j, parts in by_joint.items():
+        best = min(means[(j, k)] for k in range(1, len(parts) + 1))
+        k = min(k for k in range(1, len(parts) + 1) if means[(j, k)] <= (1.0 + KEEP_RTOL) * best)
+        out[j] = (means[(j, k)], tuple(parts[:k]))
+    return out
+
+
+def _pruned(chosen: list[tuple[Term, ...]], scorer) -> list[tuple[Term, ...]]:
     """Each set of orders without those it does not need: an order whose removal alone raises the
-    held-out mean by less than KEEP_RTOL is dropped (one taken in while another joint's error still
-    dominated the residual, or a noise peak that cross-validation let in)."""
-    trials = [(i, k) for i, (_, parts) in enumerate(chosen) if len(parts) > 1 for k in range(len(parts))]
-    sets = [chosen[i][1][:k] + chosen[i][1][k + 1:] for i, k in trials]
-    without = dict(zip(trials, scorer.heldout_errors_many(sets).mean(axis=1))) if sets else {}
+    held-out mean by less than KEEP_RTOL is dropped (a noise peak that cross-validation let in)."""
+    trials = [(i, k) for i, parts in enumerate(chosen) if len(parts) > 1 for k in [None, *range(len(parts))]]
+    sets = [chosen[i] if k is None else chosen[i][:k] + chosen[i][k + 1:] for i, k in trials]
+    means = dict(zip(trials, scorer.heldout_errors_many(sets).mean(axis=1))) if sets else {}
     out = []
-    for i, (mean, parts) in enumerate(chosen):
+    for i, parts in enumerate(chosen):
         keep = tuple(p for k, p in enumerate(parts)
-                     if len(parts) == 1 or without[(i, k)] > (1.0 + KEEP_RTOL) * mean)
+                     if len(parts) == 1 or means[(i, k)] > (1.0 + KEEP_RTOL) * means[(i, None)])
         joints = {p.where["joint"] for p in parts}
         out.append(keep if keep and {p.where["joint"] for p in keep} == joints else parts)
     return out
@@ -180,7 +211,7 @@ class CyclicJointError(Cause):
             orders, amplitude, power = periodogram(qj, projected[:, j], weight[:, j], bounds[j])
             spectra[j + 1] = JointSpectrum(j + 1, bounds[j], orders, np.rad2deg(amplitude), power,
                                            (float(np.rad2deg(qj.min())), float(np.rad2deg(qj.max()))))
-            for n in orders[np.argsort(power)[::-1][:ORDER_CANDIDATES]]:
+            for n in pursuit(qj, projected[:, j], weight[:, j], bounds[j], ORDER_CANDIDATES):
                 basis = JointBasis.single(harmonics(qj, [n]), j, nj)
                 out.append(Term(self.id, {"joint": j + 1, "order": int(n)}, (f"s{j + 1}_{n}", f"c{j + 1}_{n}"),
                                 joint_basis=basis, units=("rad", "rad"), extra={"part": True}))
@@ -189,27 +220,20 @@ class CyclicJointError(Cause):
         return out
 
     def compose(self, terms, scorer):
-        """Per joint, how many of its strongest orders to keep; then which joints to combine;
-        then each order the combination does not need is dropped. All by the scorer's held-out
-        errors (the analysis' grouped cross-validation)."""
+        """Per joint, how many of its strongest orders to keep; then which joints to combine, and
+        with the others' errors in the model, each joint's orders again; then each order the
+        combination does not need is dropped. All by the scorer's held-out errors (the analysis'
+        grouped cross-validation)."""
         if not terms:
             return []
         q, nj, spectra = scorer.obs.q, scorer.model.n_joints, terms[0].extra["spectra"]
         by_joint: dict[int, list[Term]] = {}
-        for t in terms:  # in order of power within each joint
+        for t in terms:  # in the order pursuit picked them within each joint
             by_joint.setdefault(t.where["joint"], []).append(t)
-        nested = [(j, k) for j, parts in by_joint.items() for k in range(1, len(parts) + 1)]
-        errors = scorer.heldout_errors_many([()] + [tuple(by_joint[j][:k]) for j, k in nested])
-        baseline = errors[0].mean()
-        means = dict(zip(nested, errors[1:].mean(axis=1)))
-        singles = []
-        for j, parts in by_joint.items():
-            best = min(means[(j, k)] for k in range(1, len(parts) + 1))
-            k = min(k for k in range(1, len(parts) + 1) if means[(j, k)] <= (1.0 + KEEP_RTOL) * best)
-            singles.append((means[(j, k)], tuple(parts[:k])))
-        singles.sort(key=lambda pair: pair[0])
-        chosen = list(singles)
-        gaining = [parts for m, parts in singles if m < (1.0 - JOINT_GAIN) * baseline]
+        errors = scorer.heldout_errors_many([()])
+        singles = sorted(_orders_per_joint(by_joint, {}, scorer).values(), key=lambda pair: pair[0])
+        chosen = [parts for _, parts in singles]
+        gaining = [parts for m, parts in singles if m < (1.0 - JOINT_GAIN) * errors[0].mean()]
         if len(gaining) >= 2:
             chain = [sum(gaining[:i], ()) for i in range(2, len(gaining) + 1)]
             kept, mean = gaining[0], singles[0][0]
@@ -217,7 +241,11 @@ class CyclicJointError(Cause):
                 if m < (1.0 - JOINT_GAIN) * mean:
                     kept, mean = parts, m
             if kept != gaining[0]:
-                chosen.append((mean, kept))
+                joints = {p.where["joint"]: () for p in kept}
+                for p in kept:
+                    joints[p.where["joint"]] += (p,)
+                again = _orders_per_joint({j: by_joint[j] for j in joints}, joints, scorer)
+                chosen.append(sum((again[j][1] for j in joints), ()))
         return [_term(parts, q, nj, spectra) for parts in _pruned(chosen, scorer)]
 
     def details(self, term, theta, q):
