@@ -9,9 +9,14 @@ Sections (all lengths in metres, base frame unless said otherwise)::
 
     cell:       name, robot (model file or shipped name), home_q_rad
     drivers:    robot, trigger, tracker, panel: {driver: NAME, ...options}
+    robots:     a cell of two robots instead of ``cell.robot``: ``{a: ROBOT, b: ROBOT}``, each
+                ROBOT {robot, home_q_rad, driver: {driver: NAME, ...options}, tool: [tool] form,
+                base_m, base_rotvec_deg (its base in the cell frame as installed; a's base
+                *is* the cell frame)}. Robot a is the cell's robot for every one-robot routine.
     workspace:  min_m, max_m (the TCP's box)
     limits:     tcp_speed_m_s, tcp_accel_m_s2, joint_speed_rad_s, joint_accel_rad_s2,
-                contact_travel_m (the longest a contact search may move)
+                contact_travel_m (the longest a contact search may move), tool_clearance_m
+                (two robots: how close their tools may come anywhere but a planned meeting)
     tool:       the mounted tool as drawn: tcp_m (flange frame), axis (flange frame, from
                 the flange toward the tip), radius_m, length_m
     beams:      the light barrier's beams as installed: a list of
@@ -36,8 +41,9 @@ from .reader import ConfigError, Section, read_yaml, resolve, shipped
 from .robot_files import ModelError, load_robot
 
 DEVICE_KINDS = ("robot", "trigger", "tracker", "panel")
-_SECTIONS = {"cell", "drivers", "workspace", "limits", "tool", "beams", "stylus", "pivot", "sim_truth"}
-_REQUIRED = ("cell", "drivers", "workspace", "limits")
+_SECTIONS = {"cell", "drivers", "robots", "workspace", "limits", "tool", "beams", "stylus", "pivot", "sim_truth"}
+_REQUIRED = ("cell", "workspace", "limits")
+ROBOT_NAMES = ("a", "b")  # the robots of a two-robot cell; a's base is the cell frame
 # sections the routines own; their names are the routines' (``tcp-laser`` -> ``tcp_laser``)
 ROUTINE_SECTIONS = ("tcp_laser", "tcp_stylus", "tcp_npoint", "tcf", "handshake", "tracker")
 
@@ -81,6 +87,24 @@ class ToolSpec:
 
 
 @dataclass(frozen=True)
+class RobotSpec:
+    """One robot of the cell: its model, home, driver, tool as drawn, and where its base is
+    in the cell frame (robot a's base) as installed (the handshake measures it)."""
+
+    name: str  # "a" or "b"
+    robot: str  # model file or shipped name
+    home_q_rad: tuple
+    driver: DriverSpec
+    tool: ToolSpec | None = None
+    base_pose: np.ndarray = field(default_factory=lambda: np.zeros(6))  # [x, y, z, rx, ry, rz] m, rad
+
+    @property
+    def base_matrix(self) -> np.ndarray:
+        """4x4: points in this robot's base frame -> the cell frame."""
+        return se3.homogeneous(se3.rotvec_to_matrix(self.base_pose[3:]), self.base_pose[:3])
+
+
+@dataclass(frozen=True)
 class BeamSpec:
     point_m: np.ndarray
     direction: np.ndarray  # unit
@@ -112,6 +136,8 @@ class SimTruthSpec:
     repeatability_mm: float = 0.03
     trigger_latency_s: float = 0.0
     trigger_jitter_s: float = 0.0
+    base_error_mm: float = 5.0  # robot b's base this far from where [robots.b] says (drawn)
+    base_error_deg: float = 0.5  # ... and turned this far
 
 
 @dataclass
@@ -132,11 +158,12 @@ class Cell:
     pivot_m: np.ndarray | None = None
     sim_truth: SimTruthSpec | None = None
     routines: dict = field(default_factory=dict)  # section name -> mapping as written
+    robots: dict = field(default_factory=dict)  # name -> RobotSpec; {"a"} alone in a one-robot cell
 
     def on_host(self, host: str) -> "Cell":
         """The same cell with every networked driver pointed at another address (parallel test cells)."""
-        other = copy.deepcopy(self)
-        for spec in other.drivers.values():
+        other = copy.deepcopy(self)  # one deepcopy: robot a's driver stays drivers["robot"]
+        for spec in [*other.drivers.values(), *(r.driver for r in other.robots.values())]:
             if "host" in spec.options:
                 spec.options["host"] = host
         return other
@@ -184,9 +211,53 @@ def _read_sim_truth(s: Section) -> SimTruthSpec:
         fixture_error_mm=s.number("fixture_error_mm", 0.5, low=0.0, high=50.0),
         repeatability_mm=s.number("repeatability_mm", 0.03, low=0.0, high=5.0),
         trigger_latency_s=s.number("trigger_latency_s", 0.0, low=0.0, high=1.0),
-        trigger_jitter_s=s.number("trigger_jitter_s", 0.0, low=0.0, high=0.1))
+        trigger_jitter_s=s.number("trigger_jitter_s", 0.0, low=0.0, high=0.1),
+        base_error_mm=s.number("base_error_mm", 5.0, low=0.0, high=200.0),
+        base_error_deg=s.number("base_error_deg", 0.5, low=0.0, high=10.0))
     s.done()
     return spec
+
+
+def _read_arm(s: Section, path: Path) -> tuple[str, np.ndarray]:
+    """The robot model (a shipped name, or a file next to the cell file) and its home joints."""
+    robot = s.text("robot", required=True)
+    if "/" in robot or robot.endswith((".yaml", ".yml")):  # a model file next to the cell file
+        robot = str(path.parent / robot)
+    try:
+        model = load_robot(robot)
+    except ModelError as exc:
+        s.fail("robot", str(exc))
+    home_q = s.vector("home_q_rad", model.n_joints, required=True)
+    if model.joint_limits is not None:
+        for i, (v, (lo, hi)) in enumerate(zip(home_q, model.joint_limits)):
+            if not lo <= v <= hi:
+                s.fail("home_q_rad", f"joint {i} at {v:g} rad is outside its limits {lo:g}..{hi:g}")
+    return robot, home_q
+
+
+def _driver(spec: Section) -> DriverSpec:
+    return DriverSpec(spec.text("driver", required=True), {k: v for k, v in spec.mapping.items() if k != "driver"})
+
+
+def _read_robots(top: Section, path: Path) -> dict[str, RobotSpec]:
+    """[robots] of a two-robot cell: a and b, each its model, home, driver, tool and base."""
+    section = top.section("robots")
+    if sorted(map(str, section.mapping)) != list(ROBOT_NAMES):
+        section.fail(None, f"a two-robot cell names its robots {' and '.join(ROBOT_NAMES)} "
+                           f"(found: {', '.join(map(str, section.mapping)) or 'none'})")
+    robots = {}
+    for name in ROBOT_NAMES:
+        s = section.section(name)
+        robot, home_q = _read_arm(s, path)
+        driver = _driver(s.section("driver", required=True))
+        tool = _read_tool(s.section("tool")) if "tool" in s else None
+        base = np.concatenate([s.vector("base_m", 3, [0.0, 0.0, 0.0]),
+                               np.deg2rad(s.vector("base_rotvec_deg", 3, [0.0, 0.0, 0.0]))])
+        if name == ROBOT_NAMES[0] and np.any(base):
+            s.fail("base_m", "robot a's base is the cell frame: leave base_m and base_rotvec_deg out")
+        s.done()
+        robots[name] = RobotSpec(name, robot, tuple(home_q.tolist()), driver, tool, base)
+    return robots
 
 
 def read_cell(name_or_path: str | Path) -> Cell:
@@ -207,20 +278,18 @@ def read_cell(name_or_path: str | Path) -> Cell:
         if section not in known:
             top.fail(section, f"unknown section (sections: {', '.join(sorted(known))})")
 
+    two = "robots" in doc
     s = top.section("cell")
     name = s.text("name", path.stem)
-    robot = s.text("robot", required=True)
-    if "/" in robot or robot.endswith((".yaml", ".yml")):  # a model file next to the cell file
-        robot = str(path.parent / robot)
-    try:
-        model = load_robot(robot)
-    except ModelError as exc:
-        s.fail("robot", str(exc))
-    home_q = s.vector("home_q_rad", model.n_joints, required=True)
-    if model.joint_limits is not None:
-        for i, (v, (lo, hi)) in enumerate(zip(home_q, model.joint_limits)):
-            if not lo <= v <= hi:
-                s.fail("home_q_rad", f"joint {i} at {v:g} rad is outside its limits {lo:g}..{hi:g}")
+    if two:
+        for key in ("robot", "home_q_rad"):
+            if key in s:
+                s.fail(key, "a two-robot cell gives each robot's model and home in [robots.a] and [robots.b]")
+        if "tool" in doc:
+            top.fail("tool", "a two-robot cell gives each robot's tool in [robots.a.tool] and [robots.b.tool]")
+        robots = _read_robots(top, path)
+    else:
+        robot, home_q = _read_arm(s, path)
     s.done()
 
     d = top.section("drivers")
@@ -228,10 +297,12 @@ def read_cell(name_or_path: str | Path) -> Cell:
     for kind in list(d.mapping):
         if kind not in DEVICE_KINDS:
             d.fail(kind, f"unknown device kind (kinds: {', '.join(DEVICE_KINDS)})")
-        spec = d.section(kind)
-        driver = spec.text("driver", required=True)
-        drivers[kind] = DriverSpec(driver, {k: v for k, v in spec.mapping.items() if k != "driver"})
-    if "robot" not in drivers:
+        if two and kind == "robot":
+            d.fail(kind, "a two-robot cell gives each robot's driver in [robots.a.driver] and [robots.b.driver]")
+        drivers[kind] = _driver(d.section(kind))
+    if two:
+        drivers["robot"] = robots["a"].driver
+    elif "robot" not in drivers:
         d.fail("robot", "missing (required)")
 
     w = top.section("workspace")
@@ -245,10 +316,15 @@ def read_cell(name_or_path: str | Path) -> Cell:
               "tcp_accel_m_s2": lim.number("tcp_accel_m_s2", 2.5, above=0.0, high=50.0),
               "joint_speed_rad_s": lim.number("joint_speed_rad_s", required=True, above=0.0, high=6.3),
               "joint_accel_rad_s2": lim.number("joint_accel_rad_s2", 4.0, above=0.0, high=100.0),
-              "contact_travel_m": lim.number("contact_travel_m", 0.05, above=0.0, high=0.5)}
+              "contact_travel_m": lim.number("contact_travel_m", 0.05, above=0.0, high=0.5),
+              "tool_clearance_m": lim.number("tool_clearance_m", 0.02, above=0.0, high=1.0)}
     lim.done()
 
-    tool = _read_tool(top.section("tool")) if "tool" in doc else None
+    if two:
+        tool = robots["a"].tool
+    else:
+        tool = _read_tool(top.section("tool")) if "tool" in doc else None
+        robots = {"a": RobotSpec("a", robot, tuple(home_q.tolist()), drivers["robot"], tool)}
     beams = _read_beams(top) if "beams" in doc else ()
     stylus = None
     if "stylus" in doc:
@@ -266,5 +342,6 @@ def read_cell(name_or_path: str | Path) -> Cell:
     for section in ROUTINE_SECTIONS:
         if section in doc:
             routines[section] = top.section(section).mapping
-    return Cell(where, name, robot, tuple(home_q.tolist()), drivers, low, high, limits, tool, beams, stylus,
-                pivot, truth, routines)
+    a = robots["a"]
+    return Cell(where, name, a.robot, a.home_q_rad, drivers, low, high, limits, tool, beams, stylus,
+                pivot, truth, routines, robots)

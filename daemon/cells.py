@@ -8,7 +8,7 @@ the section and the key, like the rest of the cell file.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..config.cells import Cell, CellFileError, read_cell, shipped_cells
@@ -32,6 +32,11 @@ def load_cell(name_or_path: str | Path) -> Cell:
             registry.check(kind, spec.name, spec.options)
         except DriverConfigError as exc:
             raise _placed(exc, cell, kind) from None
+    for name, spec in _other_robots(cell).items():
+        try:
+            registry.check("robot", spec.driver.name, spec.driver.options)
+        except DriverConfigError as exc:
+            raise exc.located(cell.path, f"robots.{name}.driver", CellFileError) from None
     routines.check_sections(cell)
     return cell
 
@@ -43,11 +48,13 @@ class CellDrivers:
     tracker: object = None
     panel: object = None
     world: object = None  # what in-process simulated devices share (their world), else None
+    robots: dict = field(default_factory=dict)  # every robot by name; "a" is `robot`
 
     def close(self) -> None:
         """Close every device, even when one fails; the first failure is raised afterwards."""
         errors = []
-        for device in (self.trigger, self.tracker, self.panel, self.robot):
+        others = [r for name, r in self.robots.items() if r is not self.robot]
+        for device in (self.trigger, self.tracker, self.panel, *others, self.robot):
             if device is None:
                 continue
             try:
@@ -72,6 +79,7 @@ def open_drivers(cell: Cell) -> CellDrivers:
     """
     shared: dict = {}
     built: dict = {}
+    others: dict = {}  # robots besides a, by name
     try:
         for kind in registry.KINDS:
             spec = cell.drivers.get(kind)
@@ -81,9 +89,20 @@ def open_drivers(cell: Cell) -> CellDrivers:
                 built[kind] = registry.create(kind, spec.name, spec.options, shared=shared, cell=cell)
             except DriverConfigError as exc:
                 raise _placed(exc, cell, kind) from None
+        for name, spec in _other_robots(cell).items():
+            try:
+                others[name] = registry.create("robot", spec.driver.name, spec.driver.options, shared=shared,
+                                               cell=cell, robot=name)
+            except DriverConfigError as exc:
+                raise exc.located(cell.path, f"robots.{name}.driver", CellFileError) from None
     except BaseException:
-        for device in built.values():
+        for device in [*built.values(), *others.values()]:
             device.close()
         raise
     world = next(iter(shared.values()), None)
-    return CellDrivers(world=world, **built)
+    return CellDrivers(world=world, robots={"a": built["robot"], **others}, **built)
+
+
+def _other_robots(cell: Cell) -> dict:
+    """The robots of the cell besides robot a (whose driver is ``drivers.robot``)."""
+    return {name: spec for name, spec in cell.robots.items() if name != "a"}

@@ -36,6 +36,9 @@ def _score(result: Result, cell) -> None:
         score.update(truth.score_tool_frame(result.tool_frame))
     if result.routine == "tracker" and result.dataset and truth.tool is not None:
         score.update(_score_kinematics(result, truth, load_robot(cell.robot)))
+    if result.routine == "handshake" and result.frame is not None:
+        score.update(truth.score_base_frame(result.frame["pose_m_rad"]))
+        score.update(truth.score_tips(*(np.asarray(result.extra[f"tip_{n}_mm"]) / 1e3 for n in "ab")))
     result.sim_truth = score
 
 
@@ -83,6 +86,10 @@ def _text(result: Result) -> str:
         if "position_error_mm" in t:
             lines.append(f"  against the simulation's hidden truth: TCP {t['position_error_mm']:.4f} mm, "
                          f"axis {t['axis_error_deg']:.4f} deg")
+        if "base_position_error_mm" in t:
+            lines.append(f"  against the simulation's hidden truth: robot b's base {t['base_position_error_mm']:.4f} mm, "
+                         f"{t['base_rotation_error_deg']:.5f} deg; tips {t.get('tip_a_error_mm', float('nan')):.4f} "
+                         f"and {t.get('tip_b_error_mm', float('nan')):.4f} mm")
     if result.dataset:
         lines.append(f"  dataset: {result.dataset}")
     return "\n".join(lines)

@@ -112,11 +112,14 @@ def shared_context(name: str, cell):
     return _load(_SHARED[name])(cell) if name in _SHARED else None
 
 
-def create(kind: str, name: str, options: dict | None = None, *, shared: dict | None = None, cell=None):
+def create(kind: str, name: str, options: dict | None = None, *, shared: dict | None = None, cell=None,
+           robot: str | None = None):
     """Build the driver `name` of `kind` with the cell file's options.
 
     `shared` (a dict kept by the caller for one cell) holds the objects of backend
     families that share one per cell (see the module docstring), built from `cell`.
+    `robot` names which robot of a two-robot cell the device is; a shared object that
+    holds one per robot gives it through ``of_robot(robot)``.
     """
     options = dict(options or {})
     check(kind, name, options)
@@ -125,5 +128,5 @@ def create(kind: str, name: str, options: dict | None = None, *, shared: dict | 
             shared = {}
         if name not in shared:
             shared[name] = shared_context(name, cell)
-        options["world"] = shared[name]
+        options["world"] = shared[name] if robot in (None, "a") else shared[name].of_robot(robot)
     return factory(kind, name)(**options)

@@ -41,6 +41,9 @@ class Move:
 
     kind ``joint``: to ``q_rad``; ``linear``: the TCP to ``pose`` on a straight line;
     ``contact``: along ``direction`` at ``speed`` until contact, at most ``travel_m``.
+    ``robot`` names the robot that moves (``a`` unless the cell has two); ``meeting``, for
+    a move that brings the two robots' tool tips together, is the planned contact point
+    (cell frame, m): only there may the tools come closer than the cell's clearance.
     """
 
     kind: str
@@ -51,20 +54,23 @@ class Move:
     pose: np.ndarray | None = None
     direction: np.ndarray | None = None  # unit, base frame
     travel_m: float = 0.0
+    robot: str = "a"
+    meeting: np.ndarray | None = None
 
     @classmethod
-    def joint(cls, label, q_rad, speed, accel) -> "Move":
-        return cls("joint", label, float(speed), float(accel), q_rad=np.asarray(q_rad, dtype=float))
+    def joint(cls, label, q_rad, speed, accel, *, robot="a") -> "Move":
+        return cls("joint", label, float(speed), float(accel), q_rad=np.asarray(q_rad, dtype=float), robot=robot)
 
     @classmethod
-    def linear(cls, label, pose, speed, accel) -> "Move":
-        return cls("linear", label, float(speed), float(accel), pose=np.asarray(pose, dtype=float))
+    def linear(cls, label, pose, speed, accel, *, robot="a", meeting=None) -> "Move":
+        return cls("linear", label, float(speed), float(accel), pose=np.asarray(pose, dtype=float), robot=robot,
+                   meeting=meeting)
 
     @classmethod
-    def contact(cls, label, direction, speed, travel_m, accel=1.0) -> "Move":
+    def contact(cls, label, direction, speed, travel_m, accel=1.0, *, robot="a", meeting=None) -> "Move":
         d = np.asarray(direction, dtype=float)
         return cls("contact", label, float(speed), float(accel), direction=d / np.linalg.norm(d),
-                   travel_m=float(travel_m))
+                   travel_m=float(travel_m), robot=robot, meeting=meeting)
 
 
 @dataclass(frozen=True)

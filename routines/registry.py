@@ -17,6 +17,7 @@ ROUTINES: dict[str, str] = {
     "tcp-npoint": "cellcal.routines.tcp_npoint:TcpNpoint",
     "tcf": "cellcal.routines.tcf:Tcf",
     "tracker": "cellcal.routines.tracker:TrackerCampaign",
+    "handshake": "cellcal.routines.handshake:Handshake",
 }
 
 

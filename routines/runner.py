@@ -63,16 +63,18 @@ def measure(prepared: Prepared, drivers, out_dir: str | Path, progress: Progress
     """Move through the plan and write the dataset; on a device fault or an abort (the
     `abort` event set), stop and raise."""
     routine = prepared.routine
-    robot = GuardedRobot(drivers.robot, prepared.guard, abort)
+    robots = {**(getattr(drivers, "robots", None) or {}), "a": drivers.robot}  # drivers.robot is robot a
+    robot = GuardedRobot.of_cell(robots, prepared.guard, abort)["a"]
     devices = Devices(robot=drivers.robot, trigger=drivers.trigger, tracker=drivers.tracker)
     previous = np.asarray(drivers.robot.tcp(), dtype=float)
     try:
         dataset = routine.measure(devices, robot, prepared.plan, progress)
     except BaseException as exc:
-        try:
-            drivers.robot.stop()
-        except DeviceError:
-            pass
+        for arm in robots.values():
+            try:
+                arm.stop()
+            except DeviceError:
+                pass
         kept = _keep_partial(routine, previous, out_dir, progress)
         if kept and isinstance(exc, DeviceError):
             raise DeviceError(exc.device, f"{exc.what}; {kept}") from exc

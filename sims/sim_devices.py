@@ -119,13 +119,15 @@ class SimRobot(Robot):
                 arm.halt()
                 raise DeviceError(self.name, f"contact search left the workspace box at "
                                              f"{np.round(position, 4).tolist()} m")
-            pivot = world.pivot_touch()
-            if pivot or world.touching() or any(c.distance_m(position) <= 0.0 for c in self.contacts):
+            pivot, meeting = world.pivot_touch(), world.partner_touch()
+            if pivot or meeting or world.touching() or any(c.distance_m(position) <= 0.0 for c in self.contacts):
                 contact = True
                 break
         arm.halt()
         if contact and pivot == "seat":  # compliant: the socket's cone guides the tip to its seat
             world.settle_in_pivot(self.name)
+        elif contact and meeting == "seat":  # the other robot's cup guides the tip onto its tip
+            world.settle_on_partner(self.name)
         return ContactResult(contact, world.tcp_pose, world.q)
 
     def stop(self) -> None:

@@ -23,6 +23,13 @@ The pivot is a conical socket (:class:`PivotSocket`). A contact search that meet
 ends as a compliant one (force mode) does: the cone guides the tip's rounding to its
 seat and the arm comes to rest there, off by its repeatability; a tip that lands on the
 flat beside the socket stays where it landed.
+
+A two-robot cell has one world per arm, each in its own base frame and on its own
+clock (:func:`world_of_cell` builds both and links them; ``of_robot`` picks one). Robot
+a's needle ends in a small centring cup facing out along its axis; robot b's needle
+tip, searched along its axis onto it, is guided by the cup to a's real tip as by the
+pivot's cone, and rests there off by its repeatability (the handshake's meeting). A
+tip that lands beside the cup stays where it landed.
 """
 from __future__ import annotations
 
@@ -37,8 +44,8 @@ from ..drivers.interfaces import DeviceError, RobotSample, RobotState, TriggerEv
 from ..solvers.robot_model import KinematicModel
 from .arm_motion import ArmKinematics, JointMove, MovingArm, MotionFault
 from .scene import LightBeam
-from .truth import (CellTruth, beam_blocked, beam_edges, pivot_rest_q, real_tool_body, real_tool_tip, repeat_offset_m,
-                    touching, truth_of_cell)
+from .truth import (CellTruth, beam_blocked, beam_edges, meeting_rest_q, pivot_rest_q, real_tool_body, real_tool_tip,
+                    repeat_offset_m, touching, truth_of_cell)
 
 HOME_Q = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
 SAMPLE_BUFFER_S = 120.0
@@ -46,6 +53,8 @@ PIVOT_CONE_DEG = 90.0  # included angle of the pivot socket (a countersink)
 PIVOT_RIM_RADIUS_M = 0.004  # its opening: a rounding whose centre is over it slides to the seat
 PIVOT_FACE_RADIUS_M = 0.020  # the fixture's flat top around the socket
 PIVOT_SLIDE_SPEED_RAD_S = 0.05  # how fast the compliant arm follows the socket to rest
+CUP_RIM_RADIUS_M = 0.008  # robot a's centring cup: a tip whose axis line passes within this is guided in
+CUP_FACE_RADIUS_M = 0.015  # ... and one that lands within this, beside it, stays there
 
 
 @dataclass(frozen=True)
@@ -88,6 +97,8 @@ class SimWorld:
         self.contacts = [c for c in (self.truth.stylus, *self.truth.contacts) if c is not None]
         self.pivot = pivot_socket(self.truth)
         self._pivot_fouling: list[np.ndarray] = []
+        self.partner = None  # () -> (tip, axis): the other robot's real tip and tool axis, this base frame
+        self.arms = {"a": self}  # every arm of the cell by name (of_robot)
         self.workspace = workspace
         self.limits = limits
         self.rng = np.random.default_rng(seed)
@@ -136,6 +147,34 @@ class SimWorld:
         :meth:`PivotSocket.touch`), None when clear or the cell has no pivot."""
         return None if self.pivot is None else self.pivot.touch(self._body[0], self.tool_radius_m)
 
+    def of_robot(self, name: str) -> "SimWorld":
+        """The world of the cell's robot `name` (``a`` is this one)."""
+        return self.arms[name]
+
+    def partner_touch(self) -> str | None:
+        """'seat' or 'face' when the real tip has reached the other robot's tip (the plane
+        through it across its axis): 'seat' within its cup's rim, 'face' beside it on the
+        cup's face; None when not there or with no other robot."""
+        if self.partner is None or self.truth.tool is None:
+            return None
+        tip, axis = self.partner()
+        d = self.tool_tip_m() - tip
+        depth = float(d @ axis)
+        lateral = float(np.linalg.norm(d - depth * axis))
+        if depth > 0.0 or lateral > CUP_FACE_RADIUS_M:
+            return None
+        return "seat" if lateral <= CUP_RIM_RADIUS_M else "face"
+
+    def settle_on_partner(self, device: str = "sim robot") -> None:
+        """The end of a compliant search that met the other robot's cup: the real tip
+        slides to the other's real tip and rests there, off by this arm's repeatability."""
+        offset = repeat_offset_m(self.truth, self.rng)
+        try:
+            q_rest = meeting_rest_q(self.truth, self.physics, self.arm.q, self.partner()[0], offset)
+        except MotionFault as exc:
+            raise DeviceError(device, f"cannot settle on the other robot's tip: {exc}") from None
+        self._slide_to(q_rest, offset, device)
+
     def settle_in_pivot(self, device: str = "sim robot") -> None:
         """The end of a compliant contact search that met the socket: the arm, orientation
         held, follows the cone until the tip's rounding rests in it. The rest is a new pose,
@@ -146,6 +185,10 @@ class SimWorld:
             q_rest = pivot_rest_q(self.truth, self.physics, self.arm.q, seat, offset)
         except MotionFault as exc:
             raise DeviceError(device, f"cannot settle in the pivot: {exc}") from None
+        self._slide_to(q_rest, offset, device)
+
+    def _slide_to(self, q_rest, offset, device: str) -> None:
+        """The compliant arm follows a guide to rest at `q_rest` (that rest's draw `offset`)."""
         slide = JointMove(self.arm.q, q_rest, PIVOT_SLIDE_SPEED_RAD_S, self.limits.joint_accel_rad_s2)
         self.arm.start(slide)
         self._motion, self._repeat_offset_m = slide, offset  # this rest's draw, not a fresh one
@@ -290,8 +333,39 @@ def pivot_socket(truth: CellTruth) -> PivotSocket | None:
 
 def world_of_cell(cell: Cell) -> SimWorld:
     """The world the in-process sim devices of `cell` share (the registry's shared object
-    of the ``sim`` backends): its robot at home, its truth, workspace and limits."""
+    of the ``sim`` backends): its robot at home, its truth, workspace and limits. In a
+    two-robot cell, robot b's world too (``of_robot("b")``), in b's base frame, with the
+    cell's box carried into it, and each arm's tool visible to the other."""
     model = load_robot(cell.robot)
-    limits = {k: v for k, v in cell.limits.items() if k in SpeedLimits.__dataclass_fields__}
-    return SimWorld(model, q0=cell.home_q_rad, truth=truth_of_cell(cell, model),
-                    workspace=Workspace(cell.workspace_min_m, cell.workspace_max_m), limits=SpeedLimits(**limits))
+    limits = SpeedLimits(**{k: v for k, v in cell.limits.items() if k in SpeedLimits.__dataclass_fields__})
+    box = Workspace(cell.workspace_min_m, cell.workspace_max_m)
+    world = SimWorld(model, q0=cell.home_q_rad, truth=truth_of_cell(cell, model), workspace=box, limits=limits)
+    if world.truth.second is not None:
+        b = cell.robots["b"]
+        other = SimWorld(load_robot(b.robot), q0=b.home_q_rad, truth=world.truth.for_second(),
+                         workspace=_box_in(box, b.base_matrix), limits=limits, seed=1)
+        link_tips(world, other, world.truth.second.base)
+        world.arms = other.arms = {"a": world, "b": other}
+    return world
+
+
+def tool_axis_m(world: SimWorld) -> np.ndarray:
+    """The real tool's axis now (unit, base frame, toward the tip)."""
+    front, back = world.tool_body()
+    axis = front - back
+    return axis / np.linalg.norm(axis)
+
+
+def link_tips(a: SimWorld, b: SimWorld, base_b: np.ndarray) -> None:
+    """Let b's tool find a's tip: b's partner is a's real tip and axis in b's base frame
+    (`base_b`: b's base -> a's base, the truth)."""
+    rotation, position = base_b[:3, :3], base_b[:3, 3]
+    b.partner = lambda: (rotation.T @ (a.tool_tip_m() - position), rotation.T @ tool_axis_m(a))
+
+
+def _box_in(box: Workspace, base: np.ndarray) -> Workspace:
+    """The smallest box in a robot's base frame that holds the cell's box (its controller
+    keeps a box of its own; the guard holds the cell's exactly)."""
+    corners = np.array(np.meshgrid(*zip(box.min_m, box.max_m))).reshape(3, -1).T
+    local = (corners - base[:3, 3]) @ base[:3, :3]
+    return Workspace(local.min(axis=0), local.max(axis=0))

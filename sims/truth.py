@@ -10,7 +10,11 @@ reality is from that, or states reality outright, and a seed draws the rest. Fro
   axis (runout tilt), its radius and length, as a capsule that blocks beams and touches
   things with its whole body, not just a point;
 * the fixtures where they really are, the sensors' real latency and jitter, and the
-  arm's repeatability (each motion ends a little off, drawn afresh per motion).
+  arm's repeatability (each motion ends a little off, drawn afresh per motion);
+* in a two-robot cell, robot b as it really is (:class:`SecondArm`): its arm, its real
+  needle tip, and where its base really is in robot a's base frame (the handshake's
+  answer), drawn from its own stream of the seed so robot a's truth is the same as in a
+  one-robot cell.
 
 The in-process cell (:mod:`.sim_world`) and the fake UR controller behind the network
 fakes (:mod:`.fake_ur`) are both built from one :class:`CellTruth`, so the same routine
@@ -24,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config.cells import Cell, SimTruthSpec
+from ..config.robot_files import load_robot
 from ..drivers.interfaces import Edge, TriggerEvent
 from ..solvers import se3
 from ..solvers.robot_model import KinematicModel
@@ -55,6 +60,15 @@ class ToolBody:
 
 
 @dataclass(frozen=True)
+class SecondArm:
+    """Robot b of a two-robot cell as it really is."""
+
+    arm_params: np.ndarray  # as built, in its model's parameter order
+    tool: ToolBody | None
+    base: np.ndarray  # 4x4: robot b's base frame -> the cell frame (robot a's base), really
+
+
+@dataclass(frozen=True)
 class CellTruth:
     arm_params: np.ndarray  # the arm as built, in the model's parameter order (mm, rad)
     tool: ToolBody | None  # None: a point probe at whatever TCP the controller is set to
@@ -67,6 +81,33 @@ class CellTruth:
     trigger_jitter_s: float = 0.0
     seed: int = 0
     drawn: dict = field(default_factory=dict)  # how far each part is from the cell file, for reports
+    second: SecondArm | None = None  # robot b of a two-robot cell
+
+    def for_second(self) -> "CellTruth":
+        """The truth robot b's own world obeys: its arm and tool, no fixtures, the same
+        repeatability (its base frame is its own, as its controller's is)."""
+        b = self.second
+        return CellTruth(b.arm_params, b.tool, repeatability_mm=self.repeatability_mm, seed=self.seed)
+
+    def score_base_frame(self, base_pose) -> dict:
+        """How far a found pose of robot b's base in the cell frame [x, y, z, rx, ry, rz]
+        (m, rad) is from the real one: its origin's distance and the rotation between them."""
+        if self.second is None:
+            return {}
+        pose = np.asarray(base_pose, dtype=float)
+        turn = se3.rotvec_to_matrix(pose[3:]).T @ self.second.base[:3, :3]
+        angle = float(np.degrees(np.linalg.norm(se3.matrix_to_rotvec(turn))))
+        true = np.concatenate([self.second.base[:3, 3], se3.matrix_to_rotvec(self.second.base[:3, :3])])
+        return {"base_position_error_mm": float(np.linalg.norm(pose[:3] - true[:3]) * 1e3),
+                "base_rotation_error_deg": angle, "true_base_frame": true.tolist()}
+
+    def score_tips(self, tip_a_m, tip_b_m) -> dict:
+        """How far found needle tips (flange frames, m) are from the real ones."""
+        out = {}
+        for key, tool, found in (("a", self.tool, tip_a_m), ("b", self.second and self.second.tool, tip_b_m)):
+            if tool is not None and found is not None:
+                out[f"tip_{key}_error_mm"] = float(np.linalg.norm(np.asarray(found, float) - tool.tcp_m) * 1e3)
+        return out
 
     def score_tool_frame(self, tool_frame) -> dict:
         """How far a found tool frame [x, y, z, rx, ry, rz] (m, rad) is from the real tool:
@@ -132,8 +173,38 @@ def truth_of_cell(cell: Cell, model: KinematicModel) -> CellTruth:
     if cell.stylus is not None:
         stylus = ContactSphere(placed(cell.stylus["centre_m"]), cell.stylus["radius_m"])
     pivot = placed(cell.pivot_m) if cell.pivot_m is not None else None
+    second = _second_arm(cell, spec, drawn) if "b" in cell.robots else None
     return CellTruth(params, tool, beams, stylus, pivot, (), spec.repeatability_mm, spec.trigger_latency_s,
-                     spec.trigger_jitter_s, spec.seed, drawn)
+                     spec.trigger_jitter_s, spec.seed, drawn, second)
+
+
+def _real_tool(drawn_tool, spec: SimTruthSpec, rng: np.random.Generator) -> ToolBody | None:
+    if drawn_tool is None:
+        return None
+    tcp = drawn_tool.tcp_m + _random_unit(rng) * spec.tool_tcp_error_mm / 1e3
+    axis = _tilted(drawn_tool.axis, np.deg2rad(spec.tool_tilt_deg), rng)
+    return ToolBody(tcp, axis, drawn_tool.radius_m, drawn_tool.length_m)
+
+
+def _second_arm(cell: Cell, spec: SimTruthSpec, drawn: dict) -> SecondArm:
+    """Robot b as built, its real tool, and its real base: drawn from the seed's second
+    stream, so adding robot b changes nothing of robot a's truth."""
+    b = cell.robots["b"]
+    rng = np.random.default_rng([spec.seed, 2])
+    model = load_robot(b.robot)
+    params = np.asarray(model.nominal, dtype=float).copy()
+    errors = np.where(model.param_is_angle, np.deg2rad(spec.arm_angle_error_deg), spec.arm_length_error_mm)
+    params += rng.uniform(-1.0, 1.0, len(params)) * errors
+    tool = _real_tool(b.tool, spec, rng)
+    turn = se3.rotvec_to_matrix(_random_unit(rng) * np.deg2rad(spec.base_error_deg))
+    base = b.base_matrix.copy()
+    base[:3, :3] = turn @ base[:3, :3]
+    base[:3, 3] += _random_unit(rng) * spec.base_error_mm / 1e3
+    drawn["base_b_off_drawing_mm"] = float(np.linalg.norm(base[:3, 3] - b.base_pose[:3]) * 1e3)
+    drawn["base_b_off_drawing_deg"] = float(spec.base_error_deg)
+    if tool is not None:
+        drawn["tool_b_tcp_off_drawing_mm"] = float(np.linalg.norm(tool.tcp_m - b.tool.tcp_m) * 1e3)
+    return SecondArm(params, tool, base)
 
 
 # -- geometry of a capsule against lines, points and planes ------------------------------------
@@ -239,6 +310,15 @@ def beam_edges(truth: CellTruth, beams, blocked: dict, body_old, body_new, t_old
         t_edge += truth.trigger_latency_s + (rng.uniform(-jitter, jitter) if jitter > 0 else 0.0)
         edges.append(TriggerEvent(t_edge, beam.channel, Edge.BLOCKED if now else Edge.CLEARED, True))
     return edges
+
+
+def meeting_rest_q(truth: CellTruth, physics, q, meet_m, offset_m) -> np.ndarray:
+    """The joints at which the real tool, its orientation held as at joints q, rests with its
+    real tip at `meet_m` (where the other robot's tip is), the arm off by `offset_m`.
+    Raises MotionFault when the arm cannot get there."""
+    rotation, position = physics.flange(q)
+    tip = position + rotation @ truth.tool.tcp_m
+    return physics.ik(rotation, position + np.asarray(meet_m) - offset_m - tip, q, np.zeros(6))
 
 
 def pivot_rest_q(truth: CellTruth, physics, q, seat_m, offset_m) -> np.ndarray:
