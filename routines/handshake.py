@@ -317,7 +317,7 @@ class Handshake(Routine):
         """Run the steps; robot b's moves of each meeting re-aimed by what the meetings so far
         showed (its base as installed is off by that much)."""
         o = self.options
-        t0 = robot.samples()[-1].t_s
+        motion_s = 0.0  # each move on its own robot's clock: the two robots move in turn
         speed, accel = self.cell.limits["tcp_speed_m_s"], self.cell.limits["tcp_accel_m_s2"]
         misses: list[np.ndarray] = []
         rows = []
@@ -329,13 +329,14 @@ class Handshake(Routine):
                 aim = np.mean(misses, axis=0) if misses else np.zeros(3)
                 poses = self._poses(m, aim)
                 pending = self._meeting_moves(m, poses, speed, accel)
-                robot_b.run(Move.linear(f"robot b stands off {number}", poses["standoff"], speed, accel, robot="b")
-                            if misses else move)
-                continue
+                if misses:
+                    move = Move.linear(f"robot b stands off {number}", poses["standoff"], speed, accel, robot="b")
             if pending and move.label == pending[0][0].label:
                 move = pending.pop(0)[0]
             arm = robot if move.robot == "a" else robot_b
+            t_s = arm.samples()[-1].t_s
             found = arm.run(move)
+            motion_s += arm.samples()[-1].t_s - t_s
             if meeting is None:
                 continue
             if not found.contact:
@@ -351,7 +352,7 @@ class Handshake(Routine):
                          **{f"qb{j + 1}_rad": v for j, v in enumerate(q_b)}})
             progress(f"handshake: meeting {meeting.number} of {o.points} recorded "
                      f"(robot b {np.linalg.norm(misses[-1]) * 1e3:.2f} mm from where its base as installed puts it)")
-        return rows, float(robot.samples()[-1].t_s - t0)
+        return rows, float(motion_s)
 
     # -- solve -----------------------------------------------------------------------
 

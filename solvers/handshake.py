@@ -15,9 +15,10 @@ the start so the parameterisation has no singularity, and standard deviations fr
 Jacobian at the solution and the residual's own scale.
 
 What the points can and cannot give is said before fitting: fewer than four, or points
-on one plane (the rotation about the plane's normal is then held only by the tips'
-guesses, and an error in a tip turns into a turn of the frame) are refused, with the
-numbers. :func:`design` gives the condition and the expected errors of a planned set
+on one plane, are refused with the numbers. (With the needles' orientations varied, this
+fit itself stays determined on a plane; the points are still required to span the
+workspace in depth, so the frame is checked where it is used rather than extrapolated
+off a plane.) :func:`design` gives the condition and the expected errors of a planned set
 before anything moves.
 
 Lengths in mm, angles in radians.
@@ -76,8 +77,9 @@ def check_points(points_mm, min_out_of_plane_mm: float) -> PointSet:
         raise HandshakeRefused(
             f"the {ps.n} meeting points lie on one plane (normal {np.round(ps.normal, 3).tolist()}): they stand "
             f"{ps.out_of_plane_mm:.3f} mm RMS out of it against {ps.spread_mm[0]:.1f} and {ps.spread_mm[1]:.1f} mm "
-            f"in it (condition {ps.condition:.3g}); at least {min_out_of_plane_mm:g} mm out of plane is needed, "
-            "or the turn about that normal is not measured")
+            f"in it (condition {ps.condition:.3g}); at least {min_out_of_plane_mm:g} mm out of plane is needed: a "
+            "frame checked on one plane only is extrapolated across it, and four coplanar points leave the "
+            "published four-point solution without an answer")
     return ps
 
 
