@@ -24,6 +24,7 @@ from .notify import Notifier
 from .run_report import write_run_report
 from .service import RESULT_MEANINGS, ResultCode, Service
 from .store import Store, StoreError, state_dir
+from .write_back import ControllerFrames, replace_frames, stored_from_json
 
 log = logging.getLogger("cellcal.daemon")
 STOP_WAIT_S = 1.5  # how long a stop waits for the running routine to halt before leaving
@@ -162,7 +163,8 @@ def cmd_tool_history(args) -> int:
 
 
 def cmd_tool_rollback(args) -> int:
-    """Restore the tool frame the controller had before a run's write-back (default: the latest)."""
+    """Restore the tool frames the controller had before a run's write-back (default: the latest):
+    the running program's and the one the robot program applies at its start."""
     store = _store(args)
     try:
         writes = [f for f in store.tool_frames() if f["action"] == "write" and f["frame_before"] is not None]
@@ -172,16 +174,16 @@ def cmd_tool_rollback(args) -> int:
             raise UsageError("no write-back to roll back" + (f" for run {args.run}" if args.run else ""))
         entry = writes[-1]
         frame = np.asarray(entry["frame_before"], dtype=float)
+        target = ControllerFrames(frame, stored_from_json(entry["stored_before"]))
         cell = load_cell(args.cell)
         with open_drivers(cell) as drivers:
             if drivers.robot.state() is not RobotState.READY:
                 raise UsageError(f"the robot is not ready ({drivers.robot.state().value}); nothing changed")
-            current = np.asarray(drivers.robot.tcp(), dtype=float)
-            drivers.robot.set_tcp(frame)
-            readback = np.asarray(drivers.robot.tcp(), dtype=float)
-        if np.abs(readback - frame).max() > 1e-9:
-            raise DeviceError("robot", f"rollback read back {readback.tolist()}, not {frame.tolist()}")
-        store.record_tool_frame(entry["run_id"], "rollback", current, frame)
+            current, failure = replace_frames(drivers.robot, target)
+        if failure is not None:
+            raise DeviceError("robot", f"rollback: {failure}")
+        store.record_tool_frame(entry["run_id"], "rollback", current.running, frame, current.stored_json(),
+                                target.stored_json() if current.stored is not None else None)
         f = tool_frame_json(frame)
         print(f"restored the tool frame from before run {entry['run_id']}: x {f['x_mm']:.4f} y {f['y_mm']:.4f} "
               f"z {f['z_mm']:.4f} mm, rx {f['rx_deg']:.4f} ry {f['ry_deg']:.4f} rz {f['rz_deg']:.4f} deg")

@@ -33,12 +33,12 @@ from ..routines.base import PlanRefused, Result, RoutineAborted, RoutineError
 from ..routines.gates import frame_change
 from .notify import Notifier
 from .store import Store
+from .write_back import write_back
 
 log = logging.getLogger("cellcal.daemon")
 
 # routine selector register values (spec/panel.md); 6 extends the map for tcf
 PANEL_ROUTINES = {1: "tcp-laser", 2: "tcp-stylus", 3: "tcp-npoint", 4: "handshake", 5: "tracker", 6: "tcf"}
-WRITE_BACK_TOLERANCE = 1e-9  # m and rad: the controller must report exactly what was sent
 
 
 class ResultCode(enum.IntEnum):
@@ -257,22 +257,13 @@ class Service:
         return prepared, None
 
     def write_back(self, run_id: int, frame) -> str | None:
-        """The frame to the controller, read back and compared; the old one restored on a mismatch."""
-        robot = self.drivers.robot
-        frame = np.asarray(frame, dtype=float)
-        try:
-            before = np.asarray(robot.tcp(), dtype=float)
-            robot.set_tcp(frame)
-            readback = np.asarray(robot.tcp(), dtype=float)
-        except DeviceError as exc:
-            return f"write-back failed: {exc}"
-        if np.abs(readback - frame).max() > WRITE_BACK_TOLERANCE:
-            try:
-                robot.set_tcp(before)
-            except DeviceError:
-                pass
-            return f"the controller reports {readback.tolist()} after writing {frame.tolist()}; old frame restored"
-        self.store.record_tool_frame(run_id, "write", before, frame)
+        """The frame to the controller (running and stored for the program's start), read back
+        and compared; the old frames restored on a mismatch (:mod:`.write_back`)."""
+        before, written, failure = write_back(self.drivers.robot, frame, generation=run_id)
+        if failure is not None:
+            return failure
+        self.store.record_tool_frame(run_id, "write", before.running, written.running,
+                                     before.stored_json(), written.stored_json())
         return None
 
     def _end(self, run_id: int, state: str, code: ResultCode, reason: str, result: Result | None = None) -> RunOutcome:

@@ -70,6 +70,11 @@ MIGRATIONS = (
         message TEXT
     );
     """,
+    # 3: the tool frame the robot program applies at its start, before and after each write
+    """
+    ALTER TABLE tool_frames ADD COLUMN stored_before TEXT;
+    ALTER TABLE tool_frames ADD COLUMN stored_after TEXT;
+    """,
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 OPEN_STATES = ("checking", "running", "solving", "gates", "writing back")
@@ -227,18 +232,24 @@ class Store:
 
     # -- tool frames ----------------------------------------------------------------------
 
-    def record_tool_frame(self, run_id: int | None, action: str, before, after) -> None:
+    def record_tool_frame(self, run_id: int | None, action: str, before, after, stored_before: dict | None = None,
+                          stored_after: dict | None = None) -> None:
+        """A tool frame written (``before`` -> ``after``); ``stored_*`` the frame the robot program
+        applies at its start ({"tool_frame", "generation"}), None where the robot keeps none."""
         with self._tx() as db:
-            db.execute("INSERT INTO tool_frames (run_id, at, action, frame_before, frame_after) "
-                       "VALUES (?, ?, ?, ?, ?)", (run_id, time.time(), action,
-                                                  None if before is None else json.dumps(list(map(float, before))),
-                                                  json.dumps(list(map(float, after)))))
+            db.execute("INSERT INTO tool_frames (run_id, at, action, frame_before, frame_after, stored_before, "
+                       "stored_after) VALUES (?, ?, ?, ?, ?, ?, ?)",
+                       (run_id, time.time(), action, None if before is None else json.dumps(list(map(float, before))),
+                        json.dumps(list(map(float, after))), _json_or_none(stored_before), _json_or_none(stored_after)))
 
     def tool_frames(self) -> list[dict]:
         return [{"id": i, "run_id": r, "at": at, "action": a,
-                 "frame_before": None if b is None else json.loads(b), "frame_after": json.loads(f)}
-                for i, r, at, a, b, f in self.db.execute(
-                    "SELECT id, run_id, at, action, frame_before, frame_after FROM tool_frames ORDER BY id")]
+                 "frame_before": None if b is None else json.loads(b), "frame_after": json.loads(f),
+                 "stored_before": None if sb is None else json.loads(sb),
+                 "stored_after": None if sa is None else json.loads(sa)}
+                for i, r, at, a, b, f, sb, sa in self.db.execute(
+                    "SELECT id, run_id, at, action, frame_before, frame_after, stored_before, stored_after "
+                    "FROM tool_frames ORDER BY id")]
 
     # -- events ---------------------------------------------------------------------------
 
@@ -248,6 +259,10 @@ class Store:
 
     def events(self) -> list[tuple[float, str, str | None]]:
         return [tuple(r) for r in self.db.execute("SELECT at, kind, message FROM events ORDER BY rowid")]
+
+
+def _json_or_none(value) -> str | None:
+    return None if value is None else json.dumps(value)
 
 
 def _run(row) -> RunRow:

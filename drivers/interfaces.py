@@ -53,6 +53,23 @@ class RobotSample:
 
 
 @dataclass(frozen=True)
+class StoredToolFrame:
+    """The tool frame a robot keeps for its program to apply at start (survives the program).
+
+    ``generation`` says whose frame it is: 0 means none is stored (the program keeps the
+    installation's TCP); the daemon writes the run id of the result it writes back.
+    """
+
+    tool_frame: np.ndarray  # (6,) flange -> TCP [x, y, z, rx, ry, rz] (m, rad)
+    generation: int
+
+    def same_as(self, other: "StoredToolFrame | None") -> bool:
+        """Exactly equal: the values travel as IEEE doubles, so a kept write reads back bit for bit."""
+        return (other is not None and self.generation == other.generation
+                and bool(np.array_equal(np.asarray(self.tool_frame, float), np.asarray(other.tool_frame, float))))
+
+
+@dataclass(frozen=True)
 class ContactResult:
     contact: bool
     tcp_pose: np.ndarray  # where motion stopped (6,)
@@ -103,6 +120,15 @@ class Robot(abc.ABC):
     @abc.abstractmethod
     def state(self) -> RobotState:
         ...
+
+    def stored_tool_frame(self) -> StoredToolFrame | None:
+        """The tool frame the robot program applies at its start, or None when this robot
+        keeps none (then only :meth:`set_tcp` reaches the controller)."""
+        return None
+
+    def store_tool_frame(self, stored: StoredToolFrame) -> None:
+        """Make ``stored`` the frame the robot program applies at its next start."""
+        raise DeviceError(self.name, "this robot keeps no tool frame for its program's start")
 
     def close(self) -> None:
         """Release connections; idempotent."""

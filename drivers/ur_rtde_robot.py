@@ -16,7 +16,8 @@ notices a dead connection meanwhile. So:
 
 A protective or emergency stop, a lost or stalled connection, or a timeout raise
 :class:`DeviceError` naming "UR robot at HOST" and what happened, after a best-effort
-stop. The tool frame changes only through :meth:`set_tcp`.
+stop. The tool frame changes only through :meth:`set_tcp` (the running program's) and
+:meth:`store_tool_frame` (the one the robot program applies at its start).
 
 Register in the driver registry::
 
@@ -34,9 +35,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..config.reader import Section
-from .interfaces import ContactResult, DeviceError, DeviceTimeout, Robot, RobotSample, RobotState
+from .interfaces import ContactResult, DeviceError, DeviceTimeout, Robot, RobotSample, RobotState, StoredToolFrame
 from .registry import DriverConfigError
 from .ur_rtde_process import DASHBOARD_PORT, UrRtdeProcess
+from .ur_rtde_registers import FIRST_REGISTER, FIRST_REGISTER_RANGE, ToolFrameRegisters
 from .ur_rtde_state import ROBOT_VARIABLES, UrStateStream
 
 log = logging.getLogger(__name__)
@@ -90,12 +92,14 @@ class UrRtdeRobot(Robot):
         o.number("reach_tolerance_m", above=0.0, high=0.1)
         o.number("contact_accel_m_s2", above=0.0, high=TOOL_ACCEL_MAX)
         o.number("stop_decel_rad_s2", above=0.0, high=JOINT_ACCEL_MAX)
+        o.integer("tool_frame_register", low=FIRST_REGISTER_RANGE[0], high=FIRST_REGISTER_RANGE[1])
 
     def __init__(self, host: str, *, frequency_hz: float = -1.0, connect_timeout_s: float = 5.0,
                  command_timeout_s: float = 3.0, stale_after_s: float = 0.5,
                  motion_timeout_factor: float = 2.0, motion_timeout_margin_s: float = 2.0,
                  reach_tolerance_rad: float = 1e-3, reach_tolerance_m: float = 1e-3,
-                 contact_accel_m_s2: float = 0.5, stop_decel_rad_s2: float = 4.0):
+                 contact_accel_m_s2: float = 0.5, stop_decel_rad_s2: float = 4.0,
+                 tool_frame_register: int = FIRST_REGISTER):
         self.host = host
         self.name = f"UR robot at {host}"
         self.check_options(
@@ -103,11 +107,13 @@ class UrRtdeRobot(Robot):
             stale_after_s=stale_after_s, motion_timeout_factor=motion_timeout_factor,
             motion_timeout_margin_s=motion_timeout_margin_s, reach_tolerance_rad=reach_tolerance_rad,
             reach_tolerance_m=reach_tolerance_m, contact_accel_m_s2=contact_accel_m_s2,
-            stop_decel_rad_s2=stop_decel_rad_s2)
+            stop_decel_rad_s2=stop_decel_rad_s2, tool_frame_register=tool_frame_register)
         self.command_timeout_s, self.connect_timeout_s = command_timeout_s, connect_timeout_s
         self.motion_timeout_factor, self.motion_timeout_margin_s = motion_timeout_factor, motion_timeout_margin_s
         self.reach_tolerance_rad, self.reach_tolerance_m = reach_tolerance_rad, reach_tolerance_m
         self.contact_accel_m_s2, self.stop_decel_rad_s2 = contact_accel_m_s2, stop_decel_rad_s2
+        self._registers = ToolFrameRegisters(host, device=self.name, first_register=tool_frame_register,
+                                             timeout_s=command_timeout_s)
         self._lock = threading.RLock()  # ur_rtde's control interface takes one command at a time
         self._broken: str | None = None
         self._blocking_motion: int | None = None  # the pending moveUntilContact call
@@ -389,6 +395,21 @@ class UrRtdeRobot(Robot):
     def tcp(self) -> np.ndarray:
         self._prepare("tcp")
         return np.array(self._call("getTCPOffset"))
+
+    def stored_tool_frame(self) -> StoredToolFrame:
+        """The frame the robot program applies at start: RTDE input registers (:mod:`.ur_rtde_registers`)."""
+        self._usable("stored_tool_frame")
+        return self._registers.read()
+
+    def store_tool_frame(self, stored: StoredToolFrame) -> None:
+        self._usable("store_tool_frame")
+        self._registers.write(stored)
+
+    def _usable(self, what: str) -> None:
+        if self._broken:
+            raise DeviceError(self.name, f"not usable after {self._broken}; reconnect")
+        if self._failure() is not None:
+            raise DeviceError(self.name, f"{self._failure()} before {what}")
 
     def state(self) -> RobotState:
         """DISCONNECTED once unusable, the safety stops as the controller reports them,

@@ -19,6 +19,7 @@ import struct
 import threading
 import time
 from collections import deque
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Callable
 
@@ -107,6 +108,52 @@ class _Wire:
                 return reply
 
 
+def rtde_connect(host: str, device: str, timeout_s: float) -> socket.socket:
+    """A TCP connection to the controller's RTDE port, with `timeout_s` on every later read."""
+    what = f"RTDE port {RTDE_PORT}"
+    try:
+        sock = socket.create_connection((host, RTDE_PORT), timeout=timeout_s)
+    except ConnectionRefusedError:
+        raise DeviceError(device, f"connection refused on {what}") from None
+    except socket.timeout:
+        raise DeviceTimeout(device, f"no answer on {what} within {timeout_s:g} s") from None
+    except OSError as exc:
+        raise DeviceError(device, f"cannot connect to {what}: {exc}") from None
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    return sock
+
+
+@contextmanager
+def setup_errors(device: str, what: str):
+    """A failure while talking RTDE set-up as the DeviceError that names it."""
+    try:
+        yield
+    except socket.timeout:
+        raise DeviceTimeout(device, f"RTDE stopped answering during {what}") from None
+    except (ConnectionError, OSError, struct.error, IndexError) as exc:
+        raise DeviceError(device, f"RTDE {what} failed: {exc}") from None
+
+
+def negotiate(wire: "_Wire", device: str) -> int:
+    """Agree on the protocol version; returns the controller's major version."""
+    with setup_errors(device, "set-up"):
+        if not wire.request("V", struct.pack(">H", PROTOCOL_VERSION))[0]:
+            raise DeviceError(device, f"controller refused RTDE protocol version {PROTOCOL_VERSION}")
+        return struct.unpack(">IIII", wire.request("v"))[0]
+
+
+def output_recipe(wire: "_Wire", device: str, frequency_hz: float, variables) -> tuple[int, struct.Struct, list[bool]]:
+    """Declare an output recipe: (its id, the data package layout, which fields are vectors)."""
+    with setup_errors(device, "output set-up"):
+        reply = wire.request("O", struct.pack(">d", frequency_hz) + ",".join(variables).encode())
+        recipe_id, types = reply[0], reply[1:].decode(errors="replace").split(",")
+    missing = [n for n, t in zip(variables, types) if t not in TYPE_FORMATS]
+    if missing or len(types) != len(variables):
+        raise DeviceError(device, f"controller does not provide {', '.join(missing) or types}")
+    layout = struct.Struct(">B" + "".join(TYPE_FORMATS[t] for t in types))
+    return recipe_id, layout, [t.startswith("VECTOR") for t in types]
+
+
 class UrStateStream:
     """Every RTDE output package of one connection as samples; thread-safe."""
 
@@ -128,38 +175,18 @@ class UrStateStream:
         self.next_sample(connect_timeout_s)
 
     def _connect(self, timeout_s: float, frequency_hz: float) -> socket.socket:
-        what = f"RTDE port {RTDE_PORT}"
+        sock = rtde_connect(self.host, self.device, timeout_s)
         try:
-            sock = socket.create_connection((self.host, RTDE_PORT), timeout=timeout_s)
-        except ConnectionRefusedError:
-            raise DeviceError(self.device, f"connection refused on {what}") from None
-        except socket.timeout:
-            raise DeviceTimeout(self.device, f"no answer on {what} within {timeout_s:g} s") from None
-        except OSError as exc:
-            raise DeviceError(self.device, f"cannot connect to {what}: {exc}") from None
-        try:
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             wire = _Wire(sock)
-            if not wire.request("V", struct.pack(">H", PROTOCOL_VERSION))[0]:
-                raise DeviceError(self.device, f"controller refused RTDE protocol version {PROTOCOL_VERSION}")
-            major = struct.unpack(">IIII", wire.request("v"))[0]
+            major = negotiate(wire, self.device)
             self.frequency_hz = frequency_hz if frequency_hz > 0 else (500.0 if major > 3 else 125.0)
-            reply = wire.request("O", struct.pack(">d", self.frequency_hz) + ",".join(self.variables).encode())
-            self._recipe_id, types = reply[0], reply[1:].decode(errors="replace").split(",")
-            missing = [n for n, t in zip(self.variables, types) if t not in TYPE_FORMATS]
-            if missing or len(types) != len(self.variables):
-                raise DeviceError(self.device, f"controller does not provide {', '.join(missing) or types}")
-            self._layout = struct.Struct(">B" + "".join(TYPE_FORMATS[t] for t in types))
-            self._vector = [t.startswith("VECTOR") for t in types]
-            if not wire.request("S")[0]:
+            self._recipe_id, self._layout, self._vector = output_recipe(wire, self.device, self.frequency_hz,
+                                                                         self.variables)
+            with setup_errors(self.device, "start"):
+                started = wire.request("S")[0]
+            if not started:
                 raise DeviceError(self.device, "controller refused to start the RTDE stream")
-        except socket.timeout:
-            sock.close()
-            raise DeviceTimeout(self.device, f"{what} stopped answering during set-up") from None
-        except (ConnectionError, OSError, struct.error, IndexError) as exc:
-            sock.close()
-            raise DeviceError(self.device, f"RTDE set-up failed: {exc}") from None
-        except DeviceError:
+        except BaseException:
             sock.close()
             raise
         sock.settimeout(0.1)  # the reader wakes up to notice close() and silence

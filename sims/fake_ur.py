@@ -32,6 +32,7 @@ import numpy as np
 
 from ..config.cells import read_cell
 from ..config.robot_files import load_robot
+from ..drivers.ur_rtde_registers import FIRST_REGISTER, FORMAT_TAG, register_names
 from . import fake_ur_rtde as rtde
 from .arm_motion import ArmKinematics, JointMove, MovingArm, MotionFault, StopMotion
 from .scene import SwitchingSensors, scene_from_spec
@@ -50,7 +51,7 @@ ROBOT_MODE_RUNNING = 7
 SAFETY_MODES = {"normal": 1, "protective_stop": 3, "emergency_stop": 7}
 SAFETY_STATUS_BITS = {"normal": 1 << 0, "protective_stop": 1 << 2, "emergency_stop": (1 << 6) | (1 << 7)}
 RUNTIME_STOPPED, RUNTIME_PLAYING = 1, 2
-FAULT_KINDS = ("protective_stop", "emergency_stop", "drop", "stall", "resume", "exit")
+FAULT_KINDS = ("protective_stop", "emergency_stop", "drop", "stall", "resume", "exit", "ignore_input")
 
 
 def _zero(kind: str):
@@ -88,7 +89,8 @@ class FakeUrController:
         self.sensors = SwitchingSensors({b.channel: self._blocked[id(b)] for b in self.truth.beams})
         model = re.search(r"ur(\d+)", robot.lower())
         self.model_name = f"UR{model.group(1)}" if model else "UR10"
-        self.inputs: dict = {}
+        self.inputs: dict = {}  # RTDE inputs as last written: held after the writer disconnects
+        self.ignored_inputs: set[str] = set()  # fault "ignore_input": writes to these are not kept
         self.outputs: dict = {name: _zero(kind) for name, kind in rtde.OUTPUT_TYPES.items()
                               if name.startswith("output_") and "register" in name}
         self.script: ControlScript | None = None
@@ -249,7 +251,7 @@ class FakeUrController:
 
     def write_inputs(self, values: dict) -> None:
         with self.lock:
-            self.inputs.update(values)
+            self.inputs.update((k, v) for k, v in values.items() if k not in self.ignored_inputs)
             for prefix, shift in (("standard", 0), ("configurable", 8)):
                 mask = values.get(f"{prefix}_digital_output_mask", 0)
                 if mask:
@@ -289,6 +291,19 @@ class FakeUrController:
                 self.script.terminate(why)
             self.log(f"{safety.replace('_', ' ')}: {why}")
 
+    def program_start(self, first: int) -> dict:
+        """What the robot program's first lines do (README, persistent tool frame): apply the
+        stored tool frame with set_tcp when the registers hold one of ours, else keep the TCP."""
+        with self.lock:
+            names = register_names(first)
+            values = [self.inputs.get(n, 0) for n in names]
+            applied = values[7] == FORMAT_TAG and values[6] > 0
+            if applied:
+                self.arm.set_tcp(np.array(values[:6], dtype=float))
+            self.log(f"program start: stored tool frame {'applied' if applied else 'none, TCP kept'}")
+            return {"ok": True, "applied": bool(applied), "generation": int(values[6]),
+                    "tcp_offset": self.arm.tcp_offset.tolist()}
+
     def edges(self, first: int, wait_s: float = 0.0) -> dict:
         """The sensors' edges numbered `first` or later, each at its exact switching time on the
         controller's clock, waiting up to `wait_s` for one (without holding the controller)."""
@@ -325,6 +340,10 @@ class FakeUrController:
                 self.faults.append(dict(request))
                 self._fire_faults()
                 return {"ok": True}
+            if cmd == "inputs":  # the RTDE input registers as the controller holds them
+                return {"ok": True, "inputs": {k: v for k, v in self.inputs.items() if "register" in k}}
+            if cmd == "program_start":
+                return self.program_start(int(request.get("register", FIRST_REGISTER)))
             if cmd == "add_model":
                 self.cell.add(request["model"])
                 return {"ok": True}
@@ -343,7 +362,8 @@ class FakeUrController:
                 self._blocked = {id(b): beam_blocked(b, self._body, self._tool_radius_m) for b in self.truth.beams}
                 self.sensors.reset({b.channel: self._blocked[id(b)] for b in self.truth.beams})
                 return {"ok": True}
-        return {"ok": False, "error": f"unknown command {cmd!r} (state, truth, tool, edges, fault, add_model, set_q)"}
+        return {"ok": False, "error": f"unknown command {cmd!r} (state, truth, tool, edges, inputs, "
+                                          "program_start, fault, add_model, set_q)"}
 
     def _fire_faults(self) -> None:
         for fault in list(self.faults):
@@ -356,6 +376,10 @@ class FakeUrController:
                 self._safety_stop(kind, fault.get("why", "injected fault"))
             elif kind in ("stall", "resume"):
                 self.stalled = kind == "stall"
+                if kind == "resume":
+                    self.ignored_inputs.clear()
+            elif kind == "ignore_input":
+                self.ignored_inputs.add(str(fault.get("name")))
             elif kind == "drop":
                 self._close_clients()
             elif kind == "exit":

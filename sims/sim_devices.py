@@ -15,7 +15,7 @@ import numpy as np
 
 from ..config.robot_files import load_robot
 from ..drivers.interfaces import (ContactResult, DeviceError, OperatorPanel, Robot, RobotSample,
-                                  RobotState, Tracker, TrackerMeasurement, TriggerEvent, TriggerInput)
+                                  RobotState, StoredToolFrame, Tracker, TrackerMeasurement, TriggerEvent, TriggerInput)
 from .arm_motion import JointMove, LinearMove, MotionFault, SpeedLinear
 from .kinematic_arm import TrackerNoise
 from .scene import model_from_spec
@@ -46,6 +46,7 @@ class SimRobot(Robot):
         # surfaces that end move_until_contact: ContactPlane/ContactSphere, or their cell-file form
         self.contacts = [model_from_spec(dict(c)) if isinstance(c, dict) else c for c in contacts]
         self._closed = False
+        self._stored = StoredToolFrame(np.zeros(6), 0)  # as a controller after its restart: none stored
 
     # -- checks ----------------------------------------------------------------------
 
@@ -154,6 +155,21 @@ class SimRobot(Robot):
 
     def tcp(self) -> np.ndarray:
         return self.world.arm.tcp_offset.copy()
+
+    def stored_tool_frame(self) -> StoredToolFrame:
+        """The frame the robot program would apply at its start (a controller's input registers)."""
+        if self._closed:
+            raise DeviceError(self.name, "closed")
+        return self._stored
+
+    def store_tool_frame(self, stored: StoredToolFrame) -> None:
+        if self._closed:
+            raise DeviceError(self.name, "closed")
+        frame = np.asarray(stored.tool_frame, dtype=float)
+        if frame.shape != (6,) or not np.all(np.isfinite(frame)) or not 0 <= int(stored.generation) < 2**31:
+            raise DeviceError(self.name, "a stored tool frame must be 6 finite numbers and a generation in "
+                                         "0..2**31-1")
+        self._stored = StoredToolFrame(frame.copy(), int(stored.generation))
 
     def state(self) -> RobotState:
         return RobotState.DISCONNECTED if self._closed else self.world.state

@@ -150,6 +150,9 @@ def test_a_button_press_writes_back_a_frame_that_matches_the_truth(cell, tmp_pat
         assert states == ["checking", "running", "solving", "gates", "writing back", "done"]
         writes = service.store.tool_frames()
         assert len(writes) == 1 and writes[0]["frame_after"] == pytest.approx(list(frame))
+        stored = drivers.robot.stored_tool_frame()  # what the robot program applies at its next start
+        assert stored.generation == outcome.run_id and np.array_equal(stored.tool_frame, frame)
+        assert writes[0]["stored_before"]["generation"] == 0
 
 
 @needs_routine
@@ -189,6 +192,7 @@ def test_a_fault_mid_run_keeps_the_old_frame_and_says_why(cell, tmp_path, fault,
         outcome = service.run(ROUTINE)
         assert outcome.state == "fault" and outcome.code == code, outcome.reason
         np.testing.assert_array_equal(drivers.robot.tcp(), before)
+        assert drivers.robot.stored_tool_frame().generation == 0
         assert drivers.panel.lamps["fault"] and drivers.panel.result_code == code
 
 
@@ -216,6 +220,7 @@ def test_a_result_failing_a_gate_is_never_written(tmp_path):
         outcome = service.run(ROUTINE)
         assert outcome.code in (ResultCode.GATE_FAILED, ResultCode.COMPUTATION_FAILED), outcome.reason
         np.testing.assert_array_equal(drivers.robot.tcp(), before)
+        assert drivers.robot.stored_tool_frame().generation == 0
         assert service.store.tool_frames() == []
 
 
