@@ -156,7 +156,9 @@ def cmd_tool_history(args) -> int:
             after = tool_frame_json(f["frame_after"])
             print(f"{f['id']:4d}  {when}  {f['action']:<8} run {f['run_id']}  x {after['x_mm']:.4f} "
                   f"y {after['y_mm']:.4f} z {after['z_mm']:.4f} mm  rx {after['rx_deg']:.4f} "
-                  f"ry {after['ry_deg']:.4f} rz {after['rz_deg']:.4f} deg")
+                  f"ry {after['ry_deg']:.4f} rz {after['rz_deg']:.4f} deg"
+                  + ("" if f["stored_after"] is None else
+                     f"  (program start: generation {f['stored_after']['generation']})"))
         return 0
     finally:
         store.close()
@@ -186,7 +188,9 @@ def cmd_tool_rollback(args) -> int:
                                 target.stored_json() if current.stored is not None else None)
         f = tool_frame_json(frame)
         print(f"restored the tool frame from before run {entry['run_id']}: x {f['x_mm']:.4f} y {f['y_mm']:.4f} "
-              f"z {f['z_mm']:.4f} mm, rx {f['rx_deg']:.4f} ry {f['ry_deg']:.4f} rz {f['rz_deg']:.4f} deg")
+              f"z {f['z_mm']:.4f} mm, rx {f['rx_deg']:.4f} ry {f['ry_deg']:.4f} rz {f['rz_deg']:.4f} deg"
+              + ("" if current.stored is None or target.stored is None else
+                 f"; the robot program's start frame back to generation {target.stored.generation}"))
         return 0
     finally:
         store.close()

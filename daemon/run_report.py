@@ -1,5 +1,6 @@
-"""A run's report a person can read: the frame before and after, the gates, the residual of
-every measurement, and the routine's own numbers; one HTML page with its plots.
+"""A run's report a person can read: the measurements drawn against the fitted geometry (the
+routine's :class:`~cellcal.routines.drawing.Drawing`), the frame before and after, the gates,
+the residual of every measurement, and the routine's own numbers; one HTML page with its plots.
 """
 from __future__ import annotations
 
@@ -14,6 +15,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ..routines.base import Result, tool_frame_json  # noqa: E402
+from ..routines.drawing import Drawing  # noqa: E402
+
+STYLES = {"measured": dict(ls="none", marker=".", ms=5), "fitted": dict(ls="-", lw=1.2, color="0.25")}
 
 
 def _frame_row(label: str, pose) -> str:
@@ -22,6 +26,29 @@ def _frame_row(label: str, pose) -> str:
     f = tool_frame_json(pose)
     cells = "".join(f"<td>{f[k]:.4f}</td>" for k in ("x_mm", "y_mm", "z_mm", "rx_deg", "ry_deg", "rz_deg"))
     return f"<tr><th>{label}</th>{cells}</tr>"
+
+
+def _draw(drawing: Drawing, path: Path) -> None:
+    """The drawing's panels side by side; the cell file's geometry dashed (a cross for one point)."""
+    n = len(drawing.panels)
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n + 0.6, 4.4), squeeze=False)
+    for ax, panel in zip(axes[0], drawing.panels):
+        for layer in panel.layers:
+            xy = np.asarray(layer.xy, dtype=float).reshape(-1, 2)
+            style = STYLES.get(layer.kind) or (dict(ls="none", marker="x", ms=9, color="tab:red") if len(xy) == 1
+                                               else dict(ls="--", lw=1, color="tab:red"))
+            if layer.paired and ax.lines:
+                style = {**style, "color": ax.lines[-1].get_color()}
+            ax.plot(xy[:, 0], xy[:, 1], label=layer.label, **style)
+        if panel.equal_axes:
+            ax.set_aspect("equal", adjustable="datalim")
+        ax.set_title(panel.title, fontsize=10)
+        ax.set_xlabel(panel.xlabel)
+        ax.set_ylabel(panel.ylabel)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def write_run_report(folder: str | Path, run_id: int, result: Result) -> Path:
@@ -42,18 +69,26 @@ def write_run_report(folder: str | Path, run_id: int, result: Result) -> Path:
     fig.savefig(out / "residuals.png", dpi=100)
     plt.close(fig)
 
+    drawing = ""
+    if result.drawing is not None:
+        _draw(result.drawing, out / "drawing.png")
+        caption = html.escape(result.drawing.caption + " Panels: "
+                              + "; ".join(panel.title for panel in result.drawing.panels) + ".")
+        drawing = (f"<h2>Measurements against the fitted geometry</h2><figure><img src='drawing.png' "
+                   f"alt='{caption}'><figcaption>{caption}</figcaption></figure>")
     before = result.extra.get("tool_frame_before")
     gates = "".join(f"<tr><td>{'pass' if g.passed else '<b>FAIL</b>'}</td><td>{html.escape(g.name)}</td>"
                     f"<td>{html.escape(g.why)}</td></tr>" for g in result.gates)
     params = "".join(f"<tr><td>{html.escape(p.name)}</td><td>{p.value:.5g}</td>"
                      f"<td>{'' if p.std is None else f'{p.std:.3g}'}</td><td>{html.escape(p.unit)}</td></tr>"
                      for p in result.parameters)
-    verdict = "written back" if result.write_back else "NOT written back: " + "; ".join(result.reasons())
+    verdict = ("passed every gate: to be written back" if result.write_back else
+               "NOT to be written back: " + "; ".join(result.reasons()))
     page = out / "report.html"
     page.write_text(
         "<!doctype html><meta charset='utf-8'><title>cellcal run</title>"
         "<body style='font-family:sans-serif;max-width:60em'>"
-        f"<h1>Run {run_id}: {html.escape(result.routine)}</h1><p><b>{html.escape(verdict)}</b></p>"
+        f"<h1>Run {run_id}: {html.escape(result.routine)}</h1><p><b>{html.escape(verdict)}</b></p>" + drawing +
         "<h2>Tool frame</h2><table border=1 cellpadding=4><tr><th></th><th>x mm</th><th>y mm</th><th>z mm</th>"
         "<th>rx deg</th><th>ry deg</th><th>rz deg</th></tr>"
         + _frame_row("before", before) + _frame_row("found", result.tool_frame) + "</table>"

@@ -57,7 +57,8 @@ def _write_checked(robot: Robot, target: ControllerFrames) -> str | None:
         robot.store_tool_frame(target.stored)
         back = robot.stored_tool_frame()
         if not target.stored.same_as(back):
-            shown = "nothing" if back is None else f"{np.asarray(back.tool_frame).tolist()} generation {back.generation}"
+            shown = "nothing" if back is None else \
+                f"{np.asarray(back.tool_frame).tolist()} generation {back.generation}"
             return (f"the stored tool frame reads back as {shown} after {running.tolist()} generation "
                     f"{target.stored.generation} was written")
     return None

@@ -21,6 +21,7 @@ import numpy as np
 from ..config.cells import Cell
 from ..config.reader import Section
 from ..drivers.interfaces import Robot, Tracker, TriggerInput
+from .drawing import Drawing
 
 
 class RoutineError(RuntimeError):
@@ -114,7 +115,8 @@ class Result:
 
     ``tool_frame`` is the flange -> TCP frame [x, y, z, rx, ry, rz] (m, rad) that would be
     written back, for routines that find one; ``frame`` a base frame for those that find
-    that. ``write_back`` is True only when every gate passed.
+    that. ``write_back`` is True only when every gate passed. ``drawing`` is what the run's
+    report draws of the measurements against the fitted geometry (:mod:`.drawing`).
     """
 
     routine: str
@@ -130,6 +132,7 @@ class Result:
     dataset: str | None = None
     cycle_time_s: float | None = None
     sim_truth: dict | None = None
+    drawing: Drawing | None = None
 
     @property
     def write_back(self) -> bool:

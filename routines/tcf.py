@@ -42,6 +42,7 @@ from ..solvers import se3
 from ..solvers.inverse import inverse
 from . import gates
 from .base import Devices, Gate, Move, Parameter, PlanRefused, Result, Routine, RoutineError
+from .drawing import axis_crossings
 from .records import Dataset
 from .tcp_npoint import JOINT_SPEED_RAD_S, LIFT_MM, axis_sigma_mm, down_orientation, flange_frames, restore_tcp
 
@@ -254,7 +255,11 @@ class Tcf(Routine):
             fit = pv.fit_axis(*args, [p["midpoint_mm"] for p in pairs], drawn)
         except ValueError as exc:
             raise RoutineError(f"{dataset.path}: {exc}") from None
-        return _result(cls.name, dataset, cell, options, fit, design, pairs, drawn, sigma)
+        result = _result(cls.name, dataset, cell, options, fit, design, pairs, drawn, sigma)
+        crossing = np.array([p["midpoint_mm"] for p in pairs]) - fit.offsets[line]
+        result.drawing = axis_crossings(line, args[3], crossing, crossing - fit.residuals,
+                                        [f"turn {k // 2 + 1}, {'xy'[k % 2]} line" for k in range(len(fit.offsets))])
+        return result
 
 
 def crossings(dataset, rotations, positions) -> list[dict]:

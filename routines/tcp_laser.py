@@ -48,6 +48,7 @@ from ..solvers import tcp_laser as laser
 from ..solvers.inverse import tcp_poses
 from . import gates
 from .base import Devices, Gate, Move, Parameter, Result, Routine, RoutineError
+from .drawing import beam_crossings
 from .records import Dataset
 
 EDGE_WAIT_S = 0.2  # after the last motion, for edges still on their way
@@ -325,7 +326,12 @@ class TcpLaser(Routine):
             fit = laser.fit(edges, geometry, options.repeatability_mm, options.trigger_jitter_ms / 1e3)
         except ValueError as exc:
             raise RoutineError(f"{dataset.path}: {exc}") from None
-        return _result(cls.name, fit, geometry, beams, cell, options, meta)
+        result = _result(cls.name, fit, geometry, beams, cell, options, meta)
+        result.drawing = beam_crossings(
+            laser.crossing_offsets(edges, geometry, fit), edges.beam, dataset["edge"],
+            np.array([laser.perpendicular_pair(d) for d in geometry.beam_directions]), list(channel_index),
+            fit.reach_mm, geometry.beam_points_mm - fit.beam_points_mm)
+        return result
 
 
 def _result(name, fit: laser.LaserFit, geometry, beams, cell: Cell, options: LaserOptions, meta) -> Result:

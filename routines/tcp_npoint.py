@@ -51,6 +51,7 @@ from ..solvers.inverse import inverse, tcp_frames
 from ..solvers.robot_model import KinematicModel
 from . import gates
 from .base import Devices, Gate, Move, Parameter, PlanRefused, Result, Routine, RoutineError
+from .drawing import seats_about_pivot
 from .records import Dataset
 
 LIFT_MM = 40.0  # above the first and after the last approach point, clear of the fixture
@@ -280,7 +281,10 @@ class TcpNpoint(Routine):
                                f"repeatability, above target_mm {options.target_mm:g} (condition "
                                f"{design.condition:.3g}): not solved")
         fit = pv.fit_pivot(rotations, positions, noise_floor=sigma, k=options.outlier_k)
-        return _result(cls.name, dataset, cell, options, fit, design)
+        result = _result(cls.name, dataset, cell, options, fit, design)
+        result.drawing = seats_about_pivot(positions - fit.pivot_point, fit.residuals, fit.kept,
+                                           float(np.linalg.norm(fit.tool_point)), result.expected_noise_mm)
+        return result
 
 
 def _result(name, dataset, cell: Cell, options: NpointOptions, fit: pv.PivotFit, design: pv.Design) -> Result:

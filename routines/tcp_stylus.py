@@ -35,6 +35,7 @@ from ..solvers import stylus_design as design
 from ..solvers.inverse import inverse, tcp_frames
 from . import gates
 from .base import Gate, Move, Parameter, Result, Routine, RoutineError
+from .drawing import contacts_on_cylinder
 from .records import Dataset
 
 SEARCH_MARGIN_MM = 5.0  # a search goes this far beyond where the contact is expected
@@ -392,9 +393,12 @@ class TcpStylus(Routine):
             extra["coarse_off_fine_mm"] = float(np.linalg.norm(start.tip_mm - tip))
             cos = min(1.0, float(start.line.direction @ fit.line.direction))
             extra["coarse_off_fine_deg"] = float(np.degrees(np.arccos(cos)))
+        used = data.contacts(use)
+        drawing = contacts_on_cylinder(used.stylus_in_flange(fit.stylus_mm), np.where(data.kind[use] == "face", "face",
+                                       "side"), fit.kept, fit.line.point_mm, fit.line.direction, tip, fit.radius_mm)
         return Result(cls.name, [Parameter(n, v, sd, unit) for n, v, sd, unit, ok in shown if ok], kept,
                       options.contact_noise_mm, seen.condition, gate_list, tool_frame=frame if frame_known else None,
-                      notes=notes, extra=extra)
+                      notes=notes, extra=extra, drawing=drawing)
 
 
 def _drawn(tip_m, axis, stylus_m) -> fitting.Estimate:

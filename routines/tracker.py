@@ -37,6 +37,7 @@ from ..solvers.measurement_model import Observations
 from ..solvers.pose_design import Sight, path_clear, select_poses, sighted_candidates, tour
 from . import gates
 from .base import Gate, Move, Parameter, Result, Routine, RoutineError
+from .drawing import errors_per_pose
 from .records import Dataset
 
 MIN_CAL_ROWS = 10  # as cellcal identify: fewer rows cannot carry a kinematic identification
@@ -311,8 +312,15 @@ class TrackerCampaign(Routine):
             extra.update({"validation_mean_mm": float(err_val.mean()), "validation_max_mm": float(err_val.max()),
                           "validation_before_mean_mm": float(found.errors(val, nominal=True).mean()),
                           "validation_before_max_mm": float(found.errors(val, nominal=True).max())})
+        split = np.asarray(dataset["split"], dtype=str)
+        at_cal, at_val = np.flatnonzero(split == "cal"), np.flatnonzero(split == "val")
+        drawing = errors_per_pose({"calibration, nominal model": (at_cal, err_cal_before),
+                                   "calibration, identified": (at_cal, found.errors(cal)),
+                                   "validation, nominal model": (at_val, found.errors(val, nominal=True) if len(val)
+                                                                 else err_val),
+                                   "validation, identified": (at_val, err_val)}, expected)
         return Result(cls.name, params, found.residuals_mm, expected, found.condition, gate_list, frame=frame,
-                      notes=notes, extra=extra, cycle_time_s=dataset.meta.get("cycle_time_s"))
+                      notes=notes, extra=extra, cycle_time_s=dataset.meta.get("cycle_time_s"), drawing=drawing)
 
 
 def _check_columns(dataset: Dataset, n_joints: int, *more: str) -> None:

@@ -113,8 +113,8 @@ def axis_pair(axis) -> tuple[np.ndarray, np.ndarray]:
     return first, np.cross(a, first)
 
 
-def segment_line_distance(front, back, point, direction) -> np.ndarray:
-    """Shortest distances between segments front-back and lines (point, unit direction), row by row."""
+def segment_line_offset(front, back, point, direction) -> np.ndarray:
+    """From each line (point, unit direction) across to the nearest point of its segment front-back."""
     def across(p):
         off = p - point
         return off - np.sum(off * direction, axis=-1, keepdims=True) * direction
@@ -124,7 +124,7 @@ def segment_line_distance(front, back, point, direction) -> np.ndarray:
     vv = np.sum(v * v, axis=-1)
     t = np.clip(-np.sum(u * v, axis=-1) / np.where(vv < 1e-30, 1.0, vv), 0.0, 1.0)
     t = np.where(vv < 1e-30, 0.0, t)
-    return np.linalg.norm(u + t[:, None] * v, axis=-1)
+    return u + t[:, None] * v
 
 
 def edge_sigma_mm(edges: LaserEdges, geometry: LaserGeometry, repeatability_mm: float,
@@ -171,13 +171,16 @@ class _Model:
         return tip, a, points, reach, x[-1] / 1e3
 
     def residuals(self, x) -> np.ndarray:
-        tip, a, points, reach, latency = self.unpack(x)
+        return np.linalg.norm(self.offsets(x), axis=1) - self.unpack(x)[3][self.edges.beam]
+
+    def offsets(self, x) -> np.ndarray:
+        """(N, 3): from each edge's beam line across to the tool's core at the instant it crossed."""
+        tip, a, points, _, latency = self.unpack(x)
         e, r = self.edges, self.g.tool_radius_mm
         flange = e.flange_mm - latency * e.velocity_mm_s
         front = flange + np.einsum("nij,j->ni", e.flange_rotation, tip - r * a)
         back = front - (self.g.tool_length_mm - r) * np.einsum("nij,j->ni", e.flange_rotation, a)
-        dist = segment_line_distance(front, back, points[e.beam], self.g.beam_directions[e.beam])
-        return dist - reach[e.beam]
+        return segment_line_offset(front, back, points[e.beam], self.g.beam_directions[e.beam])
 
     def noise_covariance(self, x, repeatability_mm: float, jitter_s: float) -> np.ndarray:
         """Covariance (N, N) of the residuals: a repeatability offset shared by the edges of
@@ -244,6 +247,12 @@ def fit(edges: LaserEdges, geometry: LaserGeometry, repeatability_mm: float, jit
     axis_std = float(np.degrees(max(std[3], std[4])))
     return LaserFit(model.names, model.units, x, std, cov, tip, axis, points, reach, latency, float(std[-1]) / 1e3,
                     res, sigma, condition, undetermined, std[:3], axis_std, bool(sol.success), str(sol.message))
+
+
+def crossing_offsets(edges: LaserEdges, geometry: LaserGeometry, fit: LaserFit) -> np.ndarray:
+    """(N, 3) mm, base frame: from each edge's fitted beam line across to the fitted tool's core
+    at the instant the tool crossed (its length is the beam's reach plus the edge's residual)."""
+    return _Model(edges, geometry).offsets(fit.x)
 
 
 # -- geometry the plan is drawn with ----------------------------------------------------------

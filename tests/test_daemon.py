@@ -23,9 +23,11 @@ import pytest
 
 from cellcal.config.cells import shipped_cells
 from cellcal.daemon.cells import load_cell, open_drivers
+from cellcal.daemon.run_report import write_run_report
 from cellcal.daemon.service import RESULT_MEANINGS, ResultCode, Service
 from cellcal.daemon.store import SCHEMA_VERSION, Store
 from cellcal.routines import registry
+from report_check import assert_page_draws, layer
 
 ROUTINE = "tcp-laser"
 needs_routine = pytest.mark.skipif(ROUTINE not in registry.available(), reason=f"{ROUTINE} not installed")
@@ -134,6 +136,7 @@ def service_on(cell, drivers, tmp_path) -> Service:
 def test_a_button_press_writes_back_a_frame_that_matches_the_truth(cell, tmp_path):
     with open_drivers(cell) as drivers:
         service = service_on(cell, drivers, tmp_path)
+        service.report = lambda run_id, result, store: write_run_report(tmp_path / "reports", run_id, result)
         panel = drivers.panel
         panel.select_routine(1)
         panel.press_start()
@@ -153,6 +156,13 @@ def test_a_button_press_writes_back_a_frame_that_matches_the_truth(cell, tmp_pat
         stored = drivers.robot.stored_tool_frame()  # what the robot program applies at its next start
         assert stored.generation == outcome.run_id and np.array_equal(stored.tool_frame, frame)
         assert writes[0]["stored_before"]["generation"] == 0
+    report = Path(service.store.run(outcome.run_id).report_path)
+    assert report.parent == tmp_path / "reports" / f"run-{outcome.run_id}"
+    assert_page_draws(report, "beam 0, looking along it", "beam 1, looking along it", "each edge off the reach circle")
+    edge_residuals = np.sort(np.asarray(outcome.result.residuals_mm))
+    drawn = np.sort(np.concatenate([layer(outcome.result, "each edge off the reach circle", f"beam {ch}")[:, 1]
+                                    for ch in (0, 1)]))
+    np.testing.assert_allclose(drawn, edge_residuals, atol=1e-9)  # the dots off the circle are the fit's residuals
 
 
 @needs_routine

@@ -19,6 +19,7 @@ from cellcal.routines.base import PlanRefused, RoutineError
 from cellcal.routines.records import read_dataset
 from cellcal.solvers import pivot as pv
 from cellcal.solvers import se3
+from report_check import assert_report_draws, layer
 
 SIGMA_MM = 0.03 / np.sqrt(3.0)  # per axis, for the sim cell's 0.03 mm repeatability
 DRAWN = np.array([0.0, 0.0, 1.0])
@@ -203,3 +204,12 @@ def test_tcf_axis_then_npoint_gives_the_tcp_without_the_runout_error(tmp_path):
     assert truth.score_tool_frame(with_axis.tool_frame)["axis_error_deg"] < 0.05
     runout = np.linalg.norm(drawn.tool_frame[:3] - with_axis.tool_frame[:3]) * 1e3
     assert runout == pytest.approx(3.0 * np.deg2rad(0.5), abs=3.0 * np.deg2rad(0.05))
+
+
+def test_the_run_report_draws_the_axis_crossings_against_the_fitted_axis(sim_run, tmp_path):
+    _, _, path = sim_run
+    result = runner.solve_file("tcf", load_cell("sim"), str(path))
+    assert_report_draws(result, tmp_path, "axis crossings along the tool", "the slope is the tilt")
+    layers = result.drawing.panels[0].layers
+    gaps = np.concatenate([m.xy[:, 1] - f.xy[:, 1] for m, f in zip(layers[::2], layers[1::2])])
+    assert np.sqrt(np.mean(gaps**2)) == pytest.approx(result.residual_rms_mm, rel=1e-9)  # the dots off the axis

@@ -19,6 +19,7 @@ from cellcal.routines.base import PlanRefused, RoutineError
 from cellcal.routines.records import read_dataset
 from cellcal.solvers import pivot as pv
 from cellcal.solvers import se3
+from report_check import assert_report_draws, layer
 
 SIGMA_MM = 0.03 / np.sqrt(3.0)  # per axis, for the sim cell's 0.03 mm repeatability
 
@@ -281,3 +282,14 @@ def test_npoint_is_within_0_05_mm_for_other_cells_and_noise(tmp_path, seed):
     assert truth.score_tool_frame(result.tool_frame)["position_error_mm"] <= 0.05
     centre = truth.tool.tcp_m * 1e3 - truth.tool.radius_m * 1e3 * truth.tool.axis
     assert np.linalg.norm(np.asarray(result.extra["tip_centre_mm"]) - centre) <= 3 * result.extra["expected_tcp_error_mm"]
+
+
+def test_the_run_report_draws_the_seats_about_the_fitted_pivot(sim_run, tmp_path):
+    _, doc, path = sim_run
+    result = runner.solve_file("tcp-npoint", load_cell("sim"), str(path))
+    assert_report_draws(result, tmp_path, "flange about the pivot, from above", "tip centre about the fitted pivot")
+    tips = layer(result, "tip centre about the fitted pivot, from above", "seats")
+    flange = layer(result, "flange about the pivot, from the side", "seats")
+    reach = np.linalg.norm(np.array([doc["tool_frame"][k] for k in ("x_mm", "y_mm", "z_mm")]))
+    assert np.sqrt(np.mean(np.sum(tips**2, axis=1))) <= result.residual_rms_mm + 1e-12  # x, y of the residuals
+    assert np.linalg.norm(flange, axis=1).max() <= reach + 1.0  # within the sphere of the tool's reach

@@ -22,6 +22,7 @@ from cellcal.solvers import se3
 from cellcal.solvers import stylus as fitting
 from cellcal.solvers import stylus_design as design
 from cellcal.solvers.inverse import inverse, tcp_frames, tcp_poses
+from report_check import assert_report_draws, layer
 
 AXIS_MM, AXIS_DEG, TCP_MM = 0.02, 0.01, 0.03  # targets with at most 200 contacts
 Q = [f"q{i}_rad" for i in range(1, 7)]
@@ -396,3 +397,12 @@ def test_one_stylus_cannot_identify_the_seeds_29_parameters(where, rank):
     more = design.rank_report(model, puma_contacts(where, 80, seed=1)[1], tool, [0.0, 0.0, -20.0],
                               [1.0, 0.0, 0.0], stylus, SEED_DH)
     assert more["rank"] == rank  # more contacts do not help
+
+
+def test_the_run_report_draws_the_contacts_on_the_fitted_cylinder(default_run, tmp_path):
+    _, result, *_ = default_run
+    assert_report_draws(result, tmp_path, "across the tool axis", "along the tool axis")
+    side = layer(result, "across the tool axis", "side contacts")
+    radius = result.extra["contact_radius_mm"]
+    off = np.linalg.norm(side, axis=1) - radius  # the ball's centre off the fitted cylinder, per kept side contact
+    assert len(side) >= 20 and np.abs(off).max() < 5 * 0.02

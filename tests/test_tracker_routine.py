@@ -34,6 +34,7 @@ from cellcal.solvers.inverse import tcp_frames
 from cellcal.solvers.measurement_model import Layout, Observations, predict
 from cellcal.solvers.chain import forward
 from cellcal.solvers.pose_design import Sight, move_time_s, sighted_candidates
+from report_check import assert_report_draws, layer
 
 HOME = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
 ARM_ERRORS = "  arm_length_error_mm: 0.5\n  arm_angle_error_deg: 0.05\n"
@@ -414,3 +415,14 @@ def test_the_campaign_through_the_network_fakes_reaches_the_same_floor(tmp_path,
           f"{after:.4f} mm, floor {floor:.4f} mm, ratio {after / floor:.3f}")
     assert after <= FLOOR_FACTOR * floor
     assert result.extra["validation_before_mean_mm"] >= 5 * after
+
+
+def test_the_run_report_draws_the_error_of_every_pose(campaign, tmp_path):
+    doc = campaign["doc"]
+    result = runner.solve_file("tracker", campaign["cell"], doc["dataset"])
+    assert_report_draws(result, tmp_path, "error per pose", "validation poses took no part in the fit")
+    after = layer(result, "error per pose", "calibration, identified")[:, 1]
+    held_out = layer(result, "error per pose", "validation, identified")[:, 1]
+    assert after.mean() == pytest.approx(doc["calibration_mean_mm"], rel=1e-9)
+    assert held_out.mean() == pytest.approx(doc["validation_mean_mm"], rel=1e-9)
+    assert layer(result, "error per pose", "calibration, nominal model")[:, 1].mean() > 3 * after.mean()
