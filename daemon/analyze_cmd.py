@@ -8,6 +8,7 @@ from ..config.robot_files import load_robot
 from ..routines.base import jsonable
 from ..routines.dataset import check_joint_limits, joint_velocities, read_measurements
 from ..solvers.analyze import AnalyzeOptions, Finding, Scored, analyze
+from ..solvers.identify import LOSSES
 from ..solvers.effects import CAUSES, Context, approach_directions
 from ..solvers.effects.cyclic_joint_error import order_search
 from .cli_common import ReportError, UsageError, check_folds, print_progress
@@ -27,6 +28,9 @@ def add_parser(sub):
     p.add_argument("--causes", nargs="+", choices=tuple(CAUSES), default=tuple(CAUSES), metavar="CAUSE",
                    help=f"candidate causes to consider (default: all of {', '.join(CAUSES)})")
     p.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
+    p.add_argument("--loss", choices=LOSSES, default="linear",
+                   help="robust loss against gross outliers, as identify's; the held-out scores then leave out "
+                        "each model's largest 10%% of errors (default: linear, i.e. least squares)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 
@@ -55,6 +59,7 @@ def finding_json(f: Finding, n: int) -> dict:
         "seconds": f.seconds,
     }
     out.update(_coverage_json(f))
+    out["heldout_trimmed_pct"] = 100.0 * f.baseline.trim  # largest errors each score leaves out (robust loss)
     if f.second is not None:
         out["second"] = _scored(f.second)
         out["both"] = {"label": f.both.label, "heldout_mean_mm": f.both.heldout_mean_mm,
@@ -104,7 +109,8 @@ def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
         for k, v in f.magnitude.items():
             lines.append(f"  {k:32s} {v:.6g}")
     lines.append(f"held-out mean error: geometry only {f.baseline.heldout_mean_mm:.4f} mm, "
-                 f"with the effect {f.extended.heldout_mean_mm:.4f} mm (gain {f.gain_pct:.1f}%)")
+                 f"with the effect {f.extended.heldout_mean_mm:.4f} mm (gain {f.gain_pct:.1f}%)"
+                 + (f", each without its largest {100 * f.baseline.trim:.0f}% (robust loss)" if f.baseline.trim else ""))
     lines += _coverage_text(f)
     if f.second is not None:
         lines.append(f"second effect: {f.second.label}; both fitted: {f.both.heldout_mean_mm:.4f} mm")
@@ -136,7 +142,8 @@ def run(args) -> int:
     for note in not_scored:
         print_progress(note)
     causes = tuple(c for c in requested if c not in unscorable)
-    finding = analyze(model, obs, ctx, AnalyzeOptions(folds=args.folds, causes=causes), progress=print_progress)
+    finding = analyze(model, obs, ctx, AnalyzeOptions(folds=args.folds, causes=causes, loss=args.loss),
+                      progress=print_progress)
     text = finding_text(finding, model.name, len(obs), not_scored)
     # the finding first: a report that cannot be written must not lose it
     if args.json:

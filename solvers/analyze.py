@@ -28,6 +28,7 @@ from .effects import CAUSES, Context, Term
 from .identify import Identification, IdentifyOptions, identify_variants
 from .extended_model import ExtendedFit, embed, fit_extended, norm_scale, param_columns, stack_param_bases
 from .measurement_model import Layout, Observations, jacobian_chunks, predict
+from .robust_scoring import LINEAR, RobustScoring
 
 MIN_GAIN = 0.10  # held-out mean error must drop by 10% against geometry alone
 MIN_MARGIN = 0.08  # ... and the best other cause must stay 8% above the named one
@@ -42,6 +43,7 @@ class AnalyzeOptions:
     seed: int = 0
     causes: tuple[str, ...] = tuple(CAUSES)
     prior_mm: float = 1.0
+    loss: str = "linear"  # robust loss of every fit, as identify's; the held-out scores trimmed (robust_scoring)
 
 
 @dataclass(frozen=True)
@@ -63,9 +65,12 @@ class Scored:
     details: dict | None = None  # what the fitted terms need for later use beyond their sizes (by cause
     #                              when several), see ``Cause.details``
 
+    trim: float = 0.0  # fraction of the largest held-out errors the score leaves out (robust loss)
+
     @property
     def heldout_mean_mm(self) -> float:
-        return float(self.heldout_errors.mean())
+        """The held-out score: the mean error (without the largest `trim` fraction under a robust loss)."""
+        return float(RobustScoring("", 1.0, None, self.trim).mean_mm(self.heldout_errors))
 
 
 @dataclass(frozen=True)
@@ -113,7 +118,8 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     parts = {cause: CAUSES[cause].terms(model, geometric_fit.layout, geometric_fit.x, obs, ctx)
              for cause in options.causes}
     scorer = LinearisedScorer(model, geometric_fit, obs, folds, options.prior_mm,
-                              [t for cause in options.causes for t in parts[cause]])
+                              [t for cause in options.causes for t in parts[cause]],
+                              RobustScoring.of(options.loss, geometric_fit.residuals_mm))
     # a cause whose candidates are chosen by cross-validation (orders of a periodic error) composes them
     terms = [t for cause in options.causes for t in CAUSES[cause].compose(parts[cause], scorer)]
     say(f"geometric model: {len(obs)} measurements, residual "
@@ -122,7 +128,8 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     # geometry alone and every candidate in one pass over the rows
     errors = scorer.heldout_errors_many([()] + [(t,) for t in terms])
     baseline = Scored(label="geometry only", cause="none", where={}, heldout_errors=errors[0],
-                      theta=np.zeros(0), magnitude={}, x=geometric_fit.x, residuals=scorer.baseline_residuals_mm)
+                      theta=np.zeros(0), magnitude={}, x=geometric_fit.x, residuals=scorer.baseline_residuals_mm,
+                      trim=scorer.robust.trim)
     say(f"held-out mean, geometry only: {baseline.heldout_mean_mm:.3f} mm")
     candidates = score_candidates(terms, scorer, errors[1:])
     say(f"scored {len(candidates)} candidates")
@@ -134,8 +141,9 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
         second = find_second_effect(named, terms, naming.candidates, scorer)
         if second is not None:
             both = _fit_in_full(model, geometric_fit, obs, folds, named.terms + second.terms, options.prior_mm,
-                                f"{named.label} + {second.label}")
-        extended = _fit_in_full(model, geometric_fit, obs, folds, named.terms, options.prior_mm, named.label)
+                                f"{named.label} + {second.label}", scorer.robust)
+        extended = _fit_in_full(model, geometric_fit, obs, folds, named.terms, options.prior_mm, named.label,
+                                scorer.robust)
     say(f"analysis done in {time.perf_counter() - started:.1f} s")
     return Finding(
         cause=extended.cause, where=extended.where, magnitude=extended.magnitude, baseline=baseline,
@@ -168,8 +176,9 @@ class LinearisedScorer:
     """
 
     def __init__(self, model, geometric_fit: Identification, obs: Observations, folds: np.ndarray,
-                 prior_mm: float, terms=()):
+                 prior_mm: float, terms=(), robust: RobustScoring = LINEAR):
         self.model, self.geometric_fit, self.obs, self.folds, self.prior_mm = model, geometric_fit, obs, folds, prior_mm
+        self.robust = robust
         self.baseline_residuals_mm = geometric_fit.residuals_mm
         self.n_geometry = int(geometric_fit.free.sum())
         self.terms = list(terms)
@@ -182,7 +191,7 @@ class LinearisedScorer:
         self._structural: dict[int, np.ndarray] = {}  # columns of terms that change the rigid model, (N, 3, m)
         self.factors = crossval.FoldFactors(folds, col)
         for rows, j in self._columns():
-            self.factors.add(rows, j, self.baseline_residuals_mm[rows])
+            self.factors.add(rows, *robust.weighted(rows, j, self.baseline_residuals_mm[rows]))
         self.r = self.factors.r_all()[:col, :col]  # R factor of all columns, all rows
         self.scale = norm_scale(np.linalg.norm(self.r, axis=0), len(obs))
 
@@ -241,6 +250,10 @@ class LinearisedScorer:
         steps = np.concatenate([self.factors.steps(self.estimated(tuple(ts))) for ts in term_sets])
         return crossval.heldout_errors(self._columns(), self.baseline_residuals_mm, self.factors, steps)
 
+    def mean_mm(self, errors: np.ndarray) -> np.ndarray:
+        """Held-out score of errors along the last axis (``RobustScoring.mean_mm``)."""
+        return self.robust.mean_mm(errors)
+
     def heldout_errors_mm(self, terms: tuple[Term, ...]) -> np.ndarray:
         """(N,) held-out error of each measurement with geometry and these terms."""
         return self.heldout_errors_many([terms])[0]
@@ -261,7 +274,7 @@ def score_candidates(terms: Sequence[Term], scorer: LinearisedScorer, errors=Non
     if errors is None:
         errors = scorer.heldout_errors_many([(t,) for t in terms])
     ranked = [Scored(label=t.label(), cause=t.cause, where=t.where, heldout_errors=e,
-                     theta=np.zeros(t.size), magnitude={}, x=x, terms=(t,))
+                     theta=np.zeros(t.size), magnitude={}, x=x, terms=(t,), trim=scorer.robust.trim)
               for t, e in zip(terms, errors)]
     ranked.sort(key=lambda s: s.heldout_mean_mm)
     _prefer_single_place(ranked, lambda c: c.heldout_mean_mm, lambda c: c.terms[0])
@@ -306,7 +319,7 @@ def _settle_tie(best: Scored, runner_up: Scored, candidates: Sequence[Scored], b
         note = (f"{larger.label} fits about as well only through terms that are the same as "
                 f"{simpler.label}; the simpler explanation is named")
         return Naming(named=simpler, candidates=tuple(ranked), margin=margin, notes=(note,))
-    pair_mean_mm = scorer.heldout_errors_mm(best.terms + runner_up.terms).mean()
+    pair_mean_mm = float(scorer.mean_mm(scorer.heldout_errors_mm(best.terms + runner_up.terms)))
     if pair_mean_mm < (1.0 - MIN_GAIN) * min(best.heldout_mean_mm, runner_up.heldout_mean_mm):
         note = (f"{best.label} and {runner_up.label} are both present: together they "
                 f"reach {pair_mean_mm:.4f} mm held-out")
@@ -322,7 +335,7 @@ def find_second_effect(named: Scored, terms: Sequence[Term], candidates: Sequenc
     held-out mean by MIN_GAIN more, or None."""
     others = [t for t in terms if t.cause != named.cause]
     errors = scorer.heldout_errors_many([named.terms + (t,) for t in others]) if others else []
-    with_named = [(e.mean(), t) for e, t in zip(errors, others)]
+    with_named = [(scorer.mean_mm(e), t) for e, t in zip(errors, others)]
     with_named.sort(key=lambda pair: pair[0])
     _prefer_single_place(with_named, lambda pair: pair[0], lambda pair: pair[1])
     if not with_named or with_named[0][0] >= (1.0 - MIN_GAIN) * named.heldout_mean_mm:
@@ -348,31 +361,34 @@ def _geometric_baseline(model, obs, folds, options) -> Identification:
     """The geometric fit to compare against: the parameters above the noise, or every
     structurally identifiable one, whichever predicts held-out data better. (When an
     unmodelled effect dominates the residual, the noise criterion is too strict.)"""
-    variants = (IdentifyOptions(regularize="none", prior_mm=options.prior_mm),
-                IdentifyOptions(regularize="cv", prior_mm=options.prior_mm))
+    variants = (IdentifyOptions(regularize="none", prior_mm=options.prior_mm, loss=options.loss),
+                IdentifyOptions(regularize="cv", prior_mm=options.prior_mm, loss=options.loss))
     above_noise, structural = identify_variants(model, obs, variants)  # one nominal and first fit for both
     if np.array_equal(above_noise.free, structural.free):
         return above_noise
 
+    robust = RobustScoring.of(options.loss, above_noise.residuals_mm)
+
     def heldout_mean_mm(fit: Identification) -> float:
-        return _heldout(lambda: ((rows, j[:, :, fit.free]) for rows, _, j in jacobian_chunks(fit.layout, fit.x, obs)),
-                        fit.residuals_mm, folds).mean()
+        return robust.mean_mm(_heldout(lambda: ((rows, j[:, :, fit.free])
+                                                for rows, _, j in jacobian_chunks(fit.layout, fit.x, obs)),
+                                       fit.residuals_mm, folds, robust))
 
     return min((above_noise, structural), key=heldout_mean_mm)
 
 
-def _heldout(columns, residuals_mm: np.ndarray, folds: np.ndarray) -> np.ndarray:
+def _heldout(columns, residuals_mm: np.ndarray, folds: np.ndarray, robust: RobustScoring = LINEAR) -> np.ndarray:
     """(N,) held-out errors of a linearised model with every column estimated. columns()
     yields (rows, Jacobian rows (n, 3, p)) over all rows in blocks; it is called twice."""
     factors = None
     for rows, j in columns():
         factors = factors or crossval.FoldFactors(folds, j.shape[2])
-        factors.add(rows, j, residuals_mm[rows])
+        factors.add(rows, *robust.weighted(rows, j, residuals_mm[rows]))
     return crossval.heldout_errors(columns(), residuals_mm, factors, factors.steps(np.arange(factors.p)))[0]
 
 
 def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[Term, ...], prior_mm: float,
-                 label: str) -> Scored:
+                 label: str, robust: RobustScoring = LINEAR) -> Scored:
     """Nonlinear fit of geometry plus terms; held-out errors and physical sizes."""
     layout, x, free = geometric_fit.layout, geometric_fit.x, geometric_fit.free
     structural = [t for t in terms if t.model is not None]
@@ -382,7 +398,8 @@ def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[
         layout = Layout(extended_model, obs.target_names)
         x = embed(geometric_fit.x, geometric_fit.layout.n_kin, extra)
         free = embed(geometric_fit.free, geometric_fit.layout.n_kin, extra, fill=True)
-    fit = fit_extended(layout, obs, x, free, tuple(t for t in terms if t.model is None), prior_mm)
+    fit = fit_extended(layout, obs, x, free, tuple(t for t in terms if t.model is None), prior_mm, robust.loss,
+                       robust.f_scale_mm)
     sizes = _physical_sizes(model, terms, fit)
     magnitude = sizes[terms[0].cause] if len(terms) == 1 else sizes
     details = _details(terms, fit, obs)
@@ -393,7 +410,7 @@ def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[
         without[model.n_params: t.model.n_params] = 0.0
     effect_mm = (fit.residuals_mm + obs.xyz_mm) - predict(layout, without, obs)
     if len(terms) != 1:
-        heldout_errors_mm = _heldout(fit.jacobian_chunks, fit.residuals_mm, folds)
+        heldout_errors_mm = _heldout(fit.jacobian_chunks, fit.residuals_mm, folds, robust)
     else:
         # the size that needs no model to read: how far the effect moves the targets, less what a
         # geometric calibration absorbs anyway (the part the geometric columns can reproduce)
@@ -410,13 +427,13 @@ def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[
                 beyond[rows] = effect_mm[rows] - j[:, :, :n_free] @ coef
                 yield rows, j
 
-        heldout_errors_mm = _heldout(columns, fit.residuals_mm, folds)
+        heldout_errors_mm = _heldout(columns, fit.residuals_mm, folds, robust)
         effect_mm = beyond
         magnitude = {**magnitude, "effect_beyond_geometry_rms_mm": float(np.sqrt(np.mean(
             np.sum(effect_mm**2, axis=1))))}
     return Scored(label=label, cause=terms[0].cause, where=terms[0].where, heldout_errors=heldout_errors_mm,
-                  theta=fit.theta, magnitude=magnitude, x=fit.x, terms=terms, residuals=fit.residuals_mm,
-                  effect_mm=effect_mm, joint_delta=fit.model.joint_delta(fit.theta), details=details)
+                  trim=robust.trim, theta=fit.theta, magnitude=magnitude, x=fit.x, terms=terms,
+                  residuals=fit.residuals_mm, effect_mm=effect_mm, joint_delta=fit.model.joint_delta(fit.theta), details=details)
 
 
 def _details(terms: tuple[Term, ...], fit: ExtendedFit, obs) -> dict:

@@ -149,8 +149,9 @@ class ExtendedFit(NamedTuple):
             yield rows, j[:, :, self.estimated]
 
 
-def fit_extended(layout, obs, x, free, terms, prior_mm) -> ExtendedFit:
-    """Nonlinear least-squares fit of geometry and terms together."""
+def fit_extended(layout, obs, x, free, terms, prior_mm, loss: str = "linear", f_scale: float = 1.0) -> ExtendedFit:
+    """Nonlinear least-squares fit of geometry and terms together (robust: ``loss`` with scale
+    ``f_scale`` mm, as scipy.optimize.least_squares defines them)."""
     model = ExtendedModel(layout, obs, x, free, terms)
     z_start = np.concatenate([x[free], np.zeros(model.n_theta)])
     # which term parameters can this data separate from the geometry? (scaled: mm per unit)
@@ -171,7 +172,7 @@ def fit_extended(layout, obs, x, free, terms, prior_mm) -> ExtendedFit:
 
     def evaluate(z_estimated, jac):
         z = with_estimated(z_estimated)
-        ne = lsq.NormalEquations(int(estimated.sum()))
+        ne = lsq.NormalEquations(int(estimated.sum()), loss, f_scale)
         if jac:
             for _, j, residuals in model.jacobian_chunks(z, with_residuals=True):
                 ne.add(j[:, :, estimated].reshape(-1, ne.g.size), residuals.ravel())

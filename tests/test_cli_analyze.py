@@ -60,3 +60,23 @@ def test_import_refuses_an_unknown_layout(tmp_path, capsys):
     src.write_text("x,y\n1,2\n")
     code, out, err = run(["import", "dlr-justin", str(src), "-o", str(tmp_path / "out.csv")], capsys)
     assert code == 2 and "export.csv" in err and not (tmp_path / "out.csv").exists()
+
+
+def test_analyze_takes_a_robust_loss_as_identify_does(backlash_csv, tmp_path, capsys):
+    lines = backlash_csv.read_text().splitlines()
+    header = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    names = lines[header].split(",")
+    x = names.index("x_mm")
+    for i in range(header + 1, len(lines), 20):  # every 20th measurement 5 mm off: gross outliers
+        cells = lines[i].split(",")
+        cells[x] = repr(float(cells[x]) + 5.0)
+        lines[i] = ",".join(cells)
+    spoiled = tmp_path / "outliers.csv"
+    spoiled.write_text("\n".join(lines) + "\n")
+    code, out, _ = run(["analyze", "--robot", "ur5e", "--data", str(spoiled), "--loss", "cauchy", "--json"], capsys)
+    doc = json.loads(out)
+    assert code == 0 and doc["cause"] == "backlash" and doc["where"] == {"joint": 3}
+    assert doc["heldout_trimmed_pct"] == 10.0
+    with pytest.raises(SystemExit) as bad:
+        main(["analyze", "--robot", "ur5e", "--data", str(spoiled), "--loss", "l7"])
+    assert bad.value.code == 2 and "--loss" in capsys.readouterr().err

@@ -152,7 +152,7 @@ def _orders_per_joint(by_joint: dict, others: dict, scorer) -> dict:
     trials = [(j, k) for j, parts in by_joint.items() for k in range(1, len(parts) + 1)]
     beside = {j: sum((p for j2, p in others.items() if j2 != j), ()) for j in by_joint}
     sets = [beside[j] + tuple(by_joint[j][:k]) for j, k in trials]
-    means = dict(zip(trials, scorer.heldout_errors_many(sets).mean(axis=1)))
+    means = dict(zip(trials, scorer.mean_mm(scorer.heldout_errors_many(sets))))
     out = {}
     for j, parts in by_joint.items():
         best = min(means[(j, k)] for k in range(1, len(parts) + 1))
@@ -166,7 +166,7 @@ def _pruned(chosen: list[tuple[Term, ...]], scorer) -> list[tuple[Term, ...]]:
     held-out mean by less than KEEP_RTOL is dropped (a noise peak that cross-validation let in)."""
     trials = [(i, k) for i, parts in enumerate(chosen) if len(parts) > 1 for k in [None, *range(len(parts))]]
     sets = [chosen[i] if k is None else chosen[i][:k] + chosen[i][k + 1:] for i, k in trials]
-    means = dict(zip(trials, scorer.heldout_errors_many(sets).mean(axis=1))) if sets else {}
+    means = dict(zip(trials, scorer.mean_mm(scorer.heldout_errors_many(sets)))) if sets else {}
     out = []
     for i, parts in enumerate(chosen):
         keep = tuple(p for k, p in enumerate(parts)
@@ -230,14 +230,14 @@ class CyclicJointError(Cause):
         by_joint: dict[int, list[Term]] = {}
         for t in terms:  # in the order pursuit picked them within each joint
             by_joint.setdefault(t.where["joint"], []).append(t)
-        errors = scorer.heldout_errors_many([()])
+        baseline_mm = scorer.mean_mm(scorer.heldout_errors_many([()]))[0]
         singles = sorted(_orders_per_joint(by_joint, {}, scorer).values(), key=lambda pair: pair[0])
         chosen = [parts for _, parts in singles]
-        gaining = [parts for m, parts in singles if m < (1.0 - JOINT_GAIN) * errors[0].mean()]
+        gaining = [parts for m, parts in singles if m < (1.0 - JOINT_GAIN) * baseline_mm]
         if len(gaining) >= 2:
             chain = [sum(gaining[:i], ()) for i in range(2, len(gaining) + 1)]
             kept, mean = gaining[0], singles[0][0]
-            for parts, m in zip(chain, scorer.heldout_errors_many(chain).mean(axis=1)):
+            for parts, m in zip(chain, scorer.mean_mm(scorer.heldout_errors_many(chain))):
                 if m < (1.0 - JOINT_GAIN) * mean:
                     kept, mean = parts, m
             if kept != gaining[0]:
