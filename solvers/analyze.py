@@ -28,7 +28,7 @@ from .effects import CAUSES, Context, Term
 from .identify import Identification, IdentifyOptions, identify_variants
 from .extended_model import ExtendedFit, embed, fit_extended, norm_scale, param_columns, stack_param_bases
 from .measurement_model import Layout, Observations, jacobian_chunks, predict
-from .robust_scoring import LINEAR, RobustScoring
+from .robust_scoring import LINEAR, RobustScoring, trimmed_mean
 
 MIN_GAIN = 0.10  # held-out mean error must drop by 10% against geometry alone
 MIN_MARGIN = 0.08  # ... and the best other cause must stay 8% above the named one
@@ -70,7 +70,7 @@ class Scored:
     @property
     def heldout_mean_mm(self) -> float:
         """The held-out score: the mean error (without the largest `trim` fraction under a robust loss)."""
-        return float(RobustScoring("", 1.0, None, self.trim).mean_mm(self.heldout_errors))
+        return float(trimmed_mean(self.heldout_errors, self.trim))
 
 
 @dataclass(frozen=True)
@@ -319,7 +319,7 @@ def _settle_tie(best: Scored, runner_up: Scored, candidates: Sequence[Scored], b
         note = (f"{larger.label} fits about as well only through terms that are the same as "
                 f"{simpler.label}; the simpler explanation is named")
         return Naming(named=simpler, candidates=tuple(ranked), margin=margin, notes=(note,))
-    pair_mean_mm = float(scorer.mean_mm(scorer.heldout_errors_mm(best.terms + runner_up.terms)))
+    pair_mean_mm = float(trimmed_mean(scorer.heldout_errors_mm(best.terms + runner_up.terms), best.trim))
     if pair_mean_mm < (1.0 - MIN_GAIN) * min(best.heldout_mean_mm, runner_up.heldout_mean_mm):
         note = (f"{best.label} and {runner_up.label} are both present: together they "
                 f"reach {pair_mean_mm:.4f} mm held-out")
@@ -335,7 +335,7 @@ def find_second_effect(named: Scored, terms: Sequence[Term], candidates: Sequenc
     held-out mean by MIN_GAIN more, or None."""
     others = [t for t in terms if t.cause != named.cause]
     errors = scorer.heldout_errors_many([named.terms + (t,) for t in others]) if others else []
-    with_named = [(scorer.mean_mm(e), t) for e, t in zip(errors, others)]
+    with_named = [(float(trimmed_mean(e, named.trim)), t) for e, t in zip(errors, others)]
     with_named.sort(key=lambda pair: pair[0])
     _prefer_single_place(with_named, lambda pair: pair[0], lambda pair: pair[1])
     if not with_named or with_named[0][0] >= (1.0 - MIN_GAIN) * named.heldout_mean_mm:

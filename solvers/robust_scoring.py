@@ -46,12 +46,16 @@ class RobustScoring:
         return j * w[:, :, None], r * w
 
     def mean_mm(self, errors: np.ndarray) -> np.ndarray:
-        """Score of held-out errors along the last axis: the mean without the largest `trim` fraction."""
-        errors = np.asarray(errors)
-        if self.trim == 0.0:
-            return errors.mean(axis=-1)
-        keep = max(1, int(round((1.0 - self.trim) * errors.shape[-1])))
-        return np.sort(errors, axis=-1)[..., :keep].mean(axis=-1)
+        return trimmed_mean(errors, self.trim)
+
+
+def trimmed_mean(errors: np.ndarray, trim: float) -> np.ndarray:
+    """Score of held-out errors along the last axis: the mean without the largest `trim` fraction."""
+    errors = np.asarray(errors)
+    if trim == 0.0:
+        return errors.mean(axis=-1)
+    keep = max(1, int(round((1.0 - trim) * errors.shape[-1])))
+    return np.sort(errors, axis=-1)[..., :keep].mean(axis=-1)
 
 
 LINEAR = RobustScoring("linear", 1.0, None, 0.0)
