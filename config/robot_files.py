@@ -22,11 +22,11 @@ ANGLE_UNITS = {"deg": math.pi / 180.0, "rad": 1.0}
 CONVENTIONS = ("dh", "mdh")
 COUPLINGS = ("none", "fanuc_j2_j3")
 TOP_KEYS = {"name", "convention", "length_unit", "angle_unit", "joints", "joint_coupling",
-            "joint_limits", "links", "gravity"}
+            "joint_limits", "links", "gravity", "calibration", "effects"}  # the last two: model_files
 JOINT_KEYS = {"a", "alpha", "d", "theta", "beta"}
 LINK_KEYS = {"mass_kg", "com"}
 TREE_KEYS = {"name", "convention", "length_unit", "angle_unit", "joint_count", "branches", "targets",
-             "gravity"}
+             "gravity", "calibration", "effects"}
 BRANCH_KEYS = {"name", "parent", "mount", "frames", "end"}
 FRAME_KEYS = {"a", "alpha", "d", "theta", "joint"}
 MOUNT_KEYS = {"xyz", "matrix", "fixed"}

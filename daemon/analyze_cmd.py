@@ -11,6 +11,7 @@ from ..solvers.analyze import AnalyzeOptions, Finding, Scored, analyze
 from ..solvers.identify import LOSSES
 from ..solvers.effects import CAUSES, Context, approach_directions
 from ..solvers.effects.cyclic_joint_error import order_search
+from . import model_out
 from .cli_common import ReportError, UsageError, check_folds, print_progress
 
 MIN_MEASUREMENTS = 30
@@ -32,6 +33,7 @@ def add_parser(sub):
                    help="robust loss against gross outliers, as identify's; the held-out scores then leave out "
                         "each model's largest 10%% of errors (default: linear, i.e. least squares)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    model_out.add_argument(p, analyze=True)
     p.set_defaults(func=run)
 
 
@@ -126,6 +128,7 @@ def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
 
 def run(args) -> int:
     check_folds(args.folds)
+    model_out.check_target(args.write_model)
     model = load_robot(args.robot)
     table = read_measurements(args.data, model.n_joints)
     check_joint_limits(table, model.joint_limits, model.name)
@@ -153,6 +156,8 @@ def run(args) -> int:
         print(json.dumps(out, default=jsonable), flush=True)
     else:
         print(text, flush=True)
+    if args.write_model:
+        model_out.write_finding(args, model, obs, finding)
     if args.report:
         from .analysis_report import write_report  # matplotlib loads only when a report is asked for
 

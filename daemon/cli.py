@@ -19,7 +19,7 @@ from ..routines.base import RoutineError
 from ..config.robot_files import load_robot
 from ..routines.dataset import DatasetError, MeasurementTable, check_joint_limits, read_measurements
 from ..solvers.identify import LOSSES, REGULARIZE, IdentifyOptions, identify
-from . import analyze_cmd, daemon_cmd, demo_cmd, importers, run_cmd, sim_campaign, sim_cell
+from . import analyze_cmd, daemon_cmd, demo_cmd, importers, model_out, run_cmd, sim_campaign, sim_cell
 from .cli_common import ReportError, UsageError, check_folds, check_positive, print_progress
 from .report import identification_json, identification_text
 
@@ -62,6 +62,7 @@ def cmd_identify(args) -> int:
     if bad:
         raise UsageError(f"--fix: {', '.join(bad)} not a parameter of {model.name} "
                          f"(parameters: {', '.join(model.param_names)})")
+    model_out.check_target(args.write_model)
     n_min = 10
     if len(cal) < n_min:
         raise UsageError(f"{args.data}: {len(cal)} calibration rows; identification needs at least {n_min}")
@@ -81,6 +82,8 @@ def cmd_identify(args) -> int:
         print(json.dumps(identification_json(result, obs, val_obs)))
     else:
         print(identification_text(result, obs, val_obs, model.name))
+    if args.write_model:
+        model_out.write_identified(args, model, result, len(cal), val_obs)
     return 0
 
 
@@ -107,6 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a direction whose estimate would scatter more than this (mm at the target) "
                         "is held at nominal (default 1.0)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    model_out.add_argument(p)
     p.set_defaults(func=cmd_identify)
 
     analyze_cmd.add_parser(sub)

@@ -151,3 +151,27 @@ def point_jacobians_by_component(chain: Chain, params: np.ndarray, q: np.ndarray
         for j, c in el.joints:
             jq[j] += c * col
     return p, jp, jq, axes
+
+
+def pose_jacobians(chain: Chain, params: np.ndarray, q: np.ndarray, offset: np.ndarray, n_joints: int):
+    """End rotation (N, 3, 3), position of a point fixed in the end frame (N, 3), and its
+    linear and angular velocity per unit joint rate, each (N, 3, n_joints): the joint part
+    of ``point_jacobians`` plus the orientation, in one pass (inverse kinematics needs no
+    parameter columns)."""
+    axes, org, frames = _frames(chain, params, q, keep_frames=True)
+    offset = np.asarray(offset, dtype=float)
+    p = org + axes[0] * offset[:, 0] + axes[1] * offset[:, 1] + axes[2] * offset[:, 2]
+    n = p.shape[-1]
+    jq = np.zeros((n_joints, 3, n))
+    jw = np.zeros((n_joints, 3, n))
+    for el, (a, o) in zip(chain.elements, frames):
+        if not el.joints:
+            continue
+        axis = a[el.axis]
+        col = _cross(axis, p - o) if el.is_rotation else axis
+        for j, c in el.joints:
+            jq[j] += c * col
+            if el.is_rotation:
+                jw[j] += c * axis
+    rot, p = _pose_major(axes, p)
+    return rot, p, np.transpose(jq, (2, 1, 0)), np.transpose(jw, (2, 1, 0))

@@ -1,0 +1,249 @@
+"""A calibrated robot: identified geometry, instrument frame, target offsets and fitted effects.
+
+What ``identify`` or ``analyze`` found, as one object that predicts where a target is
+for given joint values. The effects are the analysis' own terms (``effects``), rebuilt
+at the joint values asked about from their causes' bases and applied with their
+fitted parameters theta exactly as the analysis' extended model applies them
+(``extended_model``):
+
+    q_model = q + B(q) theta            (joint-space terms: compliance, backlash, cyclic error)
+    k_model = k + P(q) theta            (parameter-space terms, to first order: trees)
+    Hayati beta on parallel axes        (a structurally different rigid model, with the tilt in k)
+
+Causes that are not a property of the arm's position are kept with their parameters
+but not applied (``NOT_APPLIED``): a trigger's latency belongs to the instrument, and
+thermal growth needs the temperature relative to the calibration's own data.
+Internal units: mm and rad, as everywhere in ``solvers``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import se3
+from .chain import forward, point_jacobians
+from .effects import CAUSES, Context, Term
+from .extended_model import combine_bases, param_columns
+from .measurement_model import Layout, Observations
+from .robot_model import KinematicModel, with_hayati_beta
+
+NOT_APPLIED = {
+    "trigger_latency": "a latency of the instrument's trigger, not of the arm's position",
+    "thermal_drift": "needs the temperature relative to the calibration data's own; applied at that reference (0)",
+}
+STRUCTURAL = "parallel_axis_tilt"
+_PAD_ROWS = 24  # configurations added to every evaluation so a cause's data screens always pass
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One fitted term: the cause, where, its parameter names and values (units per parameter)."""
+
+    cause: str
+    where: dict
+    names: tuple[str, ...]
+    theta: np.ndarray
+    units: tuple[str, ...]
+    extra: dict = field(default_factory=dict)  # whatever else the cause records (e.g. angle coverage)
+
+    @property
+    def applied(self) -> bool:
+        return self.cause not in NOT_APPLIED
+
+    @property
+    def needs_payload(self) -> bool:
+        return any("payload" in n for n in self.names)
+
+
+@dataclass(frozen=True)
+class CalibratedModel:
+    """Geometry, instrument -> base frame, target offsets and effects of one calibration.
+
+    ``model`` already carries a structural effect (a Hayati beta), so ``k`` is its full
+    parameter vector; ``base`` is (t mm, rotation vector rad) with
+    p_instrument = R p_base + t; ``offsets`` one row (mm, end frame) per target name.
+    """
+
+    model: KinematicModel
+    k: np.ndarray
+    base: np.ndarray
+    target_names: tuple[str, ...]
+    offsets: np.ndarray
+    effects: tuple[Effect, ...] = ()
+
+    @property
+    def layout(self) -> Layout:
+        return Layout(self.model, self.target_names)
+
+    @property
+    def x(self) -> np.ndarray:
+        x = self.layout.initial(self.base, self.offsets)
+        x[: len(self.k)] = self.k
+        return x
+
+    @property
+    def applied(self) -> tuple[Effect, ...]:
+        return tuple(e for e in self.effects if e.applied and e.cause != STRUCTURAL)
+
+    @property
+    def joint_effects_only(self) -> bool:
+        """Do the applied effects act through the joint values alone (no Cartesian or parameter terms)?"""
+        if not self.applied:
+            return True
+        q = _pad_rows(self.model.n_joints)
+        return all(t.cart_basis is None and not t.param_basis for t in self.terms_at(q))
+
+    def terms_at(self, q: np.ndarray, ctx: Context | None = None) -> list[Term]:
+        """The applied effects' terms at joint values q (N, nj), in ``applied`` order.
+
+        Each cause builds its candidate terms as the analysis does; a fixed spread of
+        configurations is appended first so that screens meant for a data set (a joint
+        that barely moves, a side never approached from) never drop the fitted term.
+        """
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        n, nj = q.shape
+        if not self.applied:
+            return []
+        pad = _pad_rows(nj)
+        ctx = ctx or Context(direction=np.zeros_like(q))
+        payload = None
+        if any(e.needs_payload for e in self.applied):
+            given = np.zeros(n) if ctx.payload_kg is None else np.broadcast_to(ctx.payload_kg, (n,))
+            payload = np.concatenate([given, np.linspace(0.0, 1.0, len(pad))])
+        sign = np.where(np.arange(len(pad)) % 2 == 0, 1.0, -1.0)
+        padded = Context(direction=np.concatenate([ctx.direction, np.repeat(sign[:, None], nj, axis=1)]),
+                         payload_kg=payload)
+        qq = np.concatenate([q, pad])
+        obs = Observations(qq, np.zeros((len(qq), 3)), np.zeros(len(qq), int), self.target_names)
+        out = []
+        built: dict[str, list[Term]] = {}
+        for e in self.applied:
+            if e.cause not in built:
+                built[e.cause] = CAUSES[e.cause].terms(self.model, self.layout, self.x, obs, padded)
+            term = next((t for t in built[e.cause] if t.names == e.names), None)
+            if term is None:
+                raise ValueError(f"{e.cause} {e.where}: the cause no longer offers a term with parameters "
+                                 f"{', '.join(e.names)}; this model file was written by another version")
+            out.append(_rows(term, slice(0, n)))
+        return out
+
+    def _bases(self, q, ctx):
+        terms = self.terms_at(q, ctx)
+        theta = np.concatenate([e.theta for e in self.applied]) if terms else np.zeros(0)
+        return combine_bases(tuple(terms), len(q), self.model.n_joints), theta
+
+    def joint_delta(self, q: np.ndarray, ctx: Context | None = None) -> np.ndarray:
+        """(N, nj) rad: what the joint-space effects add to the reported joint values."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        if not self.applied:
+            return np.zeros_like(q)
+        bases, theta = self._bases(q, ctx)
+        return bases.joint.delta(theta)
+
+    def end_frames(self, q: np.ndarray, offset_mm: np.ndarray, ctx: Context | None = None,
+                   chain: str | None = None):
+        """Rotation (N, 3, 3) and position (N, 3) mm of a point fixed in the end frame, in the
+        robot base frame, with every applied effect; offset_mm (3,) or (N, 3)."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        offset = np.broadcast_to(np.asarray(offset_mm, dtype=float), (len(q), 3))
+        chains = np.full(len(q), chain or self.model.default_chain, dtype=object)
+        return self._frames(q, offset, chains, ctx)[:2]
+
+    def deflected_frames(self, q: np.ndarray, offset_mm: np.ndarray, ctx: Context | None = None):
+        """``end_frames`` of the default chain and the joint values the rigid geometry sees (q plus
+        the joint-space effects), (rot, p, q_model)."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        offset = np.broadcast_to(np.asarray(offset_mm, dtype=float), (len(q), 3))
+        return self._frames(q, offset, np.full(len(q), self.model.default_chain, dtype=object), ctx)
+
+    def _frames(self, q, offset, chains, ctx):
+        bases, theta = self._bases(q, ctx) if self.applied else (None, None)
+        qm = q if bases is None else q + bases.joint.delta(theta)
+        rot, p = np.empty((len(q), 3, 3)), np.empty((len(q), 3))
+        extra = bases is not None and (bases.param is not None or bases.cartesian is not None)
+        for name in dict.fromkeys(chains):
+            rows = np.flatnonzero(chains == name)
+            chain = self.model.chains[name]
+            if not extra:
+                r, org = forward(chain, self.k, qm[rows])
+                rot[rows], p[rows] = r, org + np.einsum("nij,nj->ni", r, offset[rows])
+                continue
+            pr, jp, _, rot[rows] = point_jacobians(chain, self.k, qm[rows], offset[rows], self.model.n_params,
+                                                   self.model.n_joints)
+            if bases.param is not None:  # d p / d k in the base frame: the instrument's rotation is not in it
+                pr = pr + param_columns(jp, (bases.param[0], bases.param[1][rows])) @ theta
+            if bases.cartesian is not None:  # term columns are in the instrument frame
+                pr = pr + (bases.cartesian[rows] @ theta) @ se3.rotvec_to_matrix(self.base[3:])
+            p[rows] = pr
+        return rot, p, qm
+
+    def predict(self, q: np.ndarray, target: np.ndarray, ctx: Context | None = None) -> np.ndarray:
+        """Target positions in the instrument frame (N, 3) mm, as a measurement would give them."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        target = np.asarray(target, dtype=int)
+        chains = np.array([self.model.chain_for(t) for t in self.target_names], dtype=object)[target]
+        _, p, _ = self._frames(q, self.offsets[target], chains, ctx)
+        r = se3.rotvec_to_matrix(self.base[3:])
+        return p @ r.T + self.base[:3]
+
+
+def _pad_rows(n_joints: int) -> np.ndarray:
+    """Configurations spread over a whole turn of every joint, each joint at its own phase."""
+    i = np.arange(_PAD_ROWS)[:, None]
+    j = np.arange(n_joints)[None, :]
+    return -np.pi + 2.0 * np.pi * ((i * (1.0 + 0.618 * j) + 0.37 * j) % _PAD_ROWS) / _PAD_ROWS
+
+
+def _rows(term: Term, rows) -> Term:
+    """The same term restricted to some rows of its bases."""
+    from dataclasses import replace
+
+    return replace(term,
+                   joint_basis=None if term.joint_basis is None else term.joint_basis[rows],
+                   cart_basis=None if term.cart_basis is None else term.cart_basis[rows],
+                   param_basis=None if not term.param_basis else {p: b[rows] for p, b in term.param_basis.items()})
+
+
+def from_fit(model: KinematicModel, target_names, x: np.ndarray, terms=(), theta=()) -> CalibratedModel:
+    """The calibrated model of a fit: x in the layout of ``model`` (or, with a structural term, of
+    that term's model), and the non-structural terms' parameters theta in the order given."""
+    terms = tuple(terms)
+    structural = [t for t in terms if t.model is not None]
+    effects, col = [], 0
+    kin_model = model
+    for t in terms:
+        if t.model is not None:
+            continue
+        effects.append(Effect(t.cause, dict(t.where), tuple(t.names), np.asarray(theta[col: col + t.size], float),
+                              tuple(t.units), _recordable(t.extra)))
+        col += t.size
+    for t in structural:
+        kin_model = t.model
+        for name in t.names:
+            i = kin_model.index(name)
+            effects.append(Effect(t.cause, dict(t.where), (name,), np.array([x[i]]), tuple(t.units)))
+    layout = Layout(kin_model, tuple(target_names))
+    return CalibratedModel(kin_model, np.array(x[: layout.n_kin], float), np.array(x[layout.base], float),
+                           tuple(target_names), layout.offsets(x).astype(float), tuple(effects))
+
+
+def _recordable(extra: dict) -> dict:
+    """What of a term's extra information is a small set of numbers or words (not per-row arrays)."""
+    out = {}
+    for key, value in (extra or {}).items():
+        if isinstance(value, (int, float, str, bool)):
+            out[key] = value
+        elif isinstance(value, (list, tuple)) and len(value) <= 64:
+            out[key] = [v for v in value]
+    return out
+
+
+def with_structural(model: KinematicModel, effects) -> KinematicModel:
+    """The rigid model with every structural effect's extra parameter (a Hayati beta) added."""
+    for e in effects:
+        if e.cause == STRUCTURAL:
+            for name in e.names:
+                if name not in model.param_names:
+                    model = with_hayati_beta(model, int(name.removeprefix("beta")) - 1)
+    return model
