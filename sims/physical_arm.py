@@ -143,6 +143,17 @@ class PhysicalArm(SimulatedArm):
         """Truth: c (rad/Nm), b (rad), A (rad), k (1/K), beta (rad) or tau (s). For scoring only."""
         return self._size[e]
 
+    def reached(self, q, target=None, payload_kg=None) -> np.ndarray:
+        """Truth: where the targets really are at commanded joints q (N, 3) mm, instrument frame, with
+        every joint-space effect and no noise (approach directions from the row order). For scoring."""
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        target = np.zeros(len(q), dtype=int) if target is None else np.asarray(target)
+        direction = approach_directions(q)
+        payload = None if payload_kg is None else np.broadcast_to(np.asarray(payload_kg, float), (len(q),)).copy()
+        delta = sum((self._size[e] * self._unit_delta_q(e, q, direction, payload, None) for e in self.effects
+                     if e.cause not in ("parallel_axis_tilt", "thermal_drift", "trigger_latency")), np.zeros_like(q))
+        return self._positions(q + delta, target)
+
     # -- a measurement campaign ---------------------------------------------------
     def campaign(self, q, *, target=None, payload_kg=None, t_s=None, dq_rad_s=None,
                  warmup_K: float = 8.0) -> Campaign:
