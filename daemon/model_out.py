@@ -69,7 +69,7 @@ def write_finding(args, model, obs, finding) -> None:
     """analyze's finding as a model file: geometry with the named effect (both, when a second
     effect showed), or geometry alone when the finding is none."""
     scored = finding.both if finding.both is not None else finding.extended
-    calibrated = from_fit(model, obs.target_names, scored.x, scored.terms, scored.theta)
+    calibrated = from_fit(model, obs.target_names, scored.x, scored.terms, scored.theta, obs.q)
     magnitudes = {scored.cause: scored.magnitude} if len(scored.terms) == 1 else scored.magnitude
     record = provenance("analyze", args.data, len(obs), scored.heldout_mean_mm,
                         f"grouped {args.folds}-fold cross-validation ({scored.label})")

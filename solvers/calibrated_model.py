@@ -24,6 +24,7 @@ import numpy as np
 from . import se3
 from .chain import forward, point_jacobians
 from .effects import CAUSES, Context, Term
+from .effects.cyclic_joint_error import PeriodicJointError, fitted_errors
 from .extended_model import combine_bases, param_columns
 from .measurement_model import Layout, Observations
 from .robot_model import KinematicModel, with_hayati_beta
@@ -33,6 +34,7 @@ NOT_APPLIED = {
     "thermal_drift": "needs the temperature relative to the calibration data's own; applied at that reference (0)",
 }
 STRUCTURAL = "parallel_axis_tilt"
+PERIODIC = "cyclic_joint_error"  # kept as its cause's PeriodicJointError: orders, coefficients, covered angles
 _PAD_ROWS = 24  # configurations added to every evaluation so a cause's data screens always pass
 
 
@@ -84,7 +86,19 @@ class CalibratedModel:
 
     @property
     def applied(self) -> tuple[Effect, ...]:
-        return tuple(e for e in self.effects if e.applied and e.cause != STRUCTURAL)
+        """Applied effects whose basis their cause rebuilds at any joint values."""
+        return tuple(e for e in self.effects if e.applied and e.cause not in (STRUCTURAL, PERIODIC))
+
+    @property
+    def periodic(self) -> tuple[PeriodicJointError, ...]:
+        """Fitted periodic joint errors, each 0 outside the angles its data covered."""
+        return tuple(p for e in self.effects if e.cause == PERIODIC for p in periodic_errors(e))
+
+    def _periodic_delta(self, q: np.ndarray) -> np.ndarray:
+        out = np.zeros_like(q)
+        for p in self.periodic:
+            out[:, p.joint - 1] += p.delta_rad(q[:, p.joint - 1])
+        return out
 
     @property
     def joint_effects_only(self) -> bool:
@@ -137,9 +151,9 @@ class CalibratedModel:
         """(N, nj) rad: what the joint-space effects add to the reported joint values."""
         q = np.atleast_2d(np.asarray(q, dtype=float))
         if not self.applied:
-            return np.zeros_like(q)
+            return self._periodic_delta(q)
         bases, theta = self._bases(q, ctx)
-        return bases.joint.delta(theta)
+        return bases.joint.delta(theta) + self._periodic_delta(q)
 
     def end_frames(self, q: np.ndarray, offset_mm: np.ndarray, ctx: Context | None = None,
                    chain: str | None = None):
@@ -159,7 +173,7 @@ class CalibratedModel:
 
     def _frames(self, q, offset, chains, ctx):
         bases, theta = self._bases(q, ctx) if self.applied else (None, None)
-        qm = q if bases is None else q + bases.joint.delta(theta)
+        qm = q + self._periodic_delta(q) + (0.0 if bases is None else bases.joint.delta(theta))
         rot, p = np.empty((len(q), 3, 3)), np.empty((len(q), 3))
         extra = bases is not None and (bases.param is not None or bases.cartesian is not None)
         for name in dict.fromkeys(chains):
@@ -205,9 +219,10 @@ def _rows(term: Term, rows) -> Term:
                    param_basis=None if not term.param_basis else {p: b[rows] for p, b in term.param_basis.items()})
 
 
-def from_fit(model: KinematicModel, target_names, x: np.ndarray, terms=(), theta=()) -> CalibratedModel:
+def from_fit(model: KinematicModel, target_names, x: np.ndarray, terms=(), theta=(), q=None) -> CalibratedModel:
     """The calibrated model of a fit: x in the layout of ``model`` (or, with a structural term, of
-    that term's model), and the non-structural terms' parameters theta in the order given."""
+    that term's model), and the non-structural terms' parameters theta in the order given.
+    q: the fit's joint values (N, nj), for what a periodic error's data covered (else a whole turn)."""
     terms = tuple(terms)
     structural = [t for t in terms if t.model is not None]
     effects, col = [], 0
@@ -215,8 +230,12 @@ def from_fit(model: KinematicModel, target_names, x: np.ndarray, terms=(), theta
     for t in terms:
         if t.model is not None:
             continue
-        effects.append(Effect(t.cause, dict(t.where), tuple(t.names), np.asarray(theta[col: col + t.size], float),
-                              tuple(t.units), _recordable(t.extra)))
+        values = np.asarray(theta[col: col + t.size], float)
+        extra = _recordable(t.extra)
+        if t.cause == PERIODIC and q is not None:
+            extra["coverage_rad"] = {str(p.joint): [list(c) for c in p.coverage_rad]
+                                     for p in fitted_errors(t, values, np.asarray(q, float))}
+        effects.append(Effect(t.cause, dict(t.where), tuple(t.names), values, tuple(t.units), extra))
         col += t.size
     for t in structural:
         kin_model = t.model
@@ -228,15 +247,35 @@ def from_fit(model: KinematicModel, target_names, x: np.ndarray, terms=(), theta
                            tuple(target_names), layout.offsets(x).astype(float), tuple(effects))
 
 
-def _recordable(extra: dict) -> dict:
-    """What of a term's extra information is a small set of numbers or words (not per-row arrays)."""
-    out = {}
-    for key, value in (extra or {}).items():
-        if isinstance(value, (int, float, str, bool)):
-            out[key] = value
-        elif isinstance(value, (list, tuple)) and len(value) <= 64:
-            out[key] = [v for v in value]
+def periodic_errors(effect: Effect) -> list[PeriodicJointError]:
+    """A cyclic_joint_error entry as one PeriodicJointError per joint: orders and coefficients from the
+    parameter names s<j>_<n>, c<j>_<n>; covered angles from extra.coverage_rad (else a whole turn)."""
+    coef: dict[int, dict[int, list[float]]] = {}
+    for name, value in zip(effect.names, effect.theta):
+        joint, order = (int(v) for v in name[1:].split("_"))
+        coef.setdefault(joint, {}).setdefault(order, [0.0, 0.0])["sc".index(name[0])] = float(value)
+    coverage = effect.extra.get("coverage_rad") or {}
+    out = []
+    for joint, by_order in sorted(coef.items()):
+        orders = tuple(sorted(by_order))
+        cover = tuple(tuple(map(float, c)) for c in coverage.get(str(joint), [(-np.inf, np.inf)]))
+        out.append(PeriodicJointError(joint, orders, tuple(by_order[n][0] for n in orders),
+                                      tuple(by_order[n][1] for n in orders), cover))
     return out
+
+
+def _recordable(extra: dict) -> dict:
+    """What of a term's extra information is plain (numbers, words, small lists and mappings of them):
+    per-row arrays, spectra and the parts a term was composed of stay in memory."""
+    def plain(v, depth=0):
+        if isinstance(v, (bool, int, float, str, np.integer, np.floating)):
+            return True
+        if depth < 3 and isinstance(v, (list, tuple)) and len(v) <= 256:
+            return all(plain(u, depth + 1) for u in v)
+        if depth < 3 and isinstance(v, dict):
+            return all(plain(u, depth + 1) for u in v.values())
+        return False
+    return {k: v for k, v in (extra or {}).items() if plain(v)}
 
 
 def with_structural(model: KinematicModel, effects) -> KinematicModel:

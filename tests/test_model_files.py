@@ -122,3 +122,28 @@ def test_identify_and_analyze_write_models_with_provenance(compliance_finding, t
     capsys.readouterr()
     assert main(["identify", "--robot", "ur10e", "--data", str(data), "--write-model", str(tmp_path / "no" / "x.yaml")]) == 2
     assert "--write-model" in capsys.readouterr().err
+
+
+def test_a_fitted_periodic_error_keeps_its_orders_and_coverage(tmp_path):
+    model = load_robot("ur5e")
+    rng = np.random.default_rng(8)
+    arm = PhysicalArm(model, rng, [HiddenEffect("cyclic_joint_error", 1, rms_mm=0.4, harmonics=((1, 1.0, 0.3),
+                                                                                                (4, 0.6, 1.0)))])
+    q = full_workspace(model, 200, rng)
+    q = q[np.abs(q[:, 1]) < 2.5]  # joint 2 never beyond +-2.5 rad: the fitted error is known only inside
+    data = arm.campaign(q)
+    finding = analyze(model, data.obs, data.ctx, AnalyzeOptions(causes=("cyclic_joint_error",)))
+    assert finding.cause == "cyclic_joint_error"
+    s = finding.extended
+    calibrated = from_fit(model, data.obs.target_names, s.x, s.terms, s.theta, data.obs.q)
+    loaded = load_calibrated(write_calibrated(tmp_path / "cyc.yaml", calibrated, "ur5e", PROVENANCE))
+    (effect,) = loaded.effects
+    assert {1, 4} <= {int(n.split("_")[1]) for n in effect.names}
+    lo, hi = effect.extra["coverage_rad"]["2"][0][0], effect.extra["coverage_rad"]["2"][-1][1]
+    assert -2.5 <= lo < -2.3 and 2.3 < hi <= 2.5
+    assert np.abs(loaded.predict(data.obs.q, data.obs.target) - calibrated.predict(data.obs.q, data.obs.target)
+                  ).max() < 1e-9
+    probe = np.zeros((3, 6))
+    probe[:, 1] = [0.5, 2.9, -3.0]
+    delta = loaded.joint_delta(probe)
+    assert abs(delta[0, 1]) > 1e-5 and np.all(delta[1:, 1] == 0.0)  # outside the coverage: the rigid model
