@@ -19,7 +19,7 @@ from ..routines.base import RoutineError
 from ..config.robot_files import load_robot
 from ..routines.dataset import DatasetError, MeasurementTable, check_joint_limits, read_measurements
 from ..solvers.identify import LOSSES, REGULARIZE, IdentifyOptions, identify
-from . import analyze_cmd, compensate_cmd, daemon_cmd, demo_cmd, importers, model_out, run_cmd, sim_campaign, sim_cell
+from . import analyze_cmd, compensate_cmd, daemon_cmd, demo_cmd, importers, iso9283_cmd, model_out, run_cmd, sim_campaign, sim_cell
 from .cli_common import ReportError, UsageError, check_folds, check_positive, print_progress
 from .report import identification_json, identification_text
 
@@ -115,6 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     analyze_cmd.add_parser(sub)
     compensate_cmd.add_parser(sub)
+    iso9283_cmd.add_parser(sub)
     run_cmd.add_parser(sub)
     daemon_cmd.add_parsers(sub)
     demo_cmd.add_parser(sub)

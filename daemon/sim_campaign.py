@@ -27,6 +27,7 @@ from ..sims.workspace import full_workspace
 from ..solvers.identify import REGULARIZE, IdentifyOptions, identify
 from ..solvers.measurement_model import Observations, predict
 from ..solvers.pose_design import select_poses
+from . import iso9283_campaign
 from .cli_common import UsageError, check_positive, check_seed, output_file, output_folder, print_progress
 from .report import error_stats
 
@@ -51,8 +52,24 @@ def add_parser(sub):
                    help="as for cellcal identify (default cv)")
     p.add_argument("--seed", type=int, default=1, help="seed of the simulated cell's hidden errors and noise")
     p.add_argument("--out", default="out/sim-campaign", help="folder for cal.csv and val.csv")
+    p.add_argument("--iso9283", action="store_true",
+                   help="instead: hidden geometric errors and joint-2 compliance, calibrate with analyze, then an "
+                        "ISO 9283 cube test before calibration, after, and after compensation, with a report in "
+                        "OUT/report")
+    p.add_argument("--cycles", type=int, default=30, help="--iso9283: cycles over P1 .. P5 (default 30)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
+
+
+def _iso9283(args, out) -> int:
+    """The ISO 9283 campaign (``iso9283_campaign``) on an arm with a hidden compliance."""
+    if args.cycles < 2:
+        raise UsageError(f"--cycles must be at least 2 (repeatability needs repeated cycles), got {args.cycles}")
+    model = load_robot(args.robot)
+    rng = np.random.default_rng(args.seed)
+    arm = PhysicalArm(model, rng, [HiddenEffect("joint_compliance", 1, rms_mm=0.4)], target_offsets=[[0.0, 0.0, 100.0]])
+    print_progress(f"simulated {model.name}: hidden geometric errors and joint-2 compliance (0.4 mm rms)")
+    return iso9283_campaign.run(args, arm, lambda n, r: full_workspace(model, n, r), out)
 
 
 def _truth_error(arm: SimulatedArm, layout, x, obs: Observations) -> np.ndarray:
@@ -65,6 +82,8 @@ def run(args) -> int:
         raise UsageError("need --poses >= 10, --candidates >= --poses and --validate-poses >= 1")
     check_seed(args.seed)
     out = output_folder(args.out, "--out")
+    if args.iso9283:
+        return _iso9283(args, out)
     t0 = time.perf_counter()
     model = load_robot(args.robot)
     rng = np.random.default_rng(args.seed)
