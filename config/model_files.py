@@ -20,6 +20,7 @@ gets the calibrated geometry. Two optional top-level sections extend the format
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -63,14 +64,8 @@ def load_calibrated(name_or_path: str | Path) -> CalibratedModel:
         if e.cause == STRUCTURAL:
             for name, value in zip(e.names, e.theta):
                 k[model.index(name)] = value
-    model = _with_nominal(model, k)
+    model = replace(model, nominal=k)  # the calibrated values are this model's own
     return CalibratedModel(model, k, base, names, offsets, effects)
-
-
-def _with_nominal(model, k):
-    from dataclasses import replace
-
-    return replace(model, nominal=np.array(k, dtype=float))
 
 
 def _effect(row: Section) -> Effect:

@@ -37,7 +37,6 @@ from .cli_common import UsageError, print_progress
 from .iso9283_report import write_report
 
 CAUSES = ("joint_compliance", "backlash", "cyclic_joint_error", "parallel_axis_tilt")
-TOOL_MM = (0.0, 0.0, 100.0)
 DOWN = np.diag([1.0, -1.0, -1.0])  # tool axis along -z of the base
 
 

@@ -17,7 +17,7 @@ Internal units: mm and rad, as everywhere in ``solvers``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -211,8 +211,6 @@ def _pad_rows(n_joints: int) -> np.ndarray:
 
 def _rows(term: Term, rows) -> Term:
     """The same term restricted to some rows of its bases."""
-    from dataclasses import replace
-
     return replace(term,
                    joint_basis=None if term.joint_basis is None else term.joint_basis[rows],
                    cart_basis=None if term.cart_basis is None else term.cart_basis[rows],
