@@ -88,7 +88,8 @@ def _coverage_text(f: Finding) -> list[str]:
     lines = []
     for err in (f.extended.details or {}).get("errors", []):
         cover = ", ".join(f"{lo:+.1f}..{hi:+.1f}" for lo, hi in err["coverage_deg"])
-        lines.append(f"  joint {err['joint']}: orders {err['orders']}, known over {cover} deg")
+        what = f"orders {err['orders']}" if "orders" in err else f"periodic spline, {err['spline_knots']} knots"
+        lines.append(f"  joint {err['joint']}: {what}, known over {cover} deg")
     if lines:
         lines.append(f"  {f.extended.details['outside_coverage']}")
     if (spectra := _spectra(f)) is not None:

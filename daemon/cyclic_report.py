@@ -10,6 +10,7 @@ import numpy as np
 
 from ..solvers.analyze import Finding
 from ..solvers.effects.cyclic_joint_error import PeriodicJointError
+from ..solvers.effects.periodic_spline import PeriodicSpline
 from ..solvers.measurement_model import Layout, Observations, jacobian
 
 
@@ -18,9 +19,16 @@ def _along(v: np.ndarray, u: np.ndarray) -> np.ndarray:
     return np.einsum("ni,ni->n", v, u) / np.where(n > 1e-12, n, np.inf)
 
 
-def _fitted(err: dict) -> PeriodicJointError:
-    return PeriodicJointError(err["joint"], tuple(err["orders"]), tuple(err["sin_rad"]), tuple(err["cos_rad"]),
-                              tuple((np.deg2rad(lo), np.deg2rad(hi)) for lo, hi in err["coverage_deg"]))
+def _fitted(err: dict):
+    cover = tuple((np.deg2rad(lo), np.deg2rad(hi)) for lo, hi in err["coverage_deg"])
+    if "spline_knots" in err:
+        return PeriodicSpline(err["joint"], tuple(err["coef_rad"]), cover)
+    return PeriodicJointError(err["joint"], tuple(err["orders"]), tuple(err["sin_rad"]), tuple(err["cos_rad"]), cover)
+
+
+def describe(err: dict) -> str:
+    """'orders [..]' or 'a periodic spline of K knots' for one fitted joint error."""
+    return f"orders {err['orders']}" if "orders" in err else f"a periodic spline of {err['spline_knots']} knots"
 
 
 def cyclic_plots(out: Path, model, obs: Observations, f: Finding, rows: np.ndarray) -> list[tuple[str, str]]:
@@ -45,7 +53,7 @@ def cyclic_plots(out: Path, model, obs: Observations, f: Finding, rows: np.ndarr
         curve.set_ylabel("fitted joint error (deg)")
         ax.legend(loc="upper left", fontsize=8)
         curve.legend(loc="upper right", fontsize=8)
-        ax.set_title(f"joint {j + 1}: orders {err['orders']}", fontsize=10)
+        ax.set_title(f"joint {j + 1}: {describe(err)}", fontsize=10)
         fig.tight_layout()
         name = f"cyclic_joint{j + 1}.png"
         fig.savefig(out / name, dpi=110)
@@ -53,7 +61,7 @@ def cyclic_plots(out: Path, model, obs: Observations, f: Finding, rows: np.ndarr
         images.append((name, f"Residual against joint {j + 1}'s angle, before and after, and the fitted error"))
     spectra = next((t.extra["spectra"] for c in f.candidates for t in c.terms if "spectra" in t.extra), None)
     if spectra:
-        kept = {e["joint"]: e["orders"] for e in errors}
+        kept = {e["joint"]: e.get("orders", []) for e in errors}
         fig, axes = plt.subplots(len(spectra), 1, figsize=(7.5, 1.6 * len(spectra) + 0.8), sharex=True, squeeze=False)
         for ax, (j, s) in zip(axes[:, 0], sorted(spectra.items())):
             ax.plot(s.orders, s.amplitude_deg, lw=0.8)

@@ -33,7 +33,7 @@ from .robust_scoring import LINEAR, RobustScoring, trimmed_mean
 MIN_GAIN = 0.10  # held-out mean error must drop by 10% against geometry alone
 MIN_MARGIN = 0.08  # ... and the best other cause must stay 8% above the named one
 MULTI_GAIN = 0.10  # a several-joint term must beat its cause's best single joint by this much
-NEIGHBOUR_RAD = np.deg2rad(2.0)  # configurations this close share a fold
+NEIGHBOUR_RAD = crossval.NEIGHBOUR_RAD  # configurations this close share a fold
 NESTED_RTOL = 0.02  # one term's columns lie in another's span to this relative residual (2%)
 
 

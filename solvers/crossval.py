@@ -21,6 +21,9 @@ from scipy.spatial import cKDTree
 from .lsq import RFactor, chunks, stacked_r
 
 
+NEIGHBOUR_RAD = np.deg2rad(2.0)  # configurations this close carry nearly the same information: one fold
+
+
 def groups(q: np.ndarray, radius_rad: float = 0.0) -> np.ndarray:
     """Group id per row: rows within radius_rad (max over joints) of each other are linked.
 

@@ -151,3 +151,28 @@ def test_cli_states_orders_coverage_and_the_rigid_fallback_and_plots_them(tmp_pa
     assert (tmp_path / "report" / "periodogram.png").stat().st_size > 1000
     text = (tmp_path / "report" / "report.md").read_text()  # the text finding, as printed without --json
     assert "fall back to the rigid model" in text and "cyclic orders scanned" in text
+
+
+@pytest.mark.slow
+def test_periodic_error_that_is_no_few_sinusoids_is_fitted_as_a_periodic_spline():
+    # a narrow periodic bump on one joint: thirty orders at once, beyond a few sinusoids
+    model = load_robot("ur10e")
+    width, centre = 8.0, 0.7
+    bump = tuple((n, float(np.exp(-(n / width) ** 2)), float(np.pi / 2 - n * centre)) for n in range(1, 31))
+    case = make_case(model, [HiddenEffect("cyclic_joint_error", 2, harmonics=bump)], [5.0], n=300, seed=1)
+    finding = analyze(model, case.campaign.obs, case.campaign.ctx)
+    assert finding.cause == "cyclic_joint_error" and finding.where["joint"] == 3, finding.where
+    assert "spline_knots" in finding.where
+    q = case.campaign.obs.q
+    truth = Term("cyclic_joint_error", {"joint": 3}, tuple(f"p{i}" for i in range(60)),
+                 joint_basis=JointBasis.single(harmonics(q[:, 2], range(1, 31)), 2, model.n_joints))
+    truth_mm = heldout_with_terms(model, case.campaign.obs, [truth]).mean()
+    assert finding.extended.heldout_mean_mm <= 1.2 * truth_mm, (finding.extended.heldout_mean_mm, truth_mm)
+    # the fitted function follows the hidden one (up to the joint offset the geometry holds)
+    (spline,) = fitted_errors(finding.extended.terms[0], finding.extended.theta, q)
+    inside = np.concatenate([np.linspace(a, b, 200) for a, b in spline.coverage_rad])
+    hidden = case.effects[0].size * sum(w * np.sin(n * inside + ph) for n, w, ph in bump)
+    fitted = spline.delta_rad(inside)
+    miss = (fitted - fitted.mean()) - (hidden - hidden.mean())
+    assert np.sqrt(np.mean(miss**2)) < 0.15 * np.ptp(hidden)
+    assert finding.magnitude["peak_to_peak_deg"] == pytest.approx(np.rad2deg(np.ptp(hidden)), rel=0.25)

@@ -27,7 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..crossval import NEIGHBOUR_RAD, fold_ids
 from ..measurement_model import jacobian_chunks
+from . import periodic_spline
 from .base import Cause, JointBasis, Term
 
 MIN_RANGE_RAD = np.deg2rad(60.0)  # a joint that barely moves shows no period
@@ -206,6 +208,7 @@ class CyclicJointError(Cause):
             projected[rows] = np.einsum("nij,ni->nj", jq, residual)
             weight[rows] = np.einsum("nij,nij->nj", jq, jq)
         out, spectra = [], {}
+        folds = fold_ids(obs.q, 5, 0, NEIGHBOUR_RAD)
         for j in joints:
             qj = obs.q[:, j]
             orders, amplitude, power = periodogram(qj, projected[:, j], weight[:, j], bounds[j])
@@ -215,6 +218,12 @@ class CyclicJointError(Cause):
                 basis = JointBasis.single(harmonics(qj, [n]), j, nj)
                 out.append(Term(self.id, {"joint": j + 1, "order": int(n)}, (f"s{j + 1}_{n}", f"c{j + 1}_{n}"),
                                 joint_basis=basis, units=("rad", "rad"), extra={"part": True}))
+            knots = periodic_spline.choose_knots(qj, projected[:, j], weight[:, j], folds, 2 * bounds[j])
+            if knots is not None:  # the same cause as a smooth function of the angle, not a few sinusoids
+                out.append(Term(self.id, {"joint": j + 1, "spline_knots": knots},
+                                tuple(f"k{j + 1}_{i}" for i in range(knots)),
+                                joint_basis=JointBasis.single(periodic_spline.basis(qj, knots), j, nj),
+                                units=("rad",) * knots, extra={"spline": True}))
         for t in out:
             t.extra["spectra"] = spectra
         return out
@@ -227,9 +236,11 @@ class CyclicJointError(Cause):
         if not terms:
             return []
         q, nj, spectra = scorer.obs.q, scorer.model.n_joints, terms[0].extra["spectra"]
+        splines = [t for t in terms if t.extra.get("spline")]
         by_joint: dict[int, list[Term]] = {}
         for t in terms:  # in the order pursuit picked them within each joint
-            by_joint.setdefault(t.where["joint"], []).append(t)
+            if not t.extra.get("spline"):
+                by_joint.setdefault(t.where["joint"], []).append(t)
         baseline_mm = scorer.mean_mm(scorer.heldout_errors_many([()]))[0]
         singles = sorted(_orders_per_joint(by_joint, {}, scorer).values(), key=lambda pair: pair[0])
         chosen = [parts for _, parts in singles]
@@ -246,12 +257,17 @@ class CyclicJointError(Cause):
                     joints[p.where["joint"]] += (p,)
                 again = _orders_per_joint({j: by_joint[j] for j in joints}, joints, scorer)
                 chosen.append(sum((again[j][1] for j in joints), ()))
-        return [_term(parts, q, nj, spectra) for parts in _pruned(chosen, scorer)]
+        return [_term(parts, q, nj, spectra) for parts in _pruned(chosen, scorer)] + splines
 
     def details(self, term, theta, q):
         return {"errors": [e.as_dict() for e in fitted_errors(term, theta, q)], "outside_coverage": OUTSIDE_COVERAGE}
 
     def magnitude(self, term, theta, joint_delta):
+        if term.extra.get("spline"):
+            moved = np.rad2deg(joint_delta[:, term.where["joint"] - 1])
+            moved = moved - moved.mean()  # a constant part is the joint's offset, which the geometry has
+            return {"effective_dof": len(theta), "rms_deg": float(np.sqrt(np.mean(moved**2))),
+                    "peak_to_peak_deg": float(np.ptp(moved))}
         if "harmonics" not in term.extra:
             a, b = theta
             return {"amplitude_deg": float(np.rad2deg(np.hypot(a, b))), "order": term.where["order"],
@@ -274,9 +290,14 @@ def order_search(spectra: dict) -> dict:
                                            for j, s in sorted(spectra.items())}}
 
 
-def fitted_errors(term: Term, theta: np.ndarray, q: np.ndarray) -> list[PeriodicJointError]:
-    """The fitted term as one periodic error per joint, each with the angles the data cover (split
-    where the poses left the joint out over more than COVERAGE_GAP_RAD)."""
+def fitted_errors(term: Term, theta: np.ndarray, q: np.ndarray) -> list:
+    """The fitted term as one periodic error per joint (``PeriodicJointError`` or
+    ``periodic_spline.PeriodicSpline``), each with the angles the data cover (split where the poses
+    left the joint out over more than COVERAGE_GAP_RAD)."""
+    if term.extra.get("spline"):
+        j = term.where["joint"]
+        return [periodic_spline.PeriodicSpline(j, tuple(float(c) for c in theta),
+                                               tuple(coverage_intervals_rad(q[:, j - 1], COVERAGE_GAP_RAD)))]
     pairs = term.extra.get("harmonics") or ((term.where["joint"], term.where["order"]),)
     coef = np.reshape(theta, (-1, 2))
     out = []
