@@ -25,6 +25,7 @@ from . import se3
 from .chain import forward, point_jacobians
 from .effects import CAUSES, Context, Term
 from .effects.cyclic_joint_error import PeriodicJointError, fitted_errors
+from .effects.periodic_spline import PeriodicSpline
 from .extended_model import combine_bases, param_columns
 from .measurement_model import Layout, Observations
 from .robot_model import KinematicModel, with_hayati_beta
@@ -245,14 +246,19 @@ def from_fit(model: KinematicModel, target_names, x: np.ndarray, terms=(), theta
                            tuple(target_names), layout.offsets(x).astype(float), tuple(effects))
 
 
-def periodic_errors(effect: Effect) -> list[PeriodicJointError]:
+def periodic_errors(effect: Effect) -> list:
     """A cyclic_joint_error entry as one PeriodicJointError per joint: orders and coefficients from the
-    parameter names s<j>_<n>, c<j>_<n>; covered angles from extra.coverage_rad (else a whole turn)."""
+    parameter names s<j>_<n>, c<j>_<n>; covered angles from extra.coverage_rad (else a whole turn).
+    A periodic spline (names k<j>_<i>, one per knot) is one PeriodicSpline."""
+    coverage = effect.extra.get("coverage_rad") or {}
+    if effect.names and effect.names[0].startswith("k"):
+        joint = int(effect.names[0][1:].split("_")[0])
+        cover = tuple(tuple(map(float, c)) for c in coverage.get(str(joint), [(-np.inf, np.inf)]))
+        return [PeriodicSpline(joint, tuple(float(v) for v in effect.theta), cover)]
     coef: dict[int, dict[int, list[float]]] = {}
     for name, value in zip(effect.names, effect.theta):
         joint, order = (int(v) for v in name[1:].split("_"))
         coef.setdefault(joint, {}).setdefault(order, [0.0, 0.0])["sc".index(name[0])] = float(value)
-    coverage = effect.extra.get("coverage_rad") or {}
     out = []
     for joint, by_order in sorted(coef.items()):
         orders = tuple(sorted(by_order))

@@ -176,3 +176,11 @@ def test_periodic_error_that_is_no_few_sinusoids_is_fitted_as_a_periodic_spline(
     miss = (fitted - fitted.mean()) - (hidden - hidden.mean())
     assert np.sqrt(np.mean(miss**2)) < 0.15 * np.ptp(hidden)
     assert finding.magnitude["peak_to_peak_deg"] == pytest.approx(np.rad2deg(np.ptp(hidden)), rel=0.25)
+    # a calibrated model made of the fit applies the same function, rigid outside the coverage
+    from cellcal.solvers.calibrated_model import from_fit
+
+    calibrated = from_fit(model, case.campaign.obs.target_names, finding.extended.x, finding.extended.terms,
+                          finding.extended.theta, q)
+    (kept,) = calibrated.periodic
+    outside = np.array([spline.coverage_rad[0][0] - 0.05, spline.coverage_rad[-1][1] + 0.05])
+    assert np.allclose(kept.delta_rad(inside), fitted) and np.all(kept.delta_rad(outside) == 0.0)
