@@ -30,8 +30,8 @@ from .chain import pose_jacobians
 from .robot_model import KinematicModel
 
 OK, UNREACHABLE, JOINT_LIMITS, SINGULAR = "ok", "unreachable", "joint_limits", "near_singularity"
-ROT_WEIGHT_MM = 1000.0
-FIXED_POINT_STEPS, FIXED_POINT_TOL_RAD = 8, 1e-11  # 1e-11 rad: 1e-8 mm at 1 m  # orientation error weighed as mm per rad (a 1 m lever)
+ROT_WEIGHT_MM = 1000.0  # orientation error weighed as mm per rad (a 1 m lever)
+FIXED_POINT_STEPS, FIXED_POINT_TOL_RAD = 8, 1e-10  # 1e-10 rad: 1e-7 mm at 1 m, the solve's own tolerance
 
 
 @dataclass(frozen=True)
