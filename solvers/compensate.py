@@ -15,9 +15,10 @@ orientation) in the robot base frame:
 Every step runs on all targets at once: (N, 6, nj) Jacobians and batched 6 x 6 solves.
 The Jacobian of the calibrated model is the rigid one at the deflected joints (the
 effects' own dependence on q is a few 1e-4 of it), so Newton converges linearly at
-that rate. Rows that do not converge (out of reach), leave the joint limits, or need a
-correction larger than ``max_correction_rad`` (near a singularity a small Cartesian
-error needs a large joint move) get a status instead of a solution; nothing is clipped.
+that rate. Rows that do not converge (out of reach; or stalled within STALLED_MM of the
+point: near a singularity), leave the joint limits, or need a correction larger than
+``max_correction_rad`` (near a singularity a small Cartesian error needs a large joint
+move) get a status instead of a solution; nothing is clipped.
 """
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ from .robot_model import KinematicModel
 
 OK, UNREACHABLE, JOINT_LIMITS, SINGULAR = "ok", "unreachable", "joint_limits", "near_singularity"
 ROT_WEIGHT_MM = 1000.0  # orientation error weighed as mm per rad (a 1 m lever)
+STALLED_MM = 1.0  # a solve that ends closer than this without converging stalled at a singularity
 FIXED_POINT_STEPS, FIXED_POINT_TOL_RAD = 8, 1e-10  # 1e-10 rad: 1e-7 mm at 1 m, the solve's own tolerance
 
 
@@ -127,7 +129,15 @@ def compensate(nominal: KinematicModel, calibrated, target_mm: np.ndarray, targe
         outside = ((q < limits[:, 0]) | (q > limits[:, 1]) | (q_nom < limits[:, 0]) | (q_nom > limits[:, 1])).any(1)
         status[outside] = JOINT_LIMITS
     status[ok_nom & ok & (correction > max_correction_rad)] = SINGULAR
-    status[~(ok_nom & ok)] = UNREACHABLE
+    failed = np.flatnonzero(~(ok_nom & ok))
+    if len(failed):  # out of reach ends far off; near a singularity Newton stalls close to the point
+        p_end = nominal_frames(q_nom[failed], failed)[1]  # where the stage that failed ended
+        late = ok_nom[failed]
+        if late.any():
+            ctx = ctx_at(q[failed[late]], failed[late]) if ctx_at is not None else None
+            p_end[late] = calibrated.end_frames(q[failed[late]], offset, ctx)[1]
+        stalled = np.linalg.norm(p_end - target_mm[failed], axis=1) < STALLED_MM
+        status[failed] = np.where(stalled, SINGULAR, UNREACHABLE)
     return Compensation(q_nom, q, p_cmd, rot_cmd, correction, status.astype(str), it1 + it2)
 
 
