@@ -5,7 +5,10 @@ address, runs a 500 Hz control cycle with a joint-space model of a UR arm built 
 own robot model file, and executes the ur_rtde control script's register protocol
 natively (:mod:`.fake_ur_script`). A fake-only JSON port (30199) lets tests read the
 true arm state and inject faults: a protective or emergency stop, optionally once the
-arm has been moving for a given time, dropped connections, or a stalled controller.
+arm has been moving for a given time, dropped connections, a stalled controller, or an
+RTDE input it does not keep. RTDE inputs hold their last value after the writer leaves, as
+a controller's do; ``program_start`` plays a robot program's first lines, which apply the
+tool frame stored in the input registers (:mod:`cellcal.drivers.ur_rtde_registers`).
 
 Given a cell file (``--cell-file``), it obeys that cell's hidden truth with the in-process
 cell's physics (:mod:`.truth`): it reports with the arm's drawing, while the real tool on
