@@ -93,6 +93,13 @@ class JointBasis:
             col += m
         return cls(values, mix)
 
+    @classmethod
+    def of_angle(cls, angles: np.ndarray, values_of, joint: int, n_joints: int, m: int) -> "JointBasis":
+        """``single`` with values_of(angles) (N, m) computed only for the rows asked for: a basis of
+        many columns over a large data set is never held whole."""
+        return _AngleBasis(np.asarray(angles, dtype=float), values_of, cls.single(np.zeros((1, m)), joint,
+                                                                                  n_joints).mix)
+
     @property
     def shape(self) -> tuple[int, int, int]:
         return (len(self.values),) + self.mix.shape[1:]
@@ -124,6 +131,29 @@ class JointBasis:
         for r, j, m in zip(*np.nonzero(self.mix)):  # a handful: one per parameter and joint it moves
             out[:, :, m] += (self.mix[r, j, m] * self.values[:, r])[:, None] * jq[:, :, j]
         return out
+
+
+class _AngleBasis(JointBasis):
+    """A JointBasis whose values are a function of one joint's angles, evaluated on demand."""
+
+    def __init__(self, angles: np.ndarray, values_of, mix: np.ndarray):
+        self.angles, self.values_of, self.mix = angles, values_of, mix
+
+    @property
+    def values(self) -> np.ndarray:
+        return self.values_of(self.angles)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (len(self.angles),) + self.mix.shape[1:]
+
+    def __len__(self) -> int:
+        return len(self.angles)
+
+    def __getitem__(self, index):
+        if isinstance(index, tuple):
+            return self.dense()[index]
+        return JointBasis(self.values_of(self.angles[index]), self.mix)
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,7 @@ error carries its joint's covered angle intervals (``fitted_errors``);
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -64,6 +65,33 @@ def harmonics(qj: np.ndarray, orders) -> np.ndarray:
     return np.stack([np.sin(nq), np.cos(nq)], axis=2).reshape(len(qj), -1)
 
 
+def _sums(q: np.ndarray, projected: np.ndarray, weight: np.ndarray, max_order: int):
+    """S(n) = sum projected e^{i n q}, n = 0 .. K, and W(m) = sum weight e^{i m q}, m = 0 .. 2 K: every
+    least-squares quantity of sines and cosines of orders up to K follows from these (one pass)."""
+    z = np.exp(1j * np.asarray(q, dtype=float))
+    s, w = np.zeros(max_order + 1, complex), np.zeros(2 * max_order + 1, complex)
+    zn = np.ones_like(z)
+    for m in range(2 * max_order + 1):
+        w[m] = weight @ zn
+        if m <= max_order:
+            s[m] = projected @ zn
+        zn = zn * z
+    return s, w
+
+
+def _power(s: np.ndarray, w: np.ndarray, max_order: int):
+    """(orders 1 .. K, amplitude, power) of each order fitted alone, from ``_sums``."""
+    orders = np.arange(1, max_order + 1)
+    a, b = s[orders].imag, s[orders].real  # sum p sin(nq), sum p cos(nq)
+    ss = 0.5 * (w[0].real - w[2 * orders].real)  # sum w sin^2
+    cc = 0.5 * (w[0].real + w[2 * orders].real)
+    sc = 0.5 * w[2 * orders].imag
+    det = np.maximum(ss * cc - sc * sc, 1e-300)
+    coef_s = (cc * a - sc * b) / det
+    coef_c = (ss * b - sc * a) / det
+    return orders, np.hypot(coef_s, coef_c), coef_s * a + coef_c * b
+
+
 def periodogram(q: np.ndarray, projected: np.ndarray, weight: np.ndarray, max_order: int):
     """Least-squares fit of each order alone to one joint's projected residual.
 
@@ -71,40 +99,37 @@ def periodogram(q: np.ndarray, projected: np.ndarray, weight: np.ndarray, max_or
     |d p / d q_j|^2 (mm^2/rad^2). Returns (orders, amplitude (rad), power (mm^2): the drop
     of the residual sum of squares each order alone gives).
     """
-    orders = np.arange(1, max_order + 1)
-    z = np.exp(1j * q)
-    s = np.zeros(max_order, complex)  # sum projected * e^{i n q}
-    w = np.zeros(2 * max_order + 1, complex)  # sum weight * e^{i m q}, m = 0 .. 2 K
-    zn = np.ones_like(z)
-    for m in range(2 * max_order + 1):
-        w[m] = weight @ zn
-        if 1 <= m <= max_order:
-            s[m - 1] = projected @ zn
-        zn = zn * z
-    a, b = s.imag, s.real  # sum p sin(nq), sum p cos(nq)
-    ss = 0.5 * (w[0].real - w[2 * orders].real)  # sum w sin^2
-    cc = 0.5 * (w[0].real + w[2 * orders].real)
-    sc = 0.5 * w[2 * orders].imag
-    det = np.maximum(ss * cc - sc * sc, 1e-300)
-    coef_s = (cc * a - sc * b) / det
-    coef_c = (ss * b - sc * a) / det
-    power = coef_s * a + coef_c * b
-    return orders, np.hypot(coef_s, coef_c), power
+    return _power(*_sums(q, projected, weight, max_order), max_order)
 
 
 def pursuit(q: np.ndarray, projected: np.ndarray, weight: np.ndarray, max_order: int, count: int) -> list[int]:
     """The `count` strongest orders, one at a time: the periodogram's peak, then the peak of what is left
     once the orders picked so far are fitted together (neighbouring orders leak into each other's
-    periodogram; the residual of a joint fit does not)."""
+    periodogram; the residual of a joint fit does not). All from ``_sums``, with
+    sin(a q) e^{i n q} = (e^{i (n + a) q} - e^{i (n - a) q}) / 2i and the like: one pass over the rows."""
+    s, w = _sums(q, projected, weight, max_order)
+
+    def wm(m):  # W(-m) = conj W(m)
+        return np.where(m >= 0, w[np.abs(m)], np.conj(w[np.abs(m)]))
+
+    n = np.arange(max_order + 1)
     picked: list[int] = []
-    left = projected
+    left = s
     for _ in range(min(count, max_order)):
-        orders, _, power = periodogram(q, left, weight, max_order)
+        power = _power(left, w, max_order)[2]
         power[np.asarray(picked, dtype=int) - 1] = -np.inf
-        picked.append(int(orders[np.argmax(power)]))
-        basis = harmonics(q, picked)
-        coef = np.linalg.lstsq(basis.T @ (basis * weight[:, None]), basis.T @ projected, rcond=None)[0]
-        left = projected - weight * (basis @ coef)
+        picked.append(int(np.argmax(power)) + 1)
+        a = np.repeat(picked, 2)
+        sin = np.tile([True, False], len(picked))  # columns: sin, cos of each order picked
+        plus, minus = wm(a[:, None] + a[None, :]), wm(a[:, None] - a[None, :])
+        # sum w phi_k phi_l: sin sin, cos cos, and sin(a q) cos(b q) (a the row's order) and its transpose
+        mixed = 0.5 * (plus.imag + minus.imag)
+        gram = np.where(sin[:, None] == sin[None, :],
+                        0.5 * (minus.real + np.where(sin[:, None], -plus.real, plus.real)),
+                        np.where(sin[:, None], mixed, mixed.T))
+        coef = np.linalg.lstsq(gram, np.where(sin, s[a].imag, s[a].real), rcond=None)[0]
+        up, down = wm(n[:, None] + a[None, :]), wm(n[:, None] - a[None, :])  # sum w phi_k e^{i n q}
+        left = s - np.where(sin[None, :], (up - down) / 2j, (up + down) / 2) @ coef
     return picked
 
 
@@ -215,14 +240,15 @@ class CyclicJointError(Cause):
             spectra[j + 1] = JointSpectrum(j + 1, bounds[j], orders, np.rad2deg(amplitude), power,
                                            (float(np.rad2deg(qj.min())), float(np.rad2deg(qj.max()))))
             for n in pursuit(qj, projected[:, j], weight[:, j], bounds[j], ORDER_CANDIDATES):
-                basis = JointBasis.single(harmonics(qj, [n]), j, nj)
+                basis = JointBasis.of_angle(qj, partial(harmonics, orders=[n]), j, nj, 2)
                 out.append(Term(self.id, {"joint": j + 1, "order": int(n)}, (f"s{j + 1}_{n}", f"c{j + 1}_{n}"),
                                 joint_basis=basis, units=("rad", "rad"), extra={"part": True}))
             knots = periodic_spline.choose_knots(qj, projected[:, j], weight[:, j], folds, 2 * bounds[j])
             if knots is not None:  # the same cause as a smooth function of the angle, not a few sinusoids
                 out.append(Term(self.id, {"joint": j + 1, "spline_knots": knots},
                                 tuple(f"k{j + 1}_{i}" for i in range(knots)),
-                                joint_basis=JointBasis.single(periodic_spline.basis(qj, knots), j, nj),
+                                joint_basis=JointBasis.of_angle(qj, partial(periodic_spline.basis, knots=knots), j,
+                                                                nj, knots),
                                 units=("rad",) * knots, extra={"spline": True}))
         for t in out:
             t.extra["spectra"] = spectra
