@@ -11,6 +11,7 @@ from ..solvers.analyze import AnalyzeOptions, Finding, Scored, analyze
 from ..solvers.identify import LOSSES
 from ..solvers.effects import CAUSES, Context, approach_directions
 from ..solvers.effects.cyclic_joint_error import order_search
+from ..solvers.physical_sizes import describe
 from . import model_out
 from .cli_common import ReportError, UsageError, check_folds, print_progress
 
@@ -110,7 +111,7 @@ def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
         where = ", ".join(f"{k} {v}" for k, v in f.where.items())
         lines.append(f"finding: {f.cause} ({where})")
         for k, v in f.magnitude.items():
-            lines.append(f"  {k:32s} {v:.6g}")
+            lines += describe(v) if isinstance(v, list) else [f"  {k:32s} {v:.6g}"]
     lines.append(f"held-out mean error: geometry only {f.baseline.heldout_mean_mm:.4f} mm, "
                  f"with the effect {f.extended.heldout_mean_mm:.4f} mm (gain {f.gain_pct:.1f}%)"
                  + (f", each without its largest {100 * f.baseline.trim:.0f}% (robust loss)" if f.baseline.trim else ""))

@@ -23,7 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
-from . import crossval, identifiability, lsq
+from . import crossval, identifiability, lsq, physical_sizes
 from .effects import CAUSES, Context, Term
 from .identify import Identification, IdentifyOptions, identify_variants
 from .extended_model import ExtendedFit, embed, fit_extended, norm_scale, param_columns, stack_param_bases
@@ -449,7 +449,7 @@ def _details(terms: tuple[Term, ...], fit: ExtendedFit, obs) -> dict:
 
 def _physical_sizes(model, terms: tuple[Term, ...], fit: ExtendedFit) -> dict:
     """Each term's size in physical units (its cause's ``magnitude``), by cause."""
-    sizes, col = {}, 0
+    sizes, col, cov_root = {}, 0, None
     for t in terms:
         if t.model is not None:
             sizes[t.cause] = CAUSES[t.cause].magnitude(t, fit.x[model.n_params: t.model.n_params], None)
@@ -459,5 +459,10 @@ def _physical_sizes(model, terms: tuple[Term, ...], fit: ExtendedFit) -> dict:
         own[col: col + t.size] = theta
         joint_delta = fit.model.bases.joint.delta(own)
         sizes[t.cause] = CAUSES[t.cause].magnitude(t, theta, joint_delta)
+        places = CAUSES[t.cause].places(t)
+        if places is not None:  # each place's size where the data determine it, else its group's
+            cov_root = physical_sizes.theta_covariance_root(fit) if cov_root is None else cov_root
+            entries, flat = physical_sizes.place_sizes(places[0], theta, cov_root[col: col + t.size], places[1])
+            sizes[t.cause] = {**sizes[t.cause], **flat, "places": entries}
         col += t.size
     return sizes

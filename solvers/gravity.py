@@ -105,7 +105,8 @@ def tree_sites(model: KinematicModel, params: np.ndarray, q: np.ndarray):
     ``theta`` (parameter index of the rotation), ``bend`` (parameter index of the next
     rotation about x, the joint's bending axis, or -1), ``chain``, ``element``, ``axis``,
     ``bend_axis``, ``origin``, ``bend_origin`` (N, 3) and ``points``: the downstream link
-    points (N, 3) mm, each counted once however many chains carry it.
+    points (N, 3) mm, each counted once however many chains carry it, and ``point_keys``: what
+    identifies each point across joints (one link's mass loads every joint above it).
     """
     sites: dict[int, dict] = {}
     for name, chain in model.chains.items():
@@ -130,7 +131,7 @@ def tree_sites(model: KinematicModel, params: np.ndarray, q: np.ndarray):
             for pkey, pe, p in points:
                 if pe > e:
                     site["points"][pkey] = p
-    return [dict(s, points=list(s["points"].values())) for s in sites.values()]
+    return [dict(s, points=list(s["points"].values()), point_keys=list(s["points"])) for s in sites.values()]
 
 
 def point_mass_regressors(axis: np.ndarray, origin: np.ndarray, points, gravity) -> np.ndarray:

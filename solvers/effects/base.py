@@ -209,6 +209,13 @@ class Cause:
         angle with the angles it is known over), as plain numbers; None when the size says it all."""
         return None
 
+    def places(self, term: Term):
+        """Where a fitted term acts, for sizes the data can be asked about one place at a time:
+        ([(label, D (N, m))], {label: index of theta}) with the place's displacement D @ theta
+        (rad) over the poses, and the theta entries that are a place's physical constant
+        (``physical_sizes``); None for a cause without places of its own."""
+        return None
+
     def unscorable(self, model: KinematicModel, ctx: Context) -> str | None:
         """Why these data (or this robot) cannot score the cause at all, naming what is
         missing; None when it can be scored."""

@@ -4,7 +4,8 @@ Delta q_j = c_j * tau_j(q, payload). With every link mass in the robot file the
 torque is computed and c_j (rad/N m) is the one unknown; without masses tau_j is
 a combination of mass-moment regressors (``solvers.gravity``) and the lumped
 coefficients c_j * m_k, c_j * m_k * r_k are identified instead, so the analysis
-never needs CAD masses. The size reported is the deflection itself.
+never needs CAD masses. The size reported is the deflection itself, place by place
+only where the data determine it (``physical_sizes``).
 """
 from __future__ import annotations
 
@@ -107,23 +108,26 @@ class JointCompliance(Cause):
                             units=tuple(u for t in out for u in t.units), multi=True))
         return out
 
-    def magnitude(self, term, theta, joint_delta):
-        if term.param_basis:  # tree: the deflection of each frame rotation / bending axis
-            out = {}
-            for p, basis in term.param_basis.items():
-                d = np.rad2deg(basis @ theta)
-                if np.any(d):  # the varying part: a constant part is a geometric offset
-                    out[f"{term.extra['labels'][p]}_deflection_std_deg"] = float(np.std(d))
-            out["deflection_rms_deg"] = max(out.values()) if out else 0.0
-            return out
+    def places(self, term):
+        """Every deflecting place of the term: a tree's frame rotations and bending axes, a
+        serial arm's joints; with known masses each joint's compliance (rad/N m) is a theta entry."""
+        if term.param_basis:
+            return [(term.extra["labels"][p], basis) for p, basis in term.param_basis.items()], {}
         joints = [term.where["joint"]] if "joint" in term.where else term.where["joints"]
-        out = {}
-        for j in joints:
-            d = np.rad2deg(joint_delta[:, j - 1])
-            out[f"joint{j}_deflection_rms_deg"] = float(np.sqrt(np.mean(d**2)))
-            out[f"joint{j}_deflection_max_deg"] = float(np.abs(d).max())
+        basis = term.joint_basis
+        out = [(f"joint{j}", basis.values @ basis.mix[:, j - 1, :]) for j in joints]
+        compliance = {f"joint{j}": term.names.index(f"c{j}.compliance") for j in joints
+                      if f"c{j}.compliance" in term.names}
+        return out, compliance
+
+    def magnitude(self, term, theta, joint_delta):
+        if term.param_basis or term.multi:  # several places: no number per place here, the split
+            return {}  # may be arbitrary; ``places`` sizes each where the data determine it
+        j = term.where["joint"]
+        d = np.rad2deg(joint_delta[:, j - 1])
+        out = {f"joint{j}_deflection_rms_deg": float(np.sqrt(np.mean(d**2))),
+               f"joint{j}_deflection_max_deg": float(np.abs(d).max())}
         if term.units == ("rad/Nm",):
             out["compliance_rad_per_Nm"] = float(theta[0])
-        if len(joints) == 1:
-            out["deflection_rms_deg"] = out[f"joint{joints[0]}_deflection_rms_deg"]
+        out["deflection_rms_deg"] = out[f"joint{j}_deflection_rms_deg"]
         return out
