@@ -106,19 +106,21 @@ def tree_sites(model: KinematicModel, params: np.ndarray, q: np.ndarray):
     rotation about x, the joint's bending axis, or -1), ``chain``, ``element``, ``axis``,
     ``bend_axis``, ``origin``, ``bend_origin`` (N, 3) and ``points``: the downstream link
     points (N, 3) mm, each counted once however many chains carry it, and ``point_keys``: what
-    identifies each point across joints (one link's mass loads every joint above it).
+    identifies each point across joints (one link's mass loads every joint above it) and
+    ``point_rots`` (N, 3, 3): the link frame at each point (a centre of mass off the point
+    lies along its axes).
     """
     sites: dict[int, dict] = {}
     for name, chain in model.chains.items():
-        _, end, frames = forward(chain, params, q, keep_frames=True)
+        end_rot, end, frames = forward(chain, params, q, keep_frames=True)
         els = chain.elements
-        points = []  # (key, position) along this chain
+        points = []  # (key, element, (rotation, position)) along this chain
         for e, el in enumerate(els):
             if not (el.kind == "rz" and el.joints and el.param >= 0):
                 continue
             after = e + 2 if e + 1 < len(els) and els[e + 1].kind == "tz" else e + 1
-            points.append((id(el), e, frames[after][1]))
-        points.append((("end", name), len(els), end))
+            points.append((id(el), e, frames[after]))
+        points.append((("end", name), len(els), (end_rot, end)))
         for key, e, _ in points[:-1]:
             el = els[e]
             site = sites.setdefault(key, {"theta": el.param, "chain": name, "element": e,
@@ -131,7 +133,8 @@ def tree_sites(model: KinematicModel, params: np.ndarray, q: np.ndarray):
             for pkey, pe, p in points:
                 if pe > e:
                     site["points"][pkey] = p
-    return [dict(s, points=list(s["points"].values()), point_keys=list(s["points"])) for s in sites.values()]
+    return [dict(s, points=[p for _, p in s["points"].values()], point_rots=[r for r, _ in s["points"].values()],
+                 point_keys=list(s["points"])) for s in sites.values()]
 
 
 def point_mass_regressors(axis: np.ndarray, origin: np.ndarray, points, gravity) -> np.ndarray:

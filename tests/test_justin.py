@@ -48,14 +48,23 @@ def test_tree_model_reproduces_the_published_nominal_error(justin_csv):
 
 
 @pytest.mark.slow
-def test_analyze_names_compliance_and_beats_4mm_held_out(justin_csv, tmp_path, capsys):
+def test_analyze_names_compliance_with_believable_sizes_and_3p5mm_held_out(justin_csv, tmp_path, capsys):
     code = main(["analyze", "--robot", "config/robots/agile-justin.yaml" if Path("config/robots").exists()
                  else "agile-justin", "--data", str(justin_csv), "--json", "--report", str(tmp_path)])
     doc = json.loads(capsys.readouterr().out)
     assert code == 0
     assert doc["cause"] == "joint_compliance"
     assert doc["baseline"]["heldout_mean_mm"] < 10.6  # published geometric calibration: 10.6 mm
-    assert doc["extended"]["heldout_mean_mm"] <= 4.0
+    # the same 5-fold grouped protocol as the analysis bench: 3.50 mm held-out mean (published with
+    # CAD masses: 3.3 mm)
+    assert doc["extended"]["heldout_mean_mm"] == pytest.approx(3.50, abs=0.05)
+    # sizes a person can believe: deflections only where determined, the rest grouped or bounded
+    places = doc["magnitude"]["places"]
+    believed = [e for e in places if e["kind"] in ("determined", "group")]
+    assert len(believed) >= 5 and max(e["deflection_std_deg"] for e in believed) < 1.0
+    assert all(e["deflection_std_deg"] >= 3 * e["standard_error_deg"] for e in believed)
+    assert any(e["kind"].startswith("group") and len(e["places"]) >= 2 for e in places)
+    assert not any(k.startswith("left.joint5") for k in doc["magnitude"])  # 4.8 deg once: not determined
     assert (tmp_path / "residual_vs_regressor.png").stat().st_size > 10_000
 
 
