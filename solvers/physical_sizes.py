@@ -171,7 +171,7 @@ def _flat(entries) -> dict:
     """Determined entries as name -> number (groups named by their members joined with '+')."""
     out = {}
     kept = [e["deflection_std_deg"] for e in entries if e["kind"] in ("determined", "group")]
-    if kept:
+    if len(entries) > 1 and kept:
         out["largest_determined_deflection_std_deg"] = max(kept)
     for e in entries:
         if e["kind"] not in ("determined", "group"):
