@@ -126,8 +126,8 @@ def _stiffness(c: float, c_err: float) -> dict:
     out = {"compliance_rad_per_Nm": float(c), "compliance_standard_error_rad_per_Nm": c_err}
     if c > 0 and c >= DETERMINED_SIGMAS * c_err:
         out.update(stiffness_Nm_per_rad=1.0 / c, stiffness_standard_error_Nm_per_rad=c_err / c**2)
-    else:
-        out["stiffness_above_Nm_per_rad"] = 1.0 / (abs(c) + DETERMINED_SIGMAS * c_err) if c_err > 0 else np.inf
+    elif c_err > 0:  # (a compliance the fit held at 0 has no error and says nothing)
+        out["stiffness_above_Nm_per_rad"] = 1.0 / (abs(c) + DETERMINED_SIGMAS * c_err)
     return out
 
 
