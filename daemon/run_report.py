@@ -77,6 +77,9 @@ def write_run_report(folder: str | Path, run_id: int, result: Result) -> Path:
         drawing = (f"<h2>Measurements against the fitted geometry</h2><figure><img src='drawing.png' "
                    f"alt='{caption}'><figcaption>{caption}</figcaption></figure>")
     before = result.extra.get("tool_frame_before")
+    frame = result.frame or {}
+    base_row = _frame_row(f"{frame['to']} in the {frame['from']} frame, found", frame["pose_m_rad"]) \
+        if {"to", "from", "pose_m_rad"} <= set(frame) else ""
     gates = "".join(f"<tr><td>{'pass' if g.passed else '<b>FAIL</b>'}</td><td>{html.escape(g.name)}</td>"
                     f"<td>{html.escape(g.why)}</td></tr>" for g in result.gates)
     params = "".join(f"<tr><td>{html.escape(p.name)}</td><td>{p.value:.5g}</td>"
@@ -91,7 +94,7 @@ def write_run_report(folder: str | Path, run_id: int, result: Result) -> Path:
         f"<h1>Run {run_id}: {html.escape(result.routine)}</h1><p><b>{html.escape(verdict)}</b></p>" + drawing +
         "<h2>Tool frame</h2><table border=1 cellpadding=4><tr><th></th><th>x mm</th><th>y mm</th><th>z mm</th>"
         "<th>rx deg</th><th>ry deg</th><th>rz deg</th></tr>"
-        + _frame_row("before", before) + _frame_row("found", result.tool_frame) + "</table>"
+        + _frame_row("before", before) + _frame_row("found", result.tool_frame) + base_row + "</table>"
         f"<h2>Gates</h2><table border=1 cellpadding=4>{gates}</table>"
         f"<h2>Parameters</h2><table border=1 cellpadding=4>{params}</table>"
         "<h2>Residuals</h2><img src='residuals.png' alt='residual of every measurement'>"

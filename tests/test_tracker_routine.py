@@ -420,7 +420,8 @@ def test_the_campaign_through_the_network_fakes_reaches_the_same_floor(tmp_path,
 def test_the_run_report_draws_the_error_of_every_pose(campaign, tmp_path):
     doc = campaign["doc"]
     result = runner.solve_file("tracker", campaign["cell"], doc["dataset"])
-    assert_report_draws(result, tmp_path, "error per pose", "validation poses took no part in the fit")
+    assert_report_draws(result, tmp_path, "error per pose", "validation poses took no part in the fit",
+                        "robot base in the instrument frame, found")
     after = layer(result, "error per pose", "calibration, identified")[:, 1]
     held_out = layer(result, "error per pose", "validation, identified")[:, 1]
     assert after.mean() == pytest.approx(doc["calibration_mean_mm"], rel=1e-9)
