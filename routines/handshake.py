@@ -369,11 +369,12 @@ class Handshake(Routine):
             frames[name] = (rotation, position * 1e3)
         tips = [np.asarray(meta.get(f"planned_tip_{n}_m", cell.robots[n].tool.tcp_m), dtype=float) * 1e3
                 for n in ("a", "b")]
+        sigma = np.sqrt(2.0) * axis_sigma_mm(options.repeatability_mm)  # both arms' repeatability, per axis
         try:
-            fit = hs.fit_handshake(*frames["a"], *frames["b"], *tips, min_out_of_plane_mm=options.min_out_of_plane_mm)
+            fit = hs.fit_handshake(*frames["a"], *frames["b"], *tips, min_out_of_plane_mm=options.min_out_of_plane_mm,
+                                   sigma_prior_mm=sigma)
         except hs.HandshakeRefused as exc:
             raise RoutineError(f"{dataset.path}: {exc}: not solved") from None
-        sigma = np.sqrt(2.0) * axis_sigma_mm(options.repeatability_mm)
         design = hs.design(*frames["a"], *frames["b"], *tips, sigma)
         return _result(cls.name, dataset, cell, options, fit, design)
 
@@ -422,6 +423,10 @@ def _result(name, dataset, cell: Cell, options: HandshakeOptions, fit: hs.Handsh
              f"{std_deg:.5f} deg); for the cell file: " + " ".join(frame["cell_file"].split()),
              f"{n} meeting points, conditioning {fit.points.condition:.3g} (spread {np.round(fit.points.spread_mm, 1).tolist()} "
              f"mm RMS along their principal axes); the fit's condition {fit.condition:.3g}",
+             (f"standard deviations from the residual's own noise, {fit.sigma0_mm:.4f} mm per axis" if
+              fit.sigma_used_mm == fit.sigma0_mm else f"only {3 * n - hs.N_UNKNOWNS} spare equations: standard "
+              f"deviations from the stated repeatability ({fit.sigma_used_mm:.4f} mm per axis for both arms), not "
+              "from the residual"),
              f"one fit of the frame and both needle tips; the closed-form start with the drawn tips was "
              f"{np.linalg.norm(fit.start_translation_mm - fit.translation_mm):.3f} mm and "
              f"{np.rad2deg(np.linalg.norm(start_turn)):.4f} deg from it"]

@@ -40,8 +40,8 @@ from . import fake_ur_rtde as rtde
 from .arm_motion import ArmKinematics, JointMove, MovingArm, MotionFault, StopMotion
 from .scene import SwitchingSensors, scene_from_spec
 from .sim_world import PIVOT_SLIDE_SPEED_RAD_S, pivot_socket
-from .truth import (CellTruth, beam_blocked, beam_edges, pivot_rest_q, real_tool_body, real_tool_tip, repeat_offset_m,
-                    touching, truth_of_cell)
+from .truth import (CellTruth, beam_blocked, beam_edges, meeting_rest_q, meeting_touch, pivot_rest_q, real_tool_body,
+                    real_tool_tip, repeat_offset_m, touching, truth_of_cell)
 from .fake_ur_script import ControlScript
 from .fake_ur_sessions import ControlSession, DashboardSession, RtdeSession, ScriptSession
 
@@ -69,16 +69,20 @@ class FakeUrController:
     def __init__(self, host: str = "127.0.0.1", *, robot: str | None = None, q0=HOME_Q, cell: dict | None = None,
                  cell_file: str | None = None, version=(5, 15, 0, 11908), serial: str = "20235500001",
                  control_port: int = CONTROL_PORT, frequency_hz: float = 500.0, seed: int = 0,
-                 verbose: bool = False):
+                 verbose: bool = False, arm: str = "a"):
         self.host, self.version, self.serial = host, tuple(version), serial
         self.control_port, self.frequency_hz, self.verbose = control_port, frequency_hz, verbose
         self.lock = threading.RLock()
         self.cell = scene_from_spec(cell)
         cell_spec = read_cell(cell_file) if cell_file is not None else None
-        robot = robot or (cell_spec.robot if cell_spec is not None else "ur10e")
+        robot = robot or (cell_spec.robots[arm].robot if cell_spec is not None else "ur10e")
         model = load_robot(robot)
-        self.truth = truth_of_cell(cell_spec, model) if cell_spec is not None else \
+        self.truth = truth_of_cell(cell_spec, load_robot(cell_spec.robot)) if cell_spec is not None else \
             CellTruth(np.asarray(model.nominal, dtype=float), None)
+        # robot b of a two-robot cell: its own truth, and where its base really is, to see robot a's tip
+        self._partner_base, self._partner = (self.truth.second.base, None) if arm == "b" else (None, None)
+        if arm == "b":
+            self.truth = self.truth.for_second()
         self.physics = ArmKinematics(model, self.truth.arm_params)  # the arm as built
         self.rng = np.random.default_rng(seed)  # repeatability and sensor jitter
         self.contacts = [c for c in (self.truth.stylus, *self.truth.contacts) if c is not None]
@@ -134,6 +138,9 @@ class FakeUrController:
             return True
         body = self._body_now()
         kind = None if self.pivot is None else self.pivot.touch(body[0], self._tool_radius_m)
+        if not kind and self._partner is not None:  # robot a's needle, from robot b
+            kind = meeting_touch(real_tool_tip(self.truth, self.physics, self.arm.q, body), *self._partner)
+            kind = kind and f"meeting {kind}"
         if kind:
             if not self.arm.contact_history[-1]:  # the contact begins: what was touched, in which motion
                 self._pivot_touch = (kind, self.arm.motion)
@@ -144,11 +151,14 @@ class FakeUrController:
         """After the contact `search` (a motion): one that met the pivot's socket slides,
         orientation held, until the tip rests in its seat (the in-process cell's compliance), a
         new rest with its own repeatability draw; None otherwise."""
-        if self._pivot_touch != ("seat", search):
+        if self._pivot_touch not in (("seat", search), ("meeting seat", search)):
             return None
-        self._pivot_touch = None
+        kind, self._pivot_touch = self._pivot_touch[0], None
         offset = repeat_offset_m(self.truth, self.rng)
-        q_rest = pivot_rest_q(self.truth, self.physics, self.arm.q, self.pivot.seat_m, offset)
+        if kind == "seat":
+            q_rest = pivot_rest_q(self.truth, self.physics, self.arm.q, self.pivot.seat_m, offset)
+        else:  # robot a's centring cup guides the tip onto robot a's tip
+            q_rest = meeting_rest_q(self.truth, self.physics, self.arm.q, self._partner[0], offset)
         self._motion = slide = JointMove(self.arm.q, q_rest, PIVOT_SLIDE_SPEED_RAD_S, self._joint_accel)
         self._repeat_offset_m = offset
         return slide
@@ -347,6 +357,11 @@ class FakeUrController:
                 return {"ok": True, "inputs": {k: v for k, v in self.inputs.items() if "register" in k}}
             if cmd == "program_start":
                 return self.program_start(int(request.get("register", FIRST_REGISTER)))
+            if cmd == "partner" and self._partner_base is not None:  # robot a's real tip now (its base frame)
+                rotation, origin = self._partner_base[:3, :3], self._partner_base[:3, 3]
+                self._partner = (rotation.T @ (np.asarray(request["tip_m"], float) - origin),
+                                 rotation.T @ np.asarray(request["axis"], float))
+                return {"ok": True}
             if cmd == "add_model":
                 self.cell.add(request["model"])
                 return {"ok": True}

@@ -22,6 +22,11 @@ in the Modbus trigger ring. The IO module's clock is therefore the controller's,
 edges from either source line up with the robot's samples. The tracker measures the
 real tool tip (a target at the tip), in the robot base frame.
 
+A cell of two robots gets a second fake controller for robot b, on its own loopback
+address (the UR ports are fixed), obeying robot b's part of the same truth. Robot a's real
+needle tip is relayed to it every :data:`PARTNER_RELAY_S`, so robot b's contact search
+meets robot a's tip as it does in process.
+
 A cell file that does not describe such a cell is refused with a CellFileError naming
 the section; a fake that cannot start (a port in use) raises SimCellError.
 """
@@ -45,6 +50,7 @@ from .tracker_server import TrackerServer
 
 UR_PORTS = (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT)
 EDGE_WAIT_S = 0.2  # how long one request for new edges waits (the wiring's shutdown time)
+PARTNER_RELAY_S = 0.02  # how often robot a's real tip is passed to robot b's controller
 
 
 class SimCellError(RuntimeError):
@@ -62,6 +68,7 @@ class NetAddresses:
     panel_map: PanelMap = PanelMap()
     unit_id: int = 1
     tracker_targets: tuple = ("smr1",)
+    other_ur_hosts: tuple = ()  # (robot name, host) of the cell's robots besides a
 
     @classmethod
     def of(cls, cell: Cell) -> "NetAddresses":
@@ -99,10 +106,23 @@ class NetAddresses:
             if spec.name != "socket":
                 fail("tracker", f"sim-cell serves a tracker socket, not driver {spec.name!r}")
             tracker = (spec.options.get("host", "127.0.0.1"), spec.options.get("port", 5025))
-        return cls(robot.options["host"], modbus, tracker, base, panel_map, unit, targets)
+        others = []
+        for name, spec in cell.robots.items():
+            if name == "a":
+                continue
+            where = f"robots.{name}.driver"
+            if spec.driver.name != "ur_rtde" or not isinstance(spec.driver.options.get("host"), str):
+                raise CellFileError("sim-cell serves a UR controller per robot: driver ur_rtde with a host",
+                                    source=cell.path, section=where)
+            if spec.driver.options["host"] in (robot.options["host"], *(h for _, h in others)):
+                raise CellFileError(f"host {spec.driver.options['host']}: each robot's controller needs its own "
+                                    "address (the UR ports are fixed)", source=cell.path, section=where)
+            others.append((name, spec.driver.options["host"]))
+        return cls(robot.options["host"], modbus, tracker, base, panel_map, unit, targets, tuple(others))
 
     def listening_line(self) -> str:
         parts = [f"ur {self.ur_host} ({', '.join(map(str, UR_PORTS))})"]
+        parts += [f"robot {name}: ur {host}" for name, host in self.other_ur_hosts]
         if self.modbus:
             parts.append(f"modbus {self.modbus[0]}:{self.modbus[1]}")
         if self.tracker:
@@ -137,11 +157,15 @@ class SimCell:
         self._tracker_client: ControlClient | None = None
         self._tracker_lock = threading.Lock()
         self._stopping = threading.Event()
+        self.other_urs: dict[str, FakeUrProcess] = {}
+        self._relay: threading.Thread | None = None
+        self._relay_clients: list[ControlClient] = []
 
     def start(self) -> "SimCell":
         a = self.addresses
-        for port in (*UR_PORTS, CONTROL_PORT):
-            check_free(a.ur_host, port)
+        for host in (a.ur_host, *(h for _, h in a.other_ur_hosts)):
+            for port in (*UR_PORTS, CONTROL_PORT):
+                check_free(host, port)
         for address in (a.modbus, a.tracker):
             if address is not None:
                 check_free(*address)
@@ -152,6 +176,7 @@ class SimCell:
                 self.fake_ur.start()
             except RuntimeError as exc:
                 raise SimCellError(str(exc)) from None
+            self._start_other_robots()
             if a.modbus is not None:
                 self.modbus = ModbusCellServer(*a.modbus, unit_id=a.unit_id, panel_map=a.panel_map,
                                                trigger_base_register=a.trigger_base_register).start()
@@ -167,6 +192,35 @@ class SimCell:
             self.stop()
             raise
         return self
+
+    def _start_other_robots(self) -> None:
+        """A fake controller for each robot besides a, and the relay of robot a's tip to them."""
+        for name, host in self.addresses.other_ur_hosts:
+            spec = self.cell.robots[name]
+            fake = FakeUrProcess(host, robot=spec.robot, q0=spec.home_q_rad, cell_file=self.cell.path, arm=name)
+            self.other_urs[name] = fake
+            try:
+                fake.start()
+            except RuntimeError as exc:
+                raise SimCellError(str(exc)) from None
+        if self.other_urs:
+            self._relay_clients = [self.fake_ur.client(), *(f.client() for f in self.other_urs.values())]
+            self._relay = threading.Thread(target=self._relay_tip, name="sim-cell needle relay", daemon=True)
+            self._relay.start()
+
+    def _relay_tip(self) -> None:
+        """Pass robot a's real needle tip and axis (its base frame) to the other controllers."""
+        source, *targets = self._relay_clients
+        try:
+            while not self._stopping.wait(PARTNER_RELAY_S):
+                tool = source.request(cmd="tool")
+                front, back = (np.asarray(p, dtype=float) for p in tool["tool_body_m"])
+                axis = (front - back) / np.linalg.norm(front - back)
+                for target in targets:
+                    target.request(cmd="partner", tip_m=tool["tool_tip_m"], axis=axis.tolist())
+        except (OSError, RuntimeError, ValueError):
+            if not self._stopping.is_set():
+                print("cellcal sim-cell: the needle relay lost a fake UR controller", file=sys.stderr)
 
     def _wire_edges(self, client: ControlClient, modbus: ModbusCellServer) -> None:
         """Record every switch of the sensors in the IO module's trigger ring at its exact time."""
@@ -207,6 +261,17 @@ class SimCell:
         if self._wiring_client is not None:
             self._wiring_client.close()
             self._wiring_client = None
+        if self._relay is not None:
+            for client in self._relay_clients:
+                client.interrupt()
+            self._relay.join(PARTNER_RELAY_S + 5.0)
+            self._relay = None
+        for client in self._relay_clients:
+            client.close()
+        self._relay_clients = []
+        for fake in self.other_urs.values():
+            fake.stop()
+        self.other_urs = {}
         if self.modbus is not None:
             self.modbus.stop()
             self.modbus = None

@@ -44,8 +44,8 @@ from ..drivers.interfaces import DeviceError, RobotSample, RobotState, TriggerEv
 from ..solvers.robot_model import KinematicModel
 from .arm_motion import ArmKinematics, JointMove, MovingArm, MotionFault
 from .scene import LightBeam
-from .truth import (CellTruth, beam_blocked, beam_edges, meeting_rest_q, pivot_rest_q, real_tool_body, real_tool_tip,
-                    repeat_offset_m, touching, truth_of_cell)
+from .truth import (CellTruth, beam_blocked, beam_edges, meeting_rest_q, meeting_touch, pivot_rest_q, real_tool_body,
+                    real_tool_tip, repeat_offset_m, tool_axis_m, touching, truth_of_cell)
 
 HOME_Q = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
 SAMPLE_BUFFER_S = 120.0
@@ -53,8 +53,6 @@ PIVOT_CONE_DEG = 90.0  # included angle of the pivot socket (a countersink)
 PIVOT_RIM_RADIUS_M = 0.004  # its opening: a rounding whose centre is over it slides to the seat
 PIVOT_FACE_RADIUS_M = 0.020  # the fixture's flat top around the socket
 PIVOT_SLIDE_SPEED_RAD_S = 0.05  # how fast the compliant arm follows the socket to rest
-CUP_RIM_RADIUS_M = 0.008  # robot a's centring cup: a tip whose axis line passes within this is guided in
-CUP_FACE_RADIUS_M = 0.015  # ... and one that lands within this, beside it, stays there
 
 
 @dataclass(frozen=True)
@@ -157,13 +155,7 @@ class SimWorld:
         cup's face; None when not there or with no other robot."""
         if self.partner is None or self.truth.tool is None:
             return None
-        tip, axis = self.partner()
-        d = self.tool_tip_m() - tip
-        depth = float(d @ axis)
-        lateral = float(np.linalg.norm(d - depth * axis))
-        if depth > 0.0 or lateral > CUP_FACE_RADIUS_M:
-            return None
-        return "seat" if lateral <= CUP_RIM_RADIUS_M else "face"
+        return meeting_touch(self.tool_tip_m(), *self.partner())
 
     def settle_on_partner(self, device: str = "sim robot") -> None:
         """The end of a compliant search that met the other robot's cup: the real tip
@@ -349,18 +341,11 @@ def world_of_cell(cell: Cell) -> SimWorld:
     return world
 
 
-def tool_axis_m(world: SimWorld) -> np.ndarray:
-    """The real tool's axis now (unit, base frame, toward the tip)."""
-    front, back = world.tool_body()
-    axis = front - back
-    return axis / np.linalg.norm(axis)
-
-
 def link_tips(a: SimWorld, b: SimWorld, base_b: np.ndarray) -> None:
     """Let b's tool find a's tip: b's partner is a's real tip and axis in b's base frame
     (`base_b`: b's base -> a's base, the truth)."""
     rotation, position = base_b[:3, :3], base_b[:3, 3]
-    b.partner = lambda: (rotation.T @ (a.tool_tip_m() - position), rotation.T @ tool_axis_m(a))
+    b.partner = lambda: (rotation.T @ (a.tool_tip_m() - position), rotation.T @ tool_axis_m(a.tool_body()))
 
 
 def _box_in(box: Workspace, base: np.ndarray) -> Workspace:

@@ -312,6 +312,28 @@ def beam_edges(truth: CellTruth, beams, blocked: dict, body_old, body_new, t_old
     return edges
 
 
+CUP_RIM_RADIUS_M = 0.008  # robot a's centring cup: a tip whose axis line passes within this is guided in
+CUP_FACE_RADIUS_M = 0.015  # ... and one that lands within this, beside it, stays there
+
+
+def meeting_touch(tip_m, partner_tip_m, partner_axis) -> str | None:
+    """Whether a tip at `tip_m` has reached the other robot's tip (the plane through it
+    across its unit axis): 'seat' within its centring cup's rim, 'face' beside it on the
+    cup's face, None when not there."""
+    d = np.asarray(tip_m, dtype=float) - partner_tip_m
+    depth = float(d @ partner_axis)
+    lateral = float(np.linalg.norm(d - depth * partner_axis))
+    if depth > 0.0 or lateral > CUP_FACE_RADIUS_M:
+        return None
+    return "seat" if lateral <= CUP_RIM_RADIUS_M else "face"
+
+
+def tool_axis_m(body) -> np.ndarray:
+    """The unit axis (toward the tip) of a tool body (front, back)."""
+    axis = body[0] - body[1]
+    return axis / np.linalg.norm(axis)
+
+
 def meeting_rest_q(truth: CellTruth, physics, q, meet_m, offset_m) -> np.ndarray:
     """The joints at which the real tool, its orientation held as at joints q, rests with its
     real tip at `meet_m` (where the other robot's tip is), the arm off by `offset_m`.

@@ -34,6 +34,7 @@ from . import se3
 
 MIN_POINTS = 4
 N_UNKNOWNS = 12  # turn (3), translation (3), tip a (3), tip b (3)
+MIN_REDUNDANCY = 6  # below this many spare equations the residual cannot tell the noise: the stated one is used
 NAMES = ("rx", "ry", "rz", "x", "y", "z", "tip_a_x", "tip_a_y", "tip_a_z", "tip_b_x", "tip_b_y", "tip_b_z")
 
 
@@ -92,6 +93,7 @@ class HandshakeFit:
     std: np.ndarray  # (12,) in the order of NAMES: turn (rad, about a's axes), mm
     residuals_mm: np.ndarray  # (N, 3)
     sigma0_mm: float  # the residuals' per-axis standard deviation (the fit's own noise estimate)
+    sigma_used_mm: float  # the noise the standard deviations are scaled with
     condition: float  # of the column-scaled Jacobian
     start_rotation: np.ndarray  # the closed-form start
     start_translation_mm: np.ndarray
@@ -170,10 +172,13 @@ def design(ra, pa, rb, pb, tip_a_mm, tip_b_mm, sigma_mm: float) -> Design:
                   float(np.degrees(np.sqrt(np.trace(cov[:3, :3])))))
 
 
-def fit_handshake(ra, pa, rb, pb, tip_a_mm, tip_b_mm, *, min_out_of_plane_mm: float = 1.0) -> HandshakeFit:
+def fit_handshake(ra, pa, rb, pb, tip_a_mm, tip_b_mm, *, min_out_of_plane_mm: float = 1.0,
+                  sigma_prior_mm: float | None = None) -> HandshakeFit:
     """Fit b's base in a's frame and both tips to N meetings (flange rotations (N, 3, 3) and
     positions (N, 3) mm of each robot in its own base frame); `tip_*_mm` are the drawn tips
-    (the start). Raises HandshakeRefused for a point set that cannot determine it."""
+    (the start). The standard deviations scale with the residual's own noise, or with
+    `sigma_prior_mm` (per axis, stated) when fewer than MIN_REDUNDANCY equations are spare.
+    Raises HandshakeRefused for a point set that cannot determine it."""
     ra, pa, rb, pb = (np.asarray(v, dtype=float) for v in (ra, pa, rb, pb))
     tip_a_mm, tip_b_mm = np.asarray(tip_a_mm, dtype=float), np.asarray(tip_b_mm, dtype=float)
     points = check_points(np.einsum("nij,j->ni", ra, tip_a_mm) + pa, min_out_of_plane_mm)
@@ -185,14 +190,16 @@ def fit_handshake(ra, pa, rb, pb, tip_a_mm, tip_b_mm, *, min_out_of_plane_mm: fl
     rotation, translation, tip_a, tip_b = _unpack(x, rotation0)
     r = residuals(x, *args)
     jac = jacobian(x, *args)
-    dof = max(len(r) - N_UNKNOWNS, 1)
-    sigma0 = float(np.sqrt(r @ r / dof))
+    dof = len(r) - N_UNKNOWNS
+    sigma0 = float(np.sqrt(r @ r / max(dof, 1)))
+    sigma = sigma_prior_mm if sigma_prior_mm is not None and dof < MIN_REDUNDANCY else sigma0
     # the turn's std about a's axes: at the solution w = x[:3], dR = J_l(w) dw
-    cov = _covariance(jac, sigma0)
+    cov = _covariance(jac, sigma)
     jl = se3.left_jacobian(x[:3])
     cov[:3, :3] = jl @ cov[:3, :3] @ jl.T
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    return HandshakeFit(rotation, translation, tip_a, tip_b, std, r.reshape(-1, 3), sigma0, _scaled_condition(jac),
+    return HandshakeFit(rotation, translation, tip_a, tip_b, std, r.reshape(-1, 3), sigma0, float(sigma),
+                        _scaled_condition(jac),
                         rotation0, translation0, points, int(solution.nfev))
 
 
