@@ -97,7 +97,8 @@ def _score(truth, rotation, translation_mm, tips_mm) -> dict:
     return {k: v for k, v in score.items() if not k.startswith("true_")}
 
 
-SEED_ROWS = ("seed: 4-point TCP, then 4-point frame", "seed, tips aligned by eye", "seed's 4-point frame with the true tips")
+SEED_ROWS = ("seed: 4-point TCP, then 4-point frame", "seed, tips aligned by eye",
+             "seed's 4-point frame with the true tips")
 
 
 def bench_cell(cell, seed: int, out_dir, eye_mm: float) -> dict:

@@ -18,7 +18,7 @@ from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.cli import main as cli_main
 from cellcal.routines import runner
 from cellcal.routines.base import Move, PlanRefused, RoutineError
-from cellcal.routines.guard import ArmState, MotionGuard
+from cellcal.routines.guard import MotionGuard
 from cellcal.routines.handshake import Handshake
 from cellcal.routines.records import Dataset
 from cellcal.routines.registry import read_options
@@ -126,7 +126,8 @@ def test_a_coplanar_or_too_small_point_set_is_refused_saying_why(dual, tmp_path)
     flat[:, 2] = 550.0
     data, *_ = _synthetic(flat)
     drawn = ([0.0, 0.0, 150.0], [0.0, 0.0, 150.0])
-    with pytest.raises(hs.HandshakeRefused, match=r"8 meeting points lie on one plane \(normal \[.*\]\): they stand 0\.\d+ mm RMS out of it"):
+    on_one_plane = r"8 meeting points lie on one plane \(normal \[.*\]\): they stand 0\.\d+ mm RMS out of it"
+    with pytest.raises(hs.HandshakeRefused, match=on_one_plane):
         hs.fit_handshake(*data, *drawn, min_out_of_plane_mm=1.0)
     data, *_ = _synthetic(points[:3])
     with pytest.raises(hs.HandshakeRefused, match="3 meeting points"):
