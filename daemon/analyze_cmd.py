@@ -114,7 +114,8 @@ def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
             lines += describe(v) if isinstance(v, list) else [f"  {k:32s} {v:.6g}"]
     lines.append(f"held-out mean error: geometry only {f.baseline.heldout_mean_mm:.4f} mm, "
                  f"with the effect {f.extended.heldout_mean_mm:.4f} mm (gain {f.gain_pct:.1f}%)"
-                 + (f", each without its largest {100 * f.baseline.trim:.0f}% (robust loss)" if f.baseline.trim else ""))
+                 + (f", each without its largest {100 * f.baseline.trim:.0f}% (robust loss)"
+                    if f.baseline.trim else ""))
     lines += _coverage_text(f)
     if f.second is not None:
         lines.append(f"second effect: {f.second.label}; both fitted: {f.both.heldout_mean_mm:.4f} mm")

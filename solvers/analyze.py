@@ -433,7 +433,8 @@ def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[
             np.sum(effect_mm**2, axis=1))))}
     return Scored(label=label, cause=terms[0].cause, where=terms[0].where, heldout_errors=heldout_errors_mm,
                   trim=robust.trim, theta=fit.theta, magnitude=magnitude, x=fit.x, terms=terms,
-                  residuals=fit.residuals_mm, effect_mm=effect_mm, joint_delta=fit.model.joint_delta(fit.theta), details=details)
+                  residuals=fit.residuals_mm, effect_mm=effect_mm, joint_delta=fit.model.joint_delta(fit.theta),
+                  details=details)
 
 
 def _details(terms: tuple[Term, ...], fit: ExtendedFit, obs) -> dict:

@@ -101,9 +101,11 @@ class FoldFactors:
 
     def training(self, k: int):
         """Normal matrix J^T J and J^T r of every row outside fold k (k indexes self.ids)."""
-        if self._grams is None:
-            self._grams = [f.T @ f for f in self.factors]
-        g = sum(m for i, m in enumerate(self._grams) if i != k)
+        if self._grams is None:  # every fold's training Gram matrix, once: the total less the fold's own
+            grams = [f.T @ f for f in self.factors]
+            total = np.sum(grams, axis=0)
+            self._grams = [total - g for g in grams]
+        g = self._grams[k]
         return g[: self.p, : self.p], g[: self.p, self.p]
 
     def steps(self, cols, penalty=None, deviation=None, lams=(0.0,)) -> np.ndarray:

@@ -7,7 +7,8 @@ gears and sensors give orders in the tens, different on each joint.
 Search. For each joint, orders 1 .. ``order_bound`` are scanned by a periodogram of the
 geometric fit's residual projected on the joint's direction of effect (d p / d q_j): the
 least-squares power of each order alone. The ORDER_CANDIDATES strongest orders, picked one
-at a time from what the orders before leave (``pursuit``), become single-order terms that the analysis scores together with every other candidate; then
+at a time from what the orders before leave (``pursuit``), become single-order terms that
+the analysis scores together with every other candidate; then
 ``compose`` picks, by the analysis' grouped cross-validation, how many of a joint's
 orders to keep (strongest first), and which joints to combine.
 
@@ -159,17 +160,13 @@ class PeriodicJointError:
         """The joint's error at these angles; 0 (the rigid model) outside the coverage."""
         qj = np.asarray(qj, dtype=float)
         value = harmonics(qj, self.orders) @ np.ravel(np.column_stack([self.sin_rad, self.cos_rad]))
-        inside = np.zeros(len(qj), bool)
-        for lo, hi in self.coverage_rad:
-            inside |= (qj >= lo) & (qj <= hi)
-        return np.where(inside, value, 0.0)
+        return np.where(periodic_spline.within(qj, self.coverage_rad), value, 0.0)
 
     def as_dict(self) -> dict:
         return {"joint": self.joint, "orders": list(self.orders), "sin_rad": list(self.sin_rad),
                 "cos_rad": list(self.cos_rad), "amplitude_deg": [float(np.rad2deg(np.hypot(s, c)))
                                                                  for s, c in zip(self.sin_rad, self.cos_rad)],
-                "coverage_deg": [[float(np.rad2deg(lo)), float(np.rad2deg(hi))] for lo, hi in self.coverage_rad],
-                "outside_coverage": "rigid model (no correction)"}
+                **periodic_spline.coverage_json(self.coverage_rad)}
 
 
 def _orders_per_joint(by_joint: dict, others: dict, scorer) -> dict:
@@ -312,8 +309,9 @@ BOUND_RULE = (f"orders 1 up to pi over the {SPACING_QUANTILE:.0%} quantile of th
 
 def order_search(spectra: dict) -> dict:
     """What was scanned, per joint (1-based, as text keys): the order bound and the angles sampled."""
-    return {"rule": BOUND_RULE, "joints": {str(j): {"orders": [1, s.order_bound], "angle_range_deg": list(s.angle_range_deg)}
-                                           for j, s in sorted(spectra.items())}}
+    return {"rule": BOUND_RULE,
+            "joints": {str(j): {"orders": [1, s.order_bound], "angle_range_deg": list(s.angle_range_deg)}
+                       for j, s in sorted(spectra.items())}}
 
 
 def fitted_errors(term: Term, theta: np.ndarray, q: np.ndarray) -> list:

@@ -67,6 +67,19 @@ def choose_knots(qj: np.ndarray, projected: np.ndarray, weight: np.ndarray, fold
     return best
 
 
+def within(qj: np.ndarray, coverage_rad) -> np.ndarray:
+    """Which angles lie in one of the covered intervals (lo, hi)."""
+    inside = np.zeros(len(qj), bool)
+    for lo, hi in coverage_rad:
+        inside |= (qj >= lo) & (qj <= hi)
+    return inside
+
+
+def coverage_json(coverage_rad) -> dict:
+    return {"coverage_deg": [[float(np.rad2deg(lo)), float(np.rad2deg(hi))] for lo, hi in coverage_rad],
+            "outside_coverage": "rigid model (no correction)"}
+
+
 @dataclass(frozen=True)
 class PeriodicSpline:
     """A fitted spline error on one joint, for use beyond the analysis (compensation)."""
@@ -79,13 +92,9 @@ class PeriodicSpline:
         """The joint's error at these angles; 0 (the rigid model) outside the coverage."""
         qj = np.asarray(qj, dtype=float)
         value = basis(qj, len(self.coef_rad)) @ np.asarray(self.coef_rad)
-        inside = np.zeros(len(qj), bool)
-        for lo, hi in self.coverage_rad:
-            inside |= (qj >= lo) & (qj <= hi)
-        return np.where(inside, value, 0.0)
+        return np.where(within(qj, self.coverage_rad), value, 0.0)
 
     def as_dict(self) -> dict:
         return {"joint": self.joint, "spline_knots": len(self.coef_rad), "coef_rad": list(self.coef_rad),
                 "basis": "periodic cubic B-splines, knots evenly spaced from 0 over 2 pi",
-                "coverage_deg": [[float(np.rad2deg(lo)), float(np.rad2deg(hi))] for lo, hi in self.coverage_rad],
-                "outside_coverage": "rigid model (no correction)"}
+                **coverage_json(self.coverage_rad)}
