@@ -16,11 +16,13 @@ from cellcal.config.cells import CellFileError, shipped_cells
 from cellcal.config.robot_files import load_robot
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.cli import main as cli_main
+from cellcal.daemon.service import ResultCode, Service
+from cellcal.daemon.store import Store
 from cellcal.routines import runner
 from cellcal.routines.base import Move, PlanRefused, RoutineError
 from cellcal.routines.guard import MotionGuard
 from cellcal.routines.handshake import Handshake
-from cellcal.routines.records import Dataset
+from cellcal.routines.records import Dataset, read_dataset
 from cellcal.routines.registry import read_options
 from cellcal.sims.truth import truth_of_cell
 from cellcal.solvers import handshake as hs
@@ -38,14 +40,21 @@ def dual():
 
 @pytest.fixture(scope="module")
 def measured(dual, tmp_path_factory):
-    """One in-process handshake of 12 meetings, both robots' commands recorded."""
-    prepared = runner.prepare("handshake", dual)
+    """One in-process handshake of 12 meetings, started from the panel (routine 4) of the
+    service, both robots' commands recorded."""
+    tmp = tmp_path_factory.mktemp("handshake")
     with open_drivers(dual) as drivers:
         recording = {name: RecordingRobot(robot) for name, robot in drivers.robots.items()}
         drivers.robot, drivers.robots = recording["a"], recording
-        dataset = runner.measure(prepared, drivers, tmp_path_factory.mktemp("handshake"), lambda message: None)
+        service = Service(dual, drivers, Store.open(tmp / "state"), out_dir=tmp / "datasets")
+        drivers.panel.select_routine(4)
+        drivers.panel.press_start()
+        service.poll_panel()
+        outcome = service.wait(600)
         truth = drivers.world.truth
-    return runner.solve("handshake", dual, dataset), truth, recording, dataset
+    assert (outcome.state, outcome.code) == ("done", ResultCode.OK), outcome.reason
+    assert outcome.reason == "no tool frame to write (a frame routine)"
+    return outcome.result, truth, recording, read_dataset(outcome.result.dataset, "handshake")
 
 
 def test_handshake_finds_robot_b_base_within_target_of_the_truth(measured):
