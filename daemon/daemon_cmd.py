@@ -63,20 +63,26 @@ def cmd_daemon(args) -> int:
                 log.error("the robot does not answer: %s", exc)
                 return 1
             service = Service(cell, drivers, store, out_dir=folder / "datasets", notifier=notifier,
-                              report=lambda run_id, result, st: write_run_report(folder / "reports", run_id, result))
+                              report=lambda run_id, result, st: write_run_report(folder / "reports", run_id, result),
+                              reconnect=lambda: open_drivers(cell))
             service._panel("set_lamps", busy=False)
+            service.discard_requests("pending when the service started")
             log.info("ready: cell %s, robot %s", cell.name, state.value)
             notifier.ready(f"idle; robot {state.value}")
-            while not stopping.is_set():
-                service.poll_panel()
-                notifier.watchdog()
-                stopping.wait(args.poll_s)
-            notifier.stopping()
-            log.info("stopping")
-            if service.busy():
-                service.request_abort("the service is stopping")
-                service.wait(STOP_WAIT_S)
-            store.event("stop", None)
+            try:
+                while not stopping.is_set():
+                    service.poll_panel()
+                    notifier.watchdog()
+                    stopping.wait(args.poll_s)
+                notifier.stopping()
+                log.info("stopping")
+                if service.busy():
+                    service.request_abort("the service is stopping")
+                service.wait(STOP_WAIT_S)  # the run's end, and its last words to the panel and the store
+                store.event("stop", None)
+            finally:
+                if service.drivers is not drivers:  # reconnected after a lost robot
+                    service.drivers.close()
         return 0
     finally:
         for sig, handler in previous.items():

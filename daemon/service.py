@@ -16,12 +16,18 @@ tool frame, and everything that may go wrong on the way.
 Every transition is one log line with the run id (journald-friendly), a row in the
 store, and the panel's lamps and result code. The abort button and SIGTERM/SIGINT stop
 the motion at once; the run is recorded as aborted and nothing is written back.
+
+The routines set the tool as drawn while they measure. A run that writes no frame gives
+the controller back the one it had before; when a fault leaves the robot unable to take
+it (a safety stop, a lost connection), the idle loop gives it back once the robot is
+ready again, reconnecting a robot whose connection was lost, and no run starts before.
 """
 from __future__ import annotations
 
 import enum
 import logging
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,12 +39,14 @@ from ..routines.base import PlanRefused, Result, RoutineAborted, RoutineError
 from ..routines.gates import frame_change
 from .notify import Notifier
 from .store import Store
-from .write_back import write_back
+from .write_back import TOLERANCE, write_back
 
 log = logging.getLogger("cellcal.daemon")
 
 # routine selector register values (spec/panel.md); 6 extends the map for tcf
 PANEL_ROUTINES = {1: "tcp-laser", 2: "tcp-stylus", 3: "tcp-npoint", 4: "handshake", 5: "tracker", 6: "tcf"}
+RECONNECT_AFTER_S = 2.0  # a robot unusable this long is reconnected (a busy moment is not a lost link)
+RECONNECT_EVERY_S = 5.0  # and tried again this often while it stays lost
 
 
 class ResultCode(enum.IntEnum):
@@ -67,7 +75,7 @@ RESULT_MEANINGS = {
     ResultCode.BUSY: "start refused: a routine is already running (the press is ignored)",
     ResultCode.SENSOR_FAULT: "the trigger or the tracker failed or went silent; motion stopped",
     ResultCode.ROBOT_FAULT: "the robot faulted (connection lost, protective or emergency stop); motion stopped",
-    ResultCode.DEVICE_TIMEOUT: "a device did not answer in time; motion stopped",
+    ResultCode.DEVICE_TIMEOUT: "the robot controller did not answer in time (stalled); motion stopped",
     ResultCode.COMPUTATION_FAILED: "the measurements could not be solved (the routine says why)",
     ResultCode.GATE_FAILED: "the result failed a quality gate and was not written back",
     ResultCode.WRITE_BACK_FAILED: "the controller did not keep the written tool frame; the old one was restored",
@@ -89,15 +97,20 @@ class Service:
     """The daemon's core, independent of how it is started (CLI, tests)."""
 
     def __init__(self, cell, drivers, store: Store, *, out_dir: str | Path, notifier: Notifier | None = None,
-                 routines: dict[int, str] | None = None, report=None):
+                 routines: dict[int, str] | None = None, report=None, reconnect=None):
         self.cell, self.drivers, self.store = cell, drivers, store
         self.out_dir = Path(out_dir)
         self.notifier = notifier or Notifier({})
         self.routines = dict(PANEL_ROUTINES if routines is None else routines)
         self.report = report  # callable(run_id, result, store) -> path, or None
+        self.reconnect = reconnect  # callable() -> a fresh set of the cell's drivers, or None
+        self._reconnect_at: float | None = None  # when the robot is to be reconnected (it is unusable)
+        self._frame_owed: tuple[int, np.ndarray] | None = None  # (run id, the frame from before it)
+        self._unconfirmed = False  # the panel just came back: a pending start is not taken
         self.state = "idle"
         self.abort = threading.Event()
         self._worker: threading.Thread | None = None
+        self._active = False  # a run is under way: from start() until its end state is decided
         self._lock = threading.Lock()  # the panel: one caller at a time
         self.panel_ok = True
         self.last: RunOutcome | None = None
@@ -119,7 +132,7 @@ class Service:
                 self.store.event("panel_lost", str(exc))
             return None
         if not self.panel_ok:
-            self.panel_ok = True
+            self.panel_ok, self._unconfirmed = True, True
             log.info("panel back")
             self.store.event("panel_back", None)
         return value
@@ -138,7 +151,7 @@ class Service:
     # -- one run --------------------------------------------------------------------------
 
     def busy(self) -> bool:
-        return self._worker is not None and self._worker.is_alive()
+        return self._active
 
     def poll_panel(self) -> None:
         """One look at the panel: abort while running; a start request otherwise."""
@@ -148,19 +161,40 @@ class Service:
             if self._panel("start_requested"):
                 log.info("start pressed while a run is going on: ignored")
             return
+        self.recover()
         self._panel("abort_requested")  # an abort with nothing running is cleared, not remembered
-        if self._panel("start_requested"):
+        pressed = self._panel("start_requested")
+        if pressed is None:
+            return
+        unconfirmed, self._unconfirmed = self._unconfirmed, False
+        if pressed and unconfirmed:
+            self._discarded("pending when the panel came back")
+        elif pressed:
             selector = self._panel("routine_selector")
             if selector is None:  # the request cannot be confirmed: never start from it
                 log.warning("start request seen but the routine selector could not be read: not started")
                 return
             self.start(self.routines.get(int(selector), f"selector {selector}"))
 
+    def discard_requests(self, why: str) -> None:
+        """Clear the panel's requests without acting on them (those pending when the service
+        starts: a press nobody can vouch for never starts a run)."""
+        if self._panel("start_requested"):
+            self._discarded(why)
+        self._panel("abort_requested")
+
+    def _discarded(self, why: str) -> None:
+        log.warning("a start request %s: cleared, not started (press start again)", why)
+        self.store.event("start_discarded", why)
+
     def start(self, routine: str) -> None:
         """Start a run in the worker thread (returns at once)."""
         if self.busy():
             raise RuntimeError("a run is already going on")
+        if self._worker is not None:  # the last run's final panel writes
+            self._worker.join()
         self.abort.clear()
+        self._active = True
         self._worker = threading.Thread(target=self._run_safely, args=(routine,), name="cellcal-run", daemon=True)
         self._worker.start()
 
@@ -186,15 +220,18 @@ class Service:
         except Exception as exc:  # a bug must not leave the lamps busy or the run open
             log.exception("run failed unexpectedly")
             self.last = RunOutcome(-1, "fault", ResultCode.COMPUTATION_FAILED, f"internal error: {exc}")
+        finally:
+            self._active = False
 
     def run(self, routine: str) -> RunOutcome:
         """The whole state machine for one run, in the calling thread."""
         run_id = self.store.begin_run(routine, self.cell.path)
         self._transition(run_id, "checking", routine)
-        prepared, refusal = self._check(routine)
+        prepared, frame_before, refusal = self._check(routine)
         if refusal is not None:
             code, why = refusal
             return self._end(run_id, "refused", code, why)
+        self._frame_owed = (run_id, frame_before)
         self._transition(run_id, "running", f"{len(prepared.plan)} moves")
         try:
             dataset = runner.measure(prepared, self.drivers, self.out_dir,
@@ -229,32 +266,86 @@ class Service:
         failure = self.write_back(run_id, result.tool_frame)
         if failure is not None:
             return self._end(run_id, "fault", ResultCode.WRITE_BACK_FAILED, failure, result)
+        self._frame_owed = None  # the new frame is the controller's now
         mm, deg = frame_change(result.tool_frame, dataset.meta.get("tool_frame_before", np.zeros(6)))
         return self._end(run_id, "done", ResultCode.OK, f"tool frame written back ({mm:.3f} mm, {deg:.3f} deg "
                                                          "from the previous one)", result)
 
     def _check(self, routine: str):
-        """(the prepared routine, None) when it may run, else (None, (code, why))."""
+        """(the prepared routine, the controller's tool frame, None) when it may run, else
+        (None, None, (code, why))."""
+        if self._frame_owed is not None:
+            self.recover()
+        if self._frame_owed is not None:
+            return None, None, (ResultCode.NOT_READY, f"the tool frame from before run {self._frame_owed[0]} "
+                                                      "is not yet back on the controller")
         robot = self.drivers.robot
         try:
             state = robot.state()
+            before = np.asarray(robot.tcp(), dtype=float) if state is RobotState.READY else None
         except DeviceError as exc:
-            return None, (ResultCode.NOT_READY, f"the robot does not answer: {exc}")
+            return None, None, (ResultCode.NOT_READY, f"the robot does not answer: {exc}")
         if state is not RobotState.READY:
-            return None, (ResultCode.NOT_READY, f"the robot is not ready: {state.value}")
+            return None, None, (ResultCode.NOT_READY, f"the robot is not ready: {state.value}")
         if routine not in registry.available():
-            return None, (ResultCode.NO_SUCH_ROUTINE,
-                          f"no routine {routine!r} (routines: {', '.join(registry.available())})")
+            return None, None, (ResultCode.NO_SUCH_ROUTINE,
+                                f"no routine {routine!r} (routines: {', '.join(registry.available())})")
         try:
             prepared = runner.prepare(routine, self.cell)
         except PlanRefused as exc:
-            return None, (ResultCode.LIMITS, f"plan refused, nothing moved: {exc}")
+            return None, None, (ResultCode.LIMITS, f"plan refused, nothing moved: {exc}")
         except RoutineError as exc:
-            return None, (ResultCode.NO_SUCH_ROUTINE, str(exc))
+            return None, None, (ResultCode.NO_SUCH_ROUTINE, str(exc))
         for kind in type(prepared.routine).needs:
             if getattr(self.drivers, kind, None) is None:
-                return None, (ResultCode.SENSOR_FAULT, f"the cell has no {kind} for {routine}")
-        return prepared, None
+                return None, None, (ResultCode.SENSOR_FAULT, f"the cell has no {kind} for {routine}")
+        return prepared, before, None
+
+    # -- between runs ---------------------------------------------------------------------
+
+    def recover(self) -> None:
+        """Between runs: reconnect a robot whose connection was lost (once it has been unusable
+        for RECONNECT_AFTER_S, then every RECONNECT_EVERY_S), and give the controller back the
+        tool frame a run that wrote none left changed."""
+        state, now = self._robot_state(), time.monotonic()
+        if state is not RobotState.DISCONNECTED or self.reconnect is None:
+            self._reconnect_at = None
+        elif self._reconnect_at is None:
+            self._reconnect_at = now + RECONNECT_AFTER_S
+        elif now >= self._reconnect_at:
+            self._reconnect_at = now + RECONNECT_EVERY_S
+            try:  # the old connections first: the controller lets one client hold its RTDE inputs
+                self.drivers.close()
+            except Exception as exc:
+                log.info("closing the lost connections: %s", exc)
+            try:
+                self.drivers = self.reconnect()
+            except Exception as exc:  # anything a half-reachable cell raises: the service keeps running
+                log.warning("the robot's connection is still lost: %s", exc)
+                return
+            log.info("reconnected the cell's devices")
+            self.store.event("reconnected", None)
+            self._reconnect_at = None
+            state = self._robot_state()
+        if self._frame_owed is None or state is not RobotState.READY:
+            return
+        run_id, frame = self._frame_owed
+        robot = self.drivers.robot
+        try:
+            if np.abs(np.asarray(robot.tcp(), dtype=float) - frame).max() > TOLERANCE:
+                robot.set_tcp(frame)
+                log.info("run %d: the tool frame from before it is back on the controller", run_id)
+                self.store.event("tool_frame_given_back", f"run {run_id}")
+        except DeviceError as exc:
+            log.warning("run %d: the tool frame from before it could not be given back yet: %s", run_id, exc)
+            return
+        self._frame_owed = None
+
+    def _robot_state(self) -> RobotState:
+        try:
+            return self.drivers.robot.state()
+        except DeviceError:
+            return RobotState.DISCONNECTED
 
     def write_back(self, run_id: int, frame) -> str | None:
         """The frame to the controller (running and stored for the program's start), read back
@@ -267,7 +358,10 @@ class Service:
         return None
 
     def _end(self, run_id: int, state: str, code: ResultCode, reason: str, result: Result | None = None) -> RunOutcome:
+        if self._frame_owed is not None and self._frame_owed[0] == run_id:
+            self.recover()
         self.store.finish_run(run_id, state, int(code), reason)
+        self._active = False  # the panel shows the end next: a press after it starts the next run
         self._transition(run_id, state, f"{code.name.lower()}: {reason}")
         self._panel("set_lamps", busy=False, done=state == "done", fault=state in ("fault", "refused"))
         self._panel("set_result", int(code))
@@ -276,9 +370,7 @@ class Service:
 
 
 def _device_code(drivers, exc: DeviceError) -> ResultCode:
-    if isinstance(exc, DeviceTimeout):
-        return ResultCode.DEVICE_TIMEOUT
     robot_name = getattr(drivers.robot, "name", None)
     if exc.device == robot_name or "robot" in exc.device:
-        return ResultCode.ROBOT_FAULT
-    return ResultCode.SENSOR_FAULT
+        return ResultCode.DEVICE_TIMEOUT if isinstance(exc, DeviceTimeout) else ResultCode.ROBOT_FAULT
+    return ResultCode.SENSOR_FAULT  # the trigger or the tracker failed or went silent

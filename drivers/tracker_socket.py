@@ -159,21 +159,25 @@ class TrackerSocket(Tracker):
         o.text("host")
         o.port()
         o.timeout("connect_timeout_s")
+        o.timeout("measure_timeout_s")
 
     def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, *,
-                 connect_timeout_s: float = 2.0, name: str = "tracker"):
-        self.check_options(host=host, port=port, connect_timeout_s=connect_timeout_s)
+                 connect_timeout_s: float = 2.0, measure_timeout_s: float = 5.0, name: str = "tracker"):
+        self.check_options(host=host, port=port, connect_timeout_s=connect_timeout_s,
+                           measure_timeout_s=measure_timeout_s)
         self.name = name
         self.device = f"{name} ({host}:{port})"
         self.host = host
         self.port = port
         self.connect_timeout_s = float(connect_timeout_s)
+        self.measure_timeout_s = float(measure_timeout_s)  # a tracker silent this long has failed
         self._socket: socket.socket | None = None
         self._buffer = bytearray()
         self._seq = 0
         self._connect(time.monotonic() + self.connect_timeout_s)
 
-    def measure(self, target: str = "smr1", timeout_s: float = 5.0) -> TrackerMeasurement:
+    def measure(self, target: str = "smr1", timeout_s: float | None = None) -> TrackerMeasurement:
+        timeout_s = self.measure_timeout_s if timeout_s is None else timeout_s
         if not isinstance(target, str) or not TARGET_NAME.fullmatch(target):
             raise ValueError(f"{self.device}: target name {target!r} is not "
                              f"[A-Za-z0-9_.-]{{1,32}}")

@@ -148,11 +148,15 @@ class UrRtdeRobot(Robot):
                 self._broken = f"{method} got no reply"
                 raise DeviceTimeout(self.name, exc.what) from None
 
-    def _check_safety(self, during: str) -> None:
-        """Raise if the stream ended or the safety system stopped the arm."""
+    def _check_link(self, during: str) -> None:
+        """Raise if the stream ended (DeviceError) or the controller went silent (DeviceTimeout)."""
         what = self._failure()
         if what is not None:
-            raise DeviceError(self.name, f"{what} during {during}")
+            raise (DeviceTimeout if self._stream.stalled() else DeviceError)(self.name, f"{what} during {during}")
+
+    def _check_safety(self, during: str) -> None:
+        """Raise if the stream ended or the safety system stopped the arm."""
+        self._check_link(during)
         status = self._stream.status
         if status.emergency_stopped or status.protective_stopped:
             kind = "emergency stop" if status.emergency_stopped else "protective stop"
@@ -201,8 +205,8 @@ class UrRtdeRobot(Robot):
         while not done():
             if safety:
                 self._check_safety(during or what)
-            elif self._failure() is not None:
-                raise DeviceError(self.name, f"{self._failure()} during {what}")
+            else:
+                self._check_link(what)
             if time.monotonic() > deadline:
                 raise DeviceTimeout(self.name, f"{what} did not happen within {timeout_s:.3g} s")
             time.sleep(POLL_S)

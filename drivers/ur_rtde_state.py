@@ -250,6 +250,13 @@ class UrStateStream:
             return f"no state from the controller for {silent_s:.2f} s (stalled or unreachable)"
         return None
 
+    def stalled(self) -> bool:
+        """Open, but nothing from the controller for stale_after_s: it did not answer in time."""
+        with self._cond:
+            if self._closed or self._failure is not None:
+                return False
+        return self.failure() is not None
+
     def _data_waiting(self) -> bool:
         """Packages in the socket mean the reader is late (a busy process), not the controller."""
         try:

@@ -8,12 +8,19 @@ the methods below: press buttons, read lamps, record edges.
 
 The tables are separate (coils, discrete inputs, holding and input registers,
 as on most IO modules); an address outside them gets exception response 2.
+
+Faults are injected per Modbus function, which on this module also tells the panel
+from the trigger ring (the ring is its only input registers, function 4):
+``exceptions[function] = code`` answers every such request with that exception
+response, ``silent`` holds functions whose requests get no reply at all (a module that
+stopped answering), and :meth:`drop_connections` cuts every client connection.
 """
 from __future__ import annotations
 
 import asyncio
 import threading
 
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
@@ -50,6 +57,9 @@ class ModbusCellServer:
         self._thread: threading.Thread | None = None
         self._server: ModbusTcpServer | None = None
         self._edge_lock = threading.Lock()
+        # fault injection, read by the server's loop: replace the objects, do not mutate them
+        self.exceptions: dict[int, int] = {}  # function code -> exception code answered instead
+        self.silent: frozenset[int] = frozenset()  # function codes left without a reply
 
     def _device(self) -> SimDevice:
         n_coils = (max(self.panel_map.coils()) // 16 + 1) * 16
@@ -75,7 +85,8 @@ class ModbusCellServer:
         self._loop = asyncio.new_event_loop()
 
         async def listen():
-            self._server = ModbusTcpServer([device], address=(self.host, self.port))
+            self._server = ModbusTcpServer([device], address=(self.host, self.port),
+                                           trace_pdu=self._faulty_reply, trace_packet=self._withheld)
             await self._server.serve_forever(background=True)
             self.port = self._server.transport.sockets[0].getsockname()[1]
 
@@ -118,6 +129,31 @@ class ModbusCellServer:
 
     def __exit__(self, *exc) -> None:
         self.stop()
+
+    # -- fault injection -------------------------------------------------------------
+
+    def _faulty_reply(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU:
+        code = self.exceptions.get(pdu.function_code & 0x7F) if sending else None
+        if code is None:
+            return pdu
+        return ExceptionResponse(pdu.function_code & 0x7F, code, device_id=pdu.dev_id,
+                                 transaction=pdu.transaction_id)
+
+    def _withheld(self, sending: bool, packet: bytes) -> bytes:
+        # a Modbus TCP frame: 7 bytes of MBAP header, then the function code
+        if sending and len(packet) > 7 and packet[7] & 0x7F in self.silent:
+            return b""
+        return packet
+
+    def clear_faults(self) -> None:
+        self.exceptions, self.silent = {}, frozenset()
+
+    def drop_connections(self) -> None:
+        """Cut every client connection (a cable pulled and plugged back in); they may reconnect."""
+        def cut():
+            for connection in list(self._server.active_connections.values()):
+                connection.close()
+        self._loop.call_soon_threadsafe(cut)
 
     # -- the operator's side of the panel --------------------------------------------
 
