@@ -67,6 +67,8 @@ def cmd_daemon(args) -> int:
                               reconnect=lambda: open_drivers(cell))
             service._panel("set_lamps", busy=False)
             service.discard_requests("pending when the service started")
+            if interrupted:
+                service.give_back_frame_of(interrupted[-1])
             log.info("ready: cell %s, robot %s", cell.name, state.value)
             notifier.ready(f"idle; robot {state.value}")
             try:

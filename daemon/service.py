@@ -25,6 +25,7 @@ ready again, reconnecting a robot whose connection was lost, and no run starts b
 from __future__ import annotations
 
 import enum
+import json
 import logging
 import threading
 import time
@@ -232,6 +233,7 @@ class Service:
             code, why = refusal
             return self._end(run_id, "refused", code, why)
         self._frame_owed = (run_id, frame_before)
+        self.store.record_frame_before(run_id, frame_before)
         self._transition(run_id, "running", f"{len(prepared.plan)} moves")
         try:
             dataset = runner.measure(prepared, self.drivers, self.out_dir,
@@ -340,6 +342,13 @@ class Service:
             log.warning("run %d: the tool frame from before it could not be given back yet: %s", run_id, exc)
             return
         self._frame_owed = None
+
+    def give_back_frame_of(self, run_id: int) -> None:
+        """A run the service died in (found interrupted at start-up) may have left the drawing's
+        tool frame on the controller: the idle loop gives back the one it had, as after a fault."""
+        row = self.store.run(run_id)
+        if row is not None and row.tool_frame_before is not None:
+            self._frame_owed = (run_id, np.array(json.loads(row.tool_frame_before), dtype=float))
 
     def _robot_state(self) -> RobotState:
         try:

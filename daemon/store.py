@@ -75,6 +75,8 @@ MIGRATIONS = (
     ALTER TABLE tool_frames ADD COLUMN stored_before TEXT;
     ALTER TABLE tool_frames ADD COLUMN stored_after TEXT;
     """,
+    # 4: the controller's tool frame when each run began (given back after a run that died)
+    "ALTER TABLE runs ADD COLUMN tool_frame_before TEXT;",
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 OPEN_STATES = ("checking", "running", "solving", "gates", "writing back")
@@ -115,6 +117,7 @@ class RunRow:
     report_path: str | None
     write_back: bool
     result_json: str | None
+    tool_frame_before: str | None = None
 
 
 class Store:
@@ -199,6 +202,11 @@ class Store:
             db.execute("UPDATE runs SET state = ?, result_code = ?, reason = ?, finished_at = ? WHERE id = ?",
                        (state, result_code, reason, now, run_id))
             db.execute("INSERT INTO states VALUES (?, ?, ?, ?)", (run_id, now, state, reason))
+
+    def record_frame_before(self, run_id: int, frame) -> None:
+        with self._tx() as db:
+            db.execute("UPDATE runs SET tool_frame_before = ? WHERE id = ?",
+                       (json.dumps([float(v) for v in frame]), run_id))
 
     def mark_interrupted(self, result_code: int) -> list[int]:
         """Runs a previous process left open (it died mid-run): recorded as interrupted."""

@@ -324,6 +324,8 @@ def test_after_kill_9_mid_run_the_daemon_comes_up_idle_nothing_moves_and_the_run
     daemon.proc.kill()
     daemon.proc.wait()
     net.at_rest(0.0)  # the controller ends the motion it was given
+    left = net.state()["tcp_offset"]
+    np.testing.assert_allclose(left, net.cell.tool.tcp_pose, rtol=0, atol=1e-12)  # the drawing the run set
     again = Daemon(net, tmp_path)
     try:
         looks = []
@@ -333,11 +335,13 @@ def test_after_kill_9_mid_run_the_daemon_comes_up_idle_nothing_moves_and_the_run
         run = again.cli("runs", "show", "1")
         assert (run["state"], run["result_code"]) == ("interrupted", ResultCode.INTERRUPTED), run
         assert not net.panel.lamps()["busy"]
+        frame = net.state()["tcp_offset"]  # the run had set the drawing; the old frame is given back
     finally:
         assert again.stop() == 0
     assert not any(look["moving"] for look in looks)
     assert all(np.array_equal(look["q"], looks[0]["q"]) for look in looks), [look["q"] for look in looks]
     assert "run 1: interrupted" in again.log()
+    np.testing.assert_allclose(frame, net.previous, rtol=0, atol=1e-12)
     store = Store.open(again.state_dir)
     assert [r.id for r in store.runs()] == [1]  # and no run started by itself
     store.close()
