@@ -157,16 +157,21 @@ def when_moving(action, delay_s: float = 0.1) -> threading.Thread:
     return thread
 
 
+def until_the_run_ends(net: Net, counter: int, meanwhile=lambda: None) -> None:
+    """Wait for the panel's run counter to move past `counter`, calling `meanwhile` between looks."""
+    deadline = time.monotonic() + RUN_TIMEOUT_S
+    while net.panel.run_counter() == counter:
+        assert time.monotonic() < deadline, "the run did not end"
+        meanwhile()
+        time.sleep(0.01)
+
+
 def press_and_serve(service: Service, net: Net, routine: str):
     """The operator selects `routine` and presses start; the main loop's poll runs until the run ends."""
     counter = net.panel.run_counter()
     net.panel.select_routine(SELECT[routine])
     net.panel.press_start()
-    deadline = time.monotonic() + RUN_TIMEOUT_S
-    while net.panel.run_counter() == counter:
-        assert time.monotonic() < deadline, "the run did not end"
-        service.poll_panel()
-        time.sleep(0.02)
+    until_the_run_ends(net, counter, service.poll_panel)
     return service.wait(10.0)
 
 
@@ -412,10 +417,7 @@ def one_run(net: Net, ending: str) -> None:
         press_start(net, "tcp-laser")
         if ending == "aborted":
             net.panel.press_abort()
-    deadline = time.monotonic() + RUN_TIMEOUT_S
-    while net.panel.run_counter() == counter:
-        assert time.monotonic() < deadline, "the run did not end"
-        time.sleep(0.01)
+    until_the_run_ends(net, counter)
 
 
 def test_a_hundred_button_started_runs_leak_no_socket_thread_or_file_descriptor(cell_net, tmp_path):
