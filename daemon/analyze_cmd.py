@@ -13,6 +13,7 @@ from ..solvers.effects import CAUSES, Context, approach_directions
 from ..solvers.effects.cyclic_joint_error import order_search
 from ..solvers.physical_sizes import describe
 from . import model_out
+from . import discriminate_cmd
 from .cli_common import ReportError, UsageError, check_folds, print_progress
 
 MIN_MEASUREMENTS = 30
@@ -35,6 +36,7 @@ def add_parser(sub):
                         "each model's largest 10%% of errors (default: linear, i.e. least squares)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     model_out.add_argument(p, analyze=True)
+    discriminate_cmd.add_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -58,6 +60,7 @@ def finding_json(f: Finding, n: int) -> dict:
         "margin_pct": 100.0 * f.margin,
         "candidates": [_scored(c) for c in f.candidates],
         "notes": list(f.notes),
+        **discriminate_cmd.tie_json(f),
         "n": n,
         "seconds": f.seconds,
     }
@@ -105,7 +108,9 @@ def _coverage_text(f: Finding) -> list[str]:
 
 def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
     lines = [f"cellcal analyze: {robot}, {n} measurements", ""]
-    if f.cause == "none":
+    if f.cause == "none" and f.indistinguishable:
+        lines.append("finding: none -- these data cannot tell apart the explanations below")
+    elif f.cause == "none":
         lines.append("finding: none -- no candidate beats the geometric model clearly on held-out data")
     else:
         where = ", ".join(f"{k} {v}" for k, v in f.where.items())
@@ -120,6 +125,7 @@ def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
     if f.second is not None:
         lines.append(f"second effect: {f.second.label}; both fitted: {f.both.heldout_mean_mm:.4f} mm")
     lines += [f"  note: {note}" for note in (*f.notes, *not_scored)]
+    lines += discriminate_cmd.tie_lines(f)
     lines += ["", "candidates (held-out mean error, mm):"]
     for c in f.candidates[:10]:
         lines.append(f"  {c.heldout_mean_mm:8.4f}  {c.label}")
@@ -132,6 +138,7 @@ def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
 def run(args) -> int:
     check_folds(args.folds)
     model_out.check_target(args.write_model)
+    discriminate_cmd.check_arguments(args)
     model = load_robot(args.robot)
     table = read_measurements(args.data, model.n_joints)
     check_joint_limits(table, model.joint_limits, model.name)
@@ -151,11 +158,16 @@ def run(args) -> int:
     finding = analyze(model, obs, ctx, AnalyzeOptions(folds=args.folds, causes=causes, loss=args.loss),
                       progress=print_progress)
     text = finding_text(finding, model.name, len(obs), not_scored)
+    experiment = discriminate_cmd.run_design(args, finding, ctx, model)
+    if experiment and experiment["poses"]:
+        text += f"\n\nexperiment: {experiment['summary']}\nposes written to {experiment['file']}"
     # the finding first: a report that cannot be written must not lose it
     if args.json:
         out = finding_json(finding, len(obs))
         out["notes"] = out["notes"] + not_scored
         out["not_scored"] = {c: why for c, why in unscorable.items()}
+        if experiment is not None:
+            out["discriminate"] = experiment
         print(json.dumps(out, default=jsonable), flush=True)
     else:
         print(text, flush=True)

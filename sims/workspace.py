@@ -70,3 +70,16 @@ def constrained_volume(model: KinematicModel, n: int, rng: np.random.Generator, 
         if len(out) >= n:
             return np.array(out[:n])
     raise ValueError(f"only {len(out)} of {n} configurations reach the cube at {centre.tolist()} mm")
+
+
+def joint_sweeps(model: KinematicModel, steps: int, span_deg, home=None) -> np.ndarray:
+    """A one-joint-at-a-time campaign: each joint in turn through `steps` evenly spaced angles over
+    +/- span_deg[j] about home (within its limits), the others at home; (n_joints * steps, n_joints)."""
+    lim = _limits(model)
+    home = np.zeros(model.n_joints) if home is None else np.asarray(home, dtype=float)
+    out = []
+    for j, span in enumerate(np.deg2rad(np.asarray(span_deg, dtype=float))):
+        q = np.tile(home, (steps, 1))
+        q[:, j] = np.linspace(max(lim[j, 0], home[j] - span), min(lim[j, 1], home[j] + span), steps)
+        out.append(q)
+    return np.concatenate(out)

@@ -23,7 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
-from . import crossval, identifiability, lsq, physical_sizes
+from . import crossval, identifiability, lsq, physical_sizes, ties
 from .effects import CAUSES, Context, Term
 from .identify import Identification, IdentifyOptions, identify_variants
 from .extended_model import ExtendedFit, embed, fit_extended, norm_scale, param_columns, stack_param_bases
@@ -87,6 +87,9 @@ class Finding:
     seconds: float = 0.0
     notes: tuple[str, ...] = field(default_factory=tuple)
     joint_range_deg: tuple[tuple[float, float], ...] = ()  # angles the data cover, per joint
+    indistinguishable: tuple = ()  # ties.Tied: explanations these data cannot tell apart, best first
+    grounds: str = ""  # why one of them is named all the same ("" when none is)
+    scorer: object = field(default=None, repr=False, compare=False)  # LinearisedScorer, for the experiment design
 
     @property
     def gain_pct(self) -> float:
@@ -101,6 +104,7 @@ class Naming:
     candidates: tuple[Scored, ...]  # best first; a simpler explanation that wins a tie goes first
     margin: float  # how much higher (fraction) the best other cause's held-out error is
     notes: tuple[str, ...] = ()
+    tie: str = ""  # how a near-tie was settled: "nested", "both" (two effects) or "ambiguous"
 
 
 def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = AnalyzeOptions(),
@@ -134,6 +138,10 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     candidates = score_candidates(terms, scorer, errors[1:])
     say(f"scored {len(candidates)} candidates")
     naming = name_cause(candidates, baseline, scorer)
+    tied = ties.tied_explanations(naming, baseline, scorer, MIN_GAIN, MIN_MARGIN,
+                                  lambda s: _fit_in_full(model, geometric_fit, obs, folds, s.terms, options.prior_mm,
+                                                         s.label).magnitude)
+    naming = tied.naming
 
     extended, second, both = baseline, None, None
     if naming.named is not None:
@@ -149,7 +157,8 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
         cause=extended.cause, where=extended.where, magnitude=extended.magnitude, baseline=baseline,
         extended=extended, candidates=naming.candidates, margin=float(naming.margin), second=second, both=both,
         seconds=time.perf_counter() - started, notes=naming.notes,
-        joint_range_deg=tuple((float(lo), float(hi)) for lo, hi in np.rad2deg([obs.q.min(0), obs.q.max(0)]).T))
+        joint_range_deg=tuple((float(lo), float(hi)) for lo, hi in np.rad2deg([obs.q.min(0), obs.q.max(0)]).T),
+        indistinguishable=tied.entries, grounds=tied.grounds, scorer=scorer)
 
 
 def heldout_with_terms(model, obs: Observations, terms: Sequence[Term],
@@ -207,25 +216,12 @@ class LinearisedScorer:
 
     def _term_columns(self, term: Term, rows, jacobian_x, jacobian_q) -> np.ndarray:
         """d p / d theta of a term at the geometric fit, for these rows (n, 3, m)."""
-        fit, obs = self.geometric_fit, self.obs
-        if term.model is not None:  # one new rigid parameter: its Jacobian column in the new layout
-            if id(term) not in self._structural:
-                layout = Layout(term.model, obs.target_names)
-                x = embed(fit.x, fit.layout.n_kin, term.model.n_params - self.model.n_params)
-                columns = np.empty((len(obs), 3, term.size))
-                for block, _, j in jacobian_chunks(layout, x, obs):
-                    columns[block] = j[:, :, self.model.n_params: term.model.n_params]
-                self._structural[id(term)] = columns
-            return self._structural[id(term)][rows]
-        columns = np.zeros((len(jacobian_x), 3, term.size))
-        if term.joint_basis is not None:
-            columns += term.joint_basis[rows].columns(jacobian_q)
-        if term.cart_basis is not None:
-            columns += term.cart_basis[rows]
-        if term.param_basis:
-            params, basis = stack_param_bases(term.param_basis)
-            columns += param_columns(jacobian_x, (params, basis[rows]))
-        return columns
+        return term_columns(self.model, self.geometric_fit, self.obs, term, rows, jacobian_x, jacobian_q,
+                            self._structural)
+
+    def term_estimated(self, term: Term) -> np.ndarray:
+        """Indices, among the term's own parameters, of those these data separate from the geometry."""
+        return np.flatnonzero(np.isin(self._term_cols(term), self.estimated((term,))[self.n_geometry:]))
 
     def _term_cols(self, term: Term) -> np.ndarray:
         """Columns of a term, or of the scored parts it was composed of."""
@@ -265,6 +261,30 @@ class LinearisedScorer:
         b = self.r[:, self._term_cols(inner)]
         coef = np.linalg.lstsq(a, b, rcond=None)[0]
         return bool(np.linalg.norm(a @ coef - b) <= NESTED_RTOL * np.linalg.norm(b))
+
+
+def term_columns(model, fit: Identification, obs: Observations, term: Term, rows, jacobian_x, jacobian_q,
+                 structural: dict) -> np.ndarray:
+    """d p / d theta of a term at the fit, for these rows of obs (n, 3, m). A term that changes the
+    rigid model has its columns computed once over all rows and kept in `structural`."""
+    if term.model is not None:  # one new rigid parameter: its Jacobian column in the new layout
+        if id(term) not in structural:
+            layout = Layout(term.model, obs.target_names)
+            x = embed(fit.x, fit.layout.n_kin, term.model.n_params - model.n_params)
+            columns = np.empty((len(obs), 3, term.size))
+            for block, _, j in jacobian_chunks(layout, x, obs):
+                columns[block] = j[:, :, model.n_params: term.model.n_params]
+            structural[id(term)] = columns
+        return structural[id(term)][rows]
+    columns = np.zeros((len(jacobian_x), 3, term.size))
+    if term.joint_basis is not None:
+        columns += term.joint_basis[rows].columns(jacobian_q)
+    if term.cart_basis is not None:
+        columns += term.cart_basis[rows]
+    if term.param_basis:
+        params, basis = stack_param_bases(term.param_basis)
+        columns += param_columns(jacobian_x, (params, basis[rows]))
+    return columns
 
 
 def score_candidates(terms: Sequence[Term], scorer: LinearisedScorer, errors=None) -> list[Scored]:
@@ -318,15 +338,15 @@ def _settle_tie(best: Scored, runner_up: Scored, candidates: Sequence[Scored], b
         ranked.insert(0, ranked.pop(ranked.index(simpler)))
         note = (f"{larger.label} fits about as well only through terms that are the same as "
                 f"{simpler.label}; the simpler explanation is named")
-        return Naming(named=simpler, candidates=tuple(ranked), margin=margin, notes=(note,))
+        return Naming(named=simpler, candidates=tuple(ranked), margin=margin, notes=(note,), tie="nested")
     pair_mean_mm = float(trimmed_mean(scorer.heldout_errors_mm(best.terms + runner_up.terms), best.trim))
     if pair_mean_mm < (1.0 - MIN_GAIN) * min(best.heldout_mean_mm, runner_up.heldout_mean_mm):
         note = (f"{best.label} and {runner_up.label} are both present: together they "
                 f"reach {pair_mean_mm:.4f} mm held-out")
-        return Naming(named=best, candidates=tuple(ranked), margin=margin, notes=(note,))
+        return Naming(named=best, candidates=tuple(ranked), margin=margin, notes=(note,), tie="both")
     note = (f"{best.label} and {runner_up.label} explain the data about equally well "
             f"(held-out errors {100 * margin:.1f}% apart, {100 * MIN_MARGIN:.0f}% needed)")
-    return Naming(named=None, candidates=tuple(ranked), margin=margin, notes=(note,))
+    return Naming(named=None, candidates=tuple(ranked), margin=margin, notes=(note,), tie="ambiguous")
 
 
 def find_second_effect(named: Scored, terms: Sequence[Term], candidates: Sequence[Scored],

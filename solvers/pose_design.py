@@ -138,6 +138,14 @@ def _arm_in_box(model, q, box_mm, tool_mm, skeleton=None) -> np.ndarray:
     return _in_box(tcp, box_mm) & np.all(_in_box(pts[:, _moving(model)], box_mm), axis=1)
 
 
+def clear_of_mount(model: KinematicModel, q: np.ndarray, min_height_mm: float = 0.0) -> np.ndarray:
+    """Whether every moving frame origin of the arm stays on the robot's side of its mounting plane
+    (base z at least min_height_mm; the base frame's z points away from the mounting surface), per row:
+    what a design without a cell model can check of configurations that are to be measured."""
+    pts = _skeleton(model, np.atleast_2d(q))[2][:, _moving(model)]
+    return np.all(pts[..., 2] >= min_height_mm, axis=1)
+
+
 PATH_SAMPLES = 47  # along a joint move; a superset of the motion guard's 24 points
 
 

@@ -17,7 +17,7 @@ from cellcal.solvers.measurement_model import Layout, Observations, jacobian
 from cellcal.solvers.robot_model import KinematicModel
 from cellcal.sims.kinematic_arm import TrackerNoise
 from cellcal.sims.physical_arm import Campaign, HiddenEffect, PhysicalArm
-from cellcal.sims.workspace import full_workspace
+from cellcal.sims.workspace import full_workspace, joint_sweeps
 
 BASE_REPEATABILITY_MM = 0.05
 
@@ -85,3 +85,19 @@ def make_case(model: KinematicModel, effects, visibility, *, n: int, noise_scale
     visible = tuple(_visible(model, _arm(model, seed, (e,), noise_scale, noise_free=True), q, extras)
                     for e in sized)
     return HiddenCase(arm, arm.campaign(q, **extras), tuple(sized), noise, float(noise_vec.mean()), visible)
+
+
+# A heavy arm measured one joint at a time, the shoulder only a little (as a tracker campaign
+# around the arm's home often is): the gravity torque on the elbow is a first harmonic of its
+# own sweep angle, so compliance and a first-order cyclic error of the elbow fit alike.
+SWEEP_ROBOT = "abb-irb4600"
+SWEEP_SPAN_DEG = (170.0, 30.0, 170.0, 170.0, 170.0, 170.0)
+SWEEP_STEPS = 12
+
+
+def sweep_case(model: KinematicModel, cause: str, seed: int, joint: int = 2, rms_mm: float = 0.3):
+    """(arm, configurations) of a one-joint-at-a-time campaign with `cause` hidden at `joint`
+    (0-based), first order, phase drawn from the seed; measure with arm.campaign(q)."""
+    rng = np.random.default_rng(seed)
+    effect = HiddenEffect(cause, joint, rms_mm=rms_mm, order=1, phase_rad=float(rng.uniform(0, 2 * np.pi)))
+    return _arm(model, seed, (effect,), 1.0), joint_sweeps(model, SWEEP_STEPS, SWEEP_SPAN_DEG)
