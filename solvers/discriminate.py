@@ -101,20 +101,22 @@ def design(finding: Finding, ctx: Context, n: int, rng: np.random.Generator,
     noise_mean_mm = min(t.scored.heldout_mean_mm for t in tied)  # the best explanation leaves about noise
     sigma = noise_mean_mm / MEAN_PER_SIGMA
     cand = lambda a: a[n_old:].reshape(len(q_cand), n_targets * 3, *a.shape[2:])  # noqa: E731 per pose
-    pairs = [_Pair(x[j][old], mean[i][old], cand(x[j]), cand(mean[i]))
+    pairs = [_Pair(i, j, x[j][old], mean[i][old], cand(x[j]), cand(mean[i]))
              for i, j in itertools.permutations(range(len(tied)), 2)]
     chosen, lambda_cum, margin_cum = [], [], []
     free = np.ones(len(q_cand), bool)
     for _ in range(min(n, len(q_cand))):
-        gains = np.stack([p.gains() for p in pairs])  # (pairs, candidates)
-        score = np.where(free, np.min(np.array([p.added for p in pairs])[:, None] + gains, axis=0), -np.inf)
-        best = int(np.argmax(score))
+        gains, leverage = {}, {}
+        for p in pairs:
+            gains[p], leverage[p.fitted] = p.gains()
+        total = np.stack([p.added + gains[p] for p in pairs])
+        best = int(np.argmax(np.where(free, np.min(total, axis=0), -np.inf)))
         free[best] = False
         chosen.append(best)
         for p in pairs:
-            p.add(best)
+            p.add(best, sigma**2 * leverage[p.true][best])
         lambda_cum.append(min(p.added for p in pairs) / sigma**2)
-        margin_cum.append(min(p.excess_mm(noise_mean_mm) for p in pairs)
+        margin_cum.append(min(p.excess_mm(noise_mean_mm, sigma) for p in pairs)
                           / (noise_mean_mm * (n_old + len(chosen) * n_targets)))
     lambda_cum, margin_cum = np.array(lambda_cum), np.array(margin_cum)
     closest = min(pairs, key=lambda p: p.added)
@@ -123,9 +125,11 @@ def design(finding: Finding, ctx: Context, n: int, rng: np.random.Generator,
 
 
 class _Pair:
-    """One explanation (rows `mean`) taken as the truth, the other (columns `x`) refitted to it."""
+    """One explanation (`true`, its predictions `mean`) taken as the truth, another (`fitted`, its
+    columns `x`) refitted to it."""
 
-    def __init__(self, x_old, mean_old, x_cand, mean_cand):
+    def __init__(self, true: int, fitted: int, x_old, mean_old, x_cand, mean_cand):
+        self.true, self.fitted = true, fitted
         flat = x_old.reshape(-1, x_old.shape[-1])
         self.scale = np.linalg.norm(flat, axis=0)
         self.scale[self.scale == 0] = 1.0
@@ -136,17 +140,23 @@ class _Pair:
         self.beta = np.linalg.solve(self.normal, self.rhs)
         self.added = 0.0  # residual sum of squares the chosen poses added, mm^2
         self.chosen: list[int] = []
+        self.true_variance: list[float] = []  # the true model's prediction variance at each chosen pose, mm^2
 
-    def gains(self) -> np.ndarray:
-        """Rise of the residual sum of squares if each candidate pose were added, mm^2."""
+    def gains(self) -> tuple[np.ndarray, np.ndarray]:
+        """Rise of the residual sum of squares if each candidate pose were added, mm^2; and the
+        fitted model's leverage there (its prediction variance over the noise variance, summed
+        over the pose's rows): what measuring a pose adds to its held-out error beyond noise."""
         e = self.mean_cand - self.x_cand @ self.beta  # (candidates, rows)
         c, rows, p = self.x_cand.shape
         m_inv_xt = np.linalg.solve(self.normal, self.x_cand.reshape(c * rows, p).T)  # (p, c * rows)
         s = np.eye(rows) + self.x_cand @ m_inv_xt.T.reshape(c, rows, p).transpose(0, 2, 1)
-        return np.einsum("cr,cr->c", e, np.linalg.solve(s, e[:, :, None])[:, :, 0])
+        gains = np.einsum("cr,cr->c", e, np.linalg.solve(s, e[:, :, None])[:, :, 0])
+        return gains, np.trace(s, axis1=1, axis2=2) - rows
 
-    def add(self, c: int) -> None:
-        self.added += float(self.gains_of(c))
+    def add(self, c: int, true_variance_mm2: float) -> None:
+        gain = self.gains_of(c)
+        self.added += gain
+        self.true_variance.append(true_variance_mm2)
         xc = self.x_cand[c]
         self.normal = self.normal + xc.T @ xc
         self.rhs = self.rhs + xc.T @ self.mean_cand[c]
@@ -163,9 +173,14 @@ class _Pair:
         e = self.mean_cand[self.chosen] - self.x_cand[self.chosen] @ self.beta
         return np.linalg.norm(e.reshape(len(self.chosen), -1, 3), axis=2)
 
-    def excess_mm(self, noise_mean_mm: float) -> float:
-        """Expected rise of the refitted model's summed error lengths at the chosen poses, mm."""
-        return float(np.sum(np.sqrt(self._misses() ** 2 + noise_mean_mm**2) - noise_mean_mm))
+    def excess_mm(self, noise_mean_mm: float, sigma_mm: float) -> float:
+        """Expected rise of the refitted model's summed held-out error lengths at the chosen poses
+        over the true model's, mm (the true one's rises by its prediction variance there)."""
+        misses = self._misses()
+        wrong = np.sum(np.sqrt(misses**2 + noise_mean_mm**2) - noise_mean_mm)
+        per_row = np.repeat(np.array(self.true_variance) / misses.shape[1], misses.shape[1])
+        right = np.sum(noise_mean_mm * (np.sqrt(1.0 + per_row / (3.0 * sigma_mm**2)) - 1.0))
+        return float(wrong - right)
 
     def miss_mm(self) -> np.ndarray:
         """(chosen,) rms over targets of the refitted model's miss at each chosen pose, mm."""
