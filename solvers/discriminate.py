@@ -19,7 +19,11 @@ standard deviations; at sqrt(lambda) >= 2 * 2.33 a decision at the midpoint errs
 probability below 1% (``DECIDE_LAMBDA``). The analysis itself names a cause only when
 its held-out mean error beats the other's by ``MIN_MARGIN``, so the count also asks
 for the wrong explanation's expected held-out mean over all data to exceed the true
-one's by MARGIN_SAFETY times that margin.
+one's by MARGIN_SAFETY times that margin; the true one's held-out error at a new pose
+grows by its own prediction variance there (an explanation with many loosely
+determined parameters, such as compliance from lumped mass moments, needs more poses).
+The payload is not varied: without link masses neither explanation predicts what a
+payload change would do.
 """
 from __future__ import annotations
 
@@ -114,7 +118,7 @@ def design(finding: Finding, ctx: Context, n: int, rng: np.random.Generator,
         free[best] = False
         chosen.append(best)
         for p in pairs:
-            p.add(best, sigma**2 * leverage[p.true][best])
+            p.add(best, gains[p][best], sigma**2 * leverage[p.true][best])
         lambda_cum.append(min(p.added for p in pairs) / sigma**2)
         margin_cum.append(min(p.excess_mm(noise_mean_mm, sigma) for p in pairs)
                           / (noise_mean_mm * (n_old + len(chosen) * n_targets)))
@@ -153,20 +157,15 @@ class _Pair:
         gains = np.einsum("cr,cr->c", e, np.linalg.solve(s, e[:, :, None])[:, :, 0])
         return gains, np.trace(s, axis1=1, axis2=2) - rows
 
-    def add(self, c: int, true_variance_mm2: float) -> None:
-        gain = self.gains_of(c)
-        self.added += gain
+    def add(self, c: int, gain_mm2: float, true_variance_mm2: float) -> None:
+        """Measure candidate c: its gain and the true model's prediction variance there as computed."""
+        self.added += float(gain_mm2)
         self.true_variance.append(true_variance_mm2)
         xc = self.x_cand[c]
         self.normal = self.normal + xc.T @ xc
         self.rhs = self.rhs + xc.T @ self.mean_cand[c]
         self.beta = np.linalg.solve(self.normal, self.rhs)
         self.chosen.append(c)
-
-    def gains_of(self, c: int) -> float:
-        e = self.mean_cand[c] - self.x_cand[c] @ self.beta
-        s = np.eye(len(e)) + self.x_cand[c] @ np.linalg.solve(self.normal, self.x_cand[c].T)
-        return float(e @ np.linalg.solve(s, e))
 
     def _misses(self) -> np.ndarray:
         """(chosen, targets) length of the refitted model's miss at each chosen pose and target, mm."""
@@ -243,7 +242,7 @@ def _term_at(model, fit, obs_all: Observations, ctx_all: Context, term):
     sin and cos of its orders in its joints' angles; any other term is built again by its cause
     (its basis depends on the configurations and the context alone) and found by place and names."""
     if term.cause == CyclicJointError.id:
-        pairs = term.extra.get("harmonics", ((term.where["joint"], term.where["order"]),))
+        pairs = term.extra["harmonics"] if "harmonics" in term.extra else ((term.where["joint"], term.where["order"]),)
         parts = [(JointBasis.single(harmonics(obs_all.q[:, j - 1], [n]), j - 1, model.n_joints), 2) for j, n in pairs]
         basis = JointBasis.side_by_side(parts, len(obs_all), model.n_joints)
         return dataclasses.replace(term, joint_basis=basis)

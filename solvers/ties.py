@@ -16,8 +16,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-# Largest size of each effect commonly reported for serial industrial arms: (key of the cause's
-# magnitude, largest typical value, what it means). Gravity deflection of a joint: stiffness
+# Largest size of each effect commonly reported for serial industrial arms: (how the keys of the
+# cause's magnitude end, largest typical value, what it means); the largest of those keys is judged. Gravity deflection of a joint: stiffness
 # 1e4..1e6 N m/rad against gravity torques up to a few kN m, a few hundredths of a degree
 # typical, 0.5 deg an extreme; gear and encoder cyclic errors: an arc minute or two
 # (0.02-0.05 deg), 0.1 deg an extreme; backlash after assembly: below 0.1 deg; thermal
@@ -111,13 +111,21 @@ def _why(c, other, scorer, min_margin: float) -> str:
             f"{100 * min_margin:.0f}% margin needed to tell causes apart")
 
 
+def _largest(cause: str, size: dict) -> tuple[str, float] | None:
+    """The size of the cause's kind that TYPICAL_MAX judges, largest first (None: none given)."""
+    suffix = TYPICAL_MAX.get(cause, ("\0",))[0]
+    sizes = [(k, abs(float(v))) for k, v in size.items() if k.endswith(suffix)]
+    return max(sizes, key=lambda kv: kv[1]) if sizes else None
+
+
 def _judged(entry: Tied, size: dict) -> Tied:
-    key, limit, _ = TYPICAL_MAX.get(entry.cause, (None, None, None))
-    plausible = None if key not in size else bool(abs(size[key]) <= limit)
+    largest = _largest(entry.cause, size)
+    plausible = None if largest is None else bool(largest[1] <= TYPICAL_MAX[entry.cause][1])
     return dataclasses.replace(entry, size=size, plausible=plausible)
 
 
 def _size_text(e: Tied) -> str:
-    key, limit, what = TYPICAL_MAX[e.cause]
+    key, value = _largest(e.cause, e.size)
+    _, limit, what = TYPICAL_MAX[e.cause]
     verdict = "within" if e.plausible else "beyond"
-    return f"{e.label} needs {key} {e.size[key]:.3g}, {verdict} the {limit:g} typical of {what}"
+    return f"{e.label} needs {key} {value:.3g}, {verdict} the {limit:g} typical of {what}"

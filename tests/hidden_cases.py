@@ -101,3 +101,12 @@ def sweep_case(model: KinematicModel, cause: str, seed: int, joint: int = 2, rms
     rng = np.random.default_rng(seed)
     effect = HiddenEffect(cause, joint, rms_mm=rms_mm, order=1, phase_rad=float(rng.uniform(0, 2 * np.pi)))
     return _arm(model, seed, (effect,), 1.0), joint_sweeps(model, SWEEP_STEPS, SWEEP_SPAN_DEG)
+
+
+def elbow_pair(tied) -> bool:
+    """Is a tie (the JSON entries of ``indistinguishable``) compliance of the elbow and a cyclic
+    error of it with order 1 among its orders?"""
+    by_cause = {t["cause"]: t["where"] for t in tied}
+    cyclic = by_cause.get("cyclic_joint_error", {})
+    return (len(tied) == 2 and by_cause.get("joint_compliance") == {"joint": 3} and cyclic.get("joint") == 3
+            and 1 in cyclic.get("orders", [cyclic.get("order")]))
