@@ -264,6 +264,12 @@ class CyclicJointError(Cause):
         for t in terms:  # in the order pursuit picked them within each joint
             if not t.extra.get("spline"):
                 by_joint.setdefault(t.where["joint"], []).append(t)
+        # ... but led by the order that predicts best alone: pursuit ranks orders on the geometric fit's
+        # residual, which a one-joint-at-a-time sweep's other rows can tilt away from a low order
+        orders = [t for parts in by_joint.values() for t in parts]
+        alone = dict(zip(map(id, orders), scorer.mean_mm(scorer.heldout_errors_many([(t,) for t in orders]))))
+        for parts in by_joint.values():
+            parts.insert(0, parts.pop(min(range(len(parts)), key=lambda k: alone[id(parts[k])])))
         baseline_mm = scorer.mean_mm(scorer.heldout_errors_many([()]))[0]
         singles = sorted(_orders_per_joint(by_joint, {}, scorer).values(), key=lambda pair: pair[0])
         chosen = [parts for _, parts in singles]
