@@ -140,7 +140,7 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     naming = name_cause(candidates, baseline, scorer)
     tied = ties.tied_explanations(naming, baseline, scorer, MIN_GAIN, MIN_MARGIN,
                                   lambda s: _fit_in_full(model, geometric_fit, obs, folds, s.terms, options.prior_mm,
-                                                         s.label).magnitude)
+                                                         s.label, scorer.robust).magnitude)
     naming = tied.naming
 
     extended, second, both = baseline, None, None
