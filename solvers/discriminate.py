@@ -35,6 +35,7 @@ import numpy as np
 
 from .analyze import MIN_MARGIN, Finding, term_columns
 from .effects import CAUSES, Context, JointBasis
+from .effects import periodic_spline
 from .effects.cyclic_joint_error import CyclicJointError, harmonics
 from .measurement_model import Observations, jacobian_chunks
 from .pose_design import clear_of_mount
@@ -239,12 +240,18 @@ def _extended(ctx: Context, n_new: int) -> Context:
 
 def _term_at(model, fit, obs_all: Observations, ctx_all: Context, term):
     """The same candidate term evaluated on the data and the new rows together. A cyclic error is
-    sin and cos of its orders in its joints' angles; any other term is built again by its cause
-    (its basis depends on the configurations and the context alone) and found by place and names."""
+    sin and cos of its orders (or periodic splines) in its joints' angles; any other term is built
+    again by its cause (its basis depends on the configurations and the context alone) and found by
+    place and names."""
     if term.cause == CyclicJointError.id:
-        pairs = term.extra["harmonics"] if "harmonics" in term.extra else ((term.where["joint"], term.where["order"]),)
-        parts = [(JointBasis.single(harmonics(obs_all.q[:, j - 1], [n]), j - 1, model.n_joints), 2) for j, n in pairs]
-        basis = JointBasis.side_by_side(parts, len(obs_all), model.n_joints)
+        nj, where = model.n_joints, term.where
+        if "spline_knots" in where:
+            j = where["joint"] - 1
+            basis = JointBasis.single(periodic_spline.basis(obs_all.q[:, j], where["spline_knots"]), j, nj)
+        else:
+            pairs = term.extra["harmonics"] if "harmonics" in term.extra else ((where["joint"], where["order"]),)
+            basis = JointBasis.side_by_side([(JointBasis.single(harmonics(obs_all.q[:, j - 1], [n]), j - 1, nj), 2)
+                                             for j, n in pairs], len(obs_all), nj)
         return dataclasses.replace(term, joint_basis=basis)
     for t in CAUSES[term.cause].terms(model, fit.layout, fit.x, obs_all, ctx_all):
         if t.where == term.where and t.names == term.names:
