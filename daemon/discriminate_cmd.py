@@ -48,7 +48,8 @@ def tie_lines(f: Finding) -> list[str]:
         lines.append(f"  {t.scored.heldout_mean_mm:8.4f}  {t.label}: {t.why}")
         if t.size:
             verdict = {True: "plausible", False: "implausible", None: "not judged"}[t.plausible]
-            sizes = ", ".join(f"{k} {v:.3g}" for k, v in t.size.items() if k != "effect_beyond_geometry_rms_mm")
+            sizes = ", ".join(f"{k} {v:.3g}" for k, v in t.size.items()
+                              if isinstance(v, (int, float)) and k != "effect_beyond_geometry_rms_mm")
             lines.append(f"            size it would need: {sizes} ({verdict})")
     if f.grounds:
         lines.append(f"  {f.grounds}")

@@ -114,7 +114,7 @@ def _why(c, other, scorer, min_margin: float) -> str:
 def _largest(cause: str, size: dict) -> tuple[str, float] | None:
     """The size of the cause's kind that TYPICAL_MAX judges, largest first (None: none given)."""
     suffix = TYPICAL_MAX.get(cause, ("\0",))[0]
-    sizes = [(k, abs(float(v))) for k, v in size.items() if k.endswith(suffix)]
+    sizes = [(k, abs(float(v))) for k, v in size.items() if k.endswith(suffix) and isinstance(v, (int, float))]
     return max(sizes, key=lambda kv: kv[1]) if sizes else None
 
 
