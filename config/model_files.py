@@ -45,7 +45,7 @@ def load_calibrated(name_or_path: str | Path) -> CalibratedModel:
     model = load_robot(path)
     doc = read_yaml(path, ModelError)
     top = Section(str(path), None, doc, ModelError)
-    cal = top.section("calibration")
+    cal = top.section("calibration").expect(CALIBRATION_KEYS)
     base = np.zeros(6)
     names, offsets = ("tcp",), np.zeros((1, 3))
     if "base" in cal:
@@ -66,6 +66,13 @@ def load_calibrated(name_or_path: str | Path) -> CalibratedModel:
                 k[model.index(name)] = value
     model = replace(model, nominal=k)  # the calibrated values are this model's own
     return CalibratedModel(model, k, base, names, offsets, effects)
+
+
+def source_model(name_or_path: str | Path) -> str | None:
+    """The robot file a calibrated model started from (its nominal model), as the file records it."""
+    doc = read_yaml(resolve_robot(name_or_path), ModelError)
+    record = doc.get("calibration") if isinstance(doc, dict) else None
+    return record.get("source_model") if isinstance(record, dict) else None
 
 
 def _effect(row: Section) -> Effect:

@@ -16,7 +16,7 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..config.model_files import load_calibrated
+from ..config.model_files import load_calibrated, source_model
 from ..config.robot_files import load_robot
 from ..solvers.compensate import OK, compensate
 from ..solvers.effects import Context, approach_directions
@@ -120,8 +120,7 @@ def run(args) -> int:
     model = calibrated.model
     if len(model.chains) != 1:
         raise UsageError(f"{args.robot}: a tree model; compensate works on serial arms")
-    record_source = _source_model(args.robot)
-    nominal = load_robot(args.nominal or record_source or args.robot)
+    nominal = load_robot(args.nominal or source_model(args.robot) or args.robot)
     if nominal.n_joints != model.n_joints:
         raise UsageError(f"--nominal {args.nominal}: {nominal.n_joints} joints, the calibrated model {model.n_joints}")
     if args.tcp_mm is not None:
@@ -175,17 +174,6 @@ def run(args) -> int:
               f"{seconds:.2f} s; joint corrections mean {summary['correction_deg']['mean']:.4f} deg, max "
               f"{summary['correction_deg']['max']:.4f} deg; {len(bad)} rows not ok; written to {args.out}")
     return 0
-
-
-def _source_model(path):
-    """The model a calibrated file started from, as its calibration section records it."""
-    import yaml
-
-    try:
-        doc = yaml.safe_load(open(path, encoding="utf-8"))
-    except (OSError, yaml.YAMLError):
-        return None
-    return ((doc or {}).get("calibration") or {}).get("source_model") if isinstance(doc, dict) else None
 
 
 def _write(path, t, result, unit: str, with_rotation: bool) -> None:
