@@ -29,6 +29,7 @@ from .cli_common import UsageError, print_progress
 from .service import PANEL_ROUTINES, RESULT_MEANINGS, ResultCode
 
 RUN_TIMEOUT_S = 180.0
+READY_TIMEOUT_S = 60.0
 
 
 def _cellcal(*args: str) -> list[str]:
@@ -55,6 +56,29 @@ def _stop(proc: subprocess.Popen | None) -> None:
         proc.wait()
 
 
+def start_daemon(cell_path, state_dir, notify_path, *, stderr, on_start=lambda proc: None,
+                 extra=()) -> subprocess.Popen:
+    """``cellcal daemon`` on a cell, returned once it has sent READY=1 to its notify socket
+    (systemd's protocol, on a socket made at `notify_path`); `on_start(proc)` runs before the
+    wait, e.g. to echo its log. RuntimeError, the daemon stopped, if READY does not come."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as notify:
+        notify.bind(str(notify_path))
+        notify.settimeout(READY_TIMEOUT_S)
+        env = dict(os.environ, NOTIFY_SOCKET=str(notify_path))
+        daemon = subprocess.Popen(_cellcal("daemon", "--cell", str(cell_path), "--state-dir", str(state_dir), *extra),
+                                  env=env, stdout=subprocess.DEVNULL, stderr=stderr, text=True)
+        on_start(daemon)
+        try:
+            while b"READY=1" not in notify.recv(4096):
+                pass
+        except socket.timeout:
+            _stop(daemon)
+            raise RuntimeError(f"the daemon did not get ready within {READY_TIMEOUT_S:g} s") from None
+        finally:
+            Path(notify_path).unlink()
+    return daemon
+
+
 def cmd_demo(args) -> int:
     cell = load_cell(args.cell)
     number = next((k for k, v in PANEL_ROUTINES.items() if v == args.routine), None)
@@ -76,15 +100,8 @@ def cmd_demo(args) -> int:
             raise RuntimeError(f"the fakes did not start: {line}{fakes.stderr.read()}")
         print_progress(line.strip().removeprefix("cellcal "))
         _echo(fakes.stderr, "  fakes: ")
-        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as notify:
-            notify.bind(str(notify_path))
-            notify.settimeout(60.0)
-            env = dict(os.environ, NOTIFY_SOCKET=str(notify_path))
-            daemon = subprocess.Popen(_cellcal("daemon", "--cell", cell.path, "--state-dir", str(work / "state")),
-                                      env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-            _echo(daemon.stderr, "  daemon: ")
-            while b"READY=1" not in notify.recv(4096):
-                pass
+        daemon = start_daemon(cell.path, work / "state", notify_path, stderr=subprocess.PIPE,
+                              on_start=lambda proc: _echo(proc.stderr, "  daemon: "))
         print_progress(f"the daemon is ready; the operator selects {args.routine} ({number}) and presses start")
         operator = ModbusTcpClient(host, port=port, timeout=2.0)
         if not operator.connect():

@@ -31,6 +31,7 @@ import numpy as np
 import pytest
 
 from cellcal.daemon.cells import load_cell, open_drivers, shipped_cells
+from cellcal.daemon.demo_cmd import start_daemon
 from cellcal.daemon.service import PANEL_ROUTINES, ResultCode, Service
 from cellcal.daemon.store import Store
 from cellcal.sims.fake_ur import DASHBOARD_PORT
@@ -255,21 +256,12 @@ class Daemon:
 
     def __init__(self, net: Net, folder: Path):
         self.state_dir, self.log_path = folder / "state", folder / "daemon.log"
-        notify_path = folder / "notify.sock"
-        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as notify, open(self.log_path, "a") as log:
-            notify.bind(str(notify_path))
-            notify.settimeout(60.0)
-            env = dict(os.environ, NOTIFY_SOCKET=str(notify_path))
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", "cellcal.daemon.cli", "daemon", "--cell", str(net.path), "--state-dir",
-                 str(self.state_dir), "--poll-s", "0.02"], env=env, stdout=subprocess.DEVNULL, stderr=log)
+        with open(self.log_path, "a") as log:
             try:
-                while b"READY=1" not in notify.recv(4096):
-                    pass
-            except socket.timeout:
-                self.stop()
-                raise AssertionError(f"the daemon did not get ready:\n{self.log()}") from None
-        notify_path.unlink()
+                self.proc = start_daemon(net.path, self.state_dir, folder / "notify.sock", stderr=log,
+                                         extra=("--poll-s", "0.02"))
+            except RuntimeError as exc:
+                raise AssertionError(f"{exc}:\n{self.log()}") from None
 
     def log(self) -> str:
         return self.log_path.read_text()
