@@ -13,7 +13,7 @@ import numpy as np
 
 from ..solvers.analyze import Finding
 from ..solvers.discriminate import Design, DesignError, design
-from .cli_common import UsageError, output_file, print_progress
+from .cli_common import UsageError, check_positive, output_file, print_progress
 
 
 def add_arguments(p) -> None:
@@ -24,14 +24,20 @@ def add_arguments(p) -> None:
                    help="with --discriminate: write the configurations here, one row each, columns "
                         "q1_rad .. qN_rad as in the measurement CSV, most telling first; measure each at every "
                         "target, append the rows to the data and analyse again")
+    p.add_argument("--payload-kg", type=float, metavar="KG",
+                   help="with --discriminate: a payload the cell can mount; each configuration is also offered "
+                        "with it, and POSES.csv gets a payload_kg column saying which poses to measure with it")
 
 
 def check_arguments(args) -> None:
     """Before any computation: --discriminate and -o together, N at least 1, -o writable."""
     if args.discriminate is None:
-        if args.output is not None:
-            raise UsageError("-o/--output is the poses file of --discriminate N; give both or neither")
+        if args.output is not None or args.payload_kg is not None:
+            raise UsageError("-o/--output and --payload-kg belong to --discriminate N; give -o with it, "
+                             "or none of them")
         return
+    if args.payload_kg is not None:
+        check_positive("--payload-kg", args.payload_kg)
     if args.discriminate < 1:
         raise UsageError(f"--discriminate needs a number of poses of at least 1, got {args.discriminate}")
     if args.output is None:
@@ -72,7 +78,7 @@ def run_design(args, finding: Finding, ctx, model) -> dict | None:
     if args.discriminate is None:
         return None
     try:
-        d = design(finding, ctx, args.discriminate, np.random.default_rng(0))
+        d = design(finding, ctx, args.discriminate, np.random.default_rng(0), payload_kg=args.payload_kg)
     except DesignError as exc:
         print_progress(f"--discriminate: {exc}; no poses written")
         return {"poses": 0, "file": None, "reason": str(exc)}
@@ -82,7 +88,7 @@ def run_design(args, finding: Finding, ctx, model) -> dict | None:
     return {"poses": len(d.q_rad), "file": str(args.output), "needed": d.needed, "models": list(d.models),
             "targets": list(d.target_names), "sigma_mm": d.sigma_mm,
             "separation_sigma": float(np.sqrt(d.lambda_cum[-1])), "miss_mm": d.miss_mm.tolist(),
-            "summary": d.summary()}
+            "payload_kg": None if d.payload_kg is None else d.payload_kg.tolist(), "summary": d.summary()}
 
 
 def write_poses(path, d: Design, model) -> None:
@@ -94,5 +100,7 @@ def write_poses(path, d: Design, model) -> None:
         for text in lines:
             f.write(f"# {text}\n")
         out = csv.writer(f, lineterminator="\n")
-        out.writerow([f"q{j}_rad" for j in range(1, model.n_joints + 1)])
-        out.writerows([[repr(float(v)) for v in row] for row in d.q_rad])
+        out.writerow([f"q{j}_rad" for j in range(1, model.n_joints + 1)]
+                     + ([] if d.payload_kg is None else ["payload_kg"]))
+        rows = d.q_rad if d.payload_kg is None else np.column_stack([d.q_rad, d.payload_kg])
+        out.writerows([[repr(float(v)) for v in row] for row in rows])

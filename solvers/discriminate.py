@@ -22,8 +22,10 @@ for the wrong explanation's expected held-out mean over all data to exceed the t
 one's by MARGIN_SAFETY times that margin; the true one's held-out error at a new pose
 grows by its own prediction variance there (an explanation with many loosely
 determined parameters, such as compliance from lumped mass moments, needs more poses).
-The payload is not varied: without link masses neither explanation predicts what a
-payload change would do.
+A payload the cell can mount (``payload_kg``) doubles the candidates: each configuration
+with the data's payload and with that one. Compliance predicts what a payload does only
+when the robot file gives every link mass (without them its lumped mass moments say
+nothing of a new mass); otherwise the offer is declined and the design says why.
 """
 from __future__ import annotations
 
@@ -63,6 +65,9 @@ class Design:
     #                         held-out mean over all rows, as a fraction of the right one's
     miss_mm: np.ndarray  # (n,) per pose, rms over targets: the refitted miss of the closest pair
     needed: int | None  # poses expected to suffice for a decision; None: no number of such poses will
+    payload_kg: np.ndarray | None = None  # (n,) payload to mount for each pose, when a payload change was offered
+    note: str = ""  # why an offered payload change was not considered
+    payload_offered_kg: float | None = None
 
     def summary(self) -> str:
         n = len(self.q_rad)
@@ -71,6 +76,11 @@ class Design:
                 f"them by {np.sqrt(np.mean(self.miss_mm**2)):.3f} mm rms (up to {self.miss_mm.max():.3f} mm; "
                 f"noise {self.sigma_mm:.3f} mm per coordinate), {np.sqrt(self.lambda_cum[-1]):.1f} sigma "
                 f"apart over all {n}")
+        if self.payload_kg is not None:
+            with_it = int(np.sum(self.payload_kg == self.payload_offered_kg))
+            head += f"; {with_it} of them with the {self.payload_offered_kg:g} kg payload"
+        if self.note:
+            head += f" ({self.note})"
         if self.needed is None:
             return head + "; no number of such poses is expected to decide (the differences stay below the noise)"
         if self.needed <= n:
@@ -79,21 +89,43 @@ class Design:
 
 
 def design(finding: Finding, ctx: Context, n: int, rng: np.random.Generator,
-           n_candidates: int = N_CANDIDATES) -> Design:
-    """n configurations within the joint limits that best tell apart the finding's tied explanations."""
+           n_candidates: int = N_CANDIDATES, payload_kg: float | None = None) -> Design:
+    """n configurations within the joint limits that best tell apart the finding's tied explanations.
+
+    payload_kg: a payload the cell can mount; every candidate configuration is then offered both
+    with the data's payload and with this one, and the design takes whichever separates better.
+    Only explanations that predict a payload's effect (compliance with every link mass in the
+    robot file) can use it; otherwise the design says so and keeps the data's payload."""
     tied = finding.indistinguishable
     scorer = finding.scorer
     if len(tied) < 2 or scorer is None:
         raise DesignError("nothing to tell apart: the analysis found no explanations these data cannot separate")
     model, fit, obs = scorer.model, scorer.geometric_fit, scorer.obs
-    n_old, n_targets = len(obs), len(obs.target_names)
+    n_targets = len(obs.target_names)
     q_cand = _candidates(model, n_candidates, rng)
+    usual_kg = 0.0 if ctx.payload_kg is None else float(ctx.payload_kg[-1])
+    note = ""
+    if payload_kg is not None:
+        try:
+            return _design(finding, ctx, n, np.tile(q_cand, (2, 1)),
+                           np.repeat([usual_kg, payload_kg], len(q_cand)), payload_kg)
+        except DesignError as exc:
+            note = f"payload change not considered: {exc}"
+    return _design(finding, ctx, n, q_cand, None, None, note)
+
+
+def _design(finding: Finding, ctx: Context, n: int, q_cand: np.ndarray, pay_cand: np.ndarray | None,
+            offered_kg: float | None, note: str = "") -> Design:
+    """The greedy T-optimal choice among these candidates (each with its payload, or the data's)."""
+    tied, scorer = finding.indistinguishable, finding.scorer
+    model, fit, obs = scorer.model, scorer.geometric_fit, scorer.obs
+    n_old, n_targets = len(obs), len(obs.target_names)
     obs_all = Observations(np.concatenate([obs.q, np.repeat(q_cand, n_targets, axis=0)]),
                            np.zeros((n_old + len(q_cand) * n_targets, 3)),
                            np.concatenate([obs.target, np.tile(np.arange(n_targets), len(q_cand))]),
                            obs.target_names)
-    terms = [_term_at(model, fit, obs_all, _extended(ctx, len(obs_all) - n_old), t.scored.terms[0])
-             for t in tied]
+    ctx_all = _extended(ctx, len(obs_all) - n_old, None if pay_cand is None else np.repeat(pay_cand, n_targets))
+    terms = [_term_at(model, fit, obs_all, ctx_all, t.scored.terms[0]) for t in tied]
     estimated = [scorer.term_estimated(t.scored.terms[0]) for t in tied]
     x = _model_columns(model, fit, obs_all, terms, estimated)  # per model (rows, 3, p)
     old = slice(0, n_old)
@@ -126,7 +158,8 @@ def design(finding: Finding, ctx: Context, n: int, rng: np.random.Generator,
     lambda_cum, margin_cum = np.array(lambda_cum), np.array(margin_cum)
     closest = min(pairs, key=lambda p: p.added)
     return Design(q_cand[chosen], obs.target_names, tuple(t.label for t in tied), float(sigma), lambda_cum,
-                  margin_cum, closest.miss_mm(), _needed(lambda_cum, margin_cum, n_old, n_targets))
+                  margin_cum, closest.miss_mm(), _needed(lambda_cum, margin_cum, n_old, n_targets),
+                  None if pay_cand is None else pay_cand[chosen], note, offered_kg)
 
 
 class _Pair:
@@ -228,12 +261,16 @@ def _candidates(model, n: int, rng: np.random.Generator) -> np.ndarray:
     return np.concatenate(out)[:n]
 
 
-def _extended(ctx: Context, n_new: int) -> Context:
+def _extended(ctx: Context, n_new: int, payload_kg: np.ndarray | None) -> Context:
     """The data's context continued over new rows: approach direction unknown, no time passing,
-    the last temperature and payload, standing still."""
+    the last temperature, standing still; the last payload, or payload_kg (n_new,) when given."""
     last = lambda a: None if a is None else np.concatenate([a, np.repeat(a[-1:], n_new, axis=0)])  # noqa: E731
+    payload = last(ctx.payload_kg)
+    if payload_kg is not None:
+        before = np.zeros(len(ctx.direction)) if ctx.payload_kg is None else ctx.payload_kg
+        payload = np.concatenate([before, payload_kg])
     return Context(np.concatenate([ctx.direction, np.zeros((n_new, ctx.direction.shape[1]))]), last(ctx.t_s),
-                   last(ctx.temp_c), last(ctx.payload_kg),
+                   last(ctx.temp_c), payload,
                    None if ctx.dq_rad_s is None else np.concatenate([ctx.dq_rad_s,
                                                                      np.zeros((n_new, ctx.dq_rad_s.shape[1]))]))
 
@@ -256,7 +293,8 @@ def _term_at(model, fit, obs_all: Observations, ctx_all: Context, term):
     for t in CAUSES[term.cause].terms(model, fit.layout, fit.x, obs_all, ctx_all):
         if t.where == term.where and t.names == term.names:
             return t
-    raise DesignError(f"{term.label()} cannot be evaluated at new poses")
+    raise DesignError(f"{term.label()} cannot be evaluated at new poses (with a payload change: its model "
+                      f"does not predict what a payload does without every link mass in the robot file)")
 
 
 def _model_columns(model, fit, obs_all: Observations, terms, estimated) -> list[np.ndarray]:

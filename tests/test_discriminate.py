@@ -67,7 +67,9 @@ def test_two_effects_present_or_nothing_to_explain_are_no_tie():
 
 @pytest.mark.parametrize("argv,message", [
     (["--discriminate", "12"], "needs -o"),
-    (["-o", "poses.csv"], "give both or neither"),
+    (["-o", "poses.csv"], "belong to --discriminate N"),
+    (["--payload-kg", "5"], "belong to --discriminate N"),
+    (["--discriminate", "4", "-o", "poses.csv", "--payload-kg", "-1"], "--payload-kg must be a positive"),
     (["--discriminate", "0", "-o", "poses.csv"], "at least 1"),
 ])
 def test_discriminate_refuses_bad_usage_before_computing(argv, message, tmp_path, capsys, monkeypatch):
@@ -83,10 +85,10 @@ def _analyze(data, capsys, *extra):
     return json.loads(capsys.readouterr().out)
 
 
-def _read_poses(path, model):
+def _read_poses(path, model, payload=False):
     with open(path, encoding="utf-8") as f:
         rows = list(csv.reader(line for line in f if not line.startswith("#")))
-    assert rows[0] == [f"q{j}_rad" for j in range(1, model.n_joints + 1)]
+    assert rows[0] == [f"q{j}_rad" for j in range(1, model.n_joints + 1)] + (["payload_kg"] if payload else [])
     return np.array(rows[1:], dtype=float)
 
 
@@ -99,11 +101,13 @@ def test_sweeps_tie_and_the_proposed_poses_name_the_hidden_cause(cause, tmp_path
     data = tmp_path / "sweeps.csv"
     write_measurements(data, q_rad=first.obs.q, xyz_mm=first.obs.xyz_mm)
     poses = tmp_path / "poses.csv"
-    doc = _analyze(data, capsys, "--discriminate", "12", "-o", str(poses))
+    # without link masses the compliance model cannot say what a payload does: offered, not taken
+    doc = _analyze(data, capsys, "--discriminate", "12", "-o", str(poses), "--payload-kg", "20")
     assert doc["cause"] == "none", doc["notes"]
     assert elbow_pair(doc["indistinguishable"]), doc["indistinguishable"]
     assert all("margin" in t["why"] or "column span" in t["why"] for t in doc["indistinguishable"])
     assert doc["discriminate"]["poses"] == 12 and doc["discriminate"]["needed"] <= 12
+    assert doc["discriminate"]["payload_kg"] is None and "payload change not considered" in doc["discriminate"]["summary"]
 
     q_new = _read_poses(poses, model)
     assert q_new.shape == (12, model.n_joints)
@@ -115,3 +119,30 @@ def test_sweeps_tie_and_the_proposed_poses_name_the_hidden_cause(cause, tmp_path
     doc = _analyze(both, capsys)
     assert (doc["cause"], doc["where"].get("joint")) == (cause, 3), doc["candidates"][:3]
     assert doc["margin_pct"] >= 100 * MIN_MARGIN
+
+
+@pytest.mark.slow
+def test_a_payload_change_is_proposed_where_it_separates_compliance_from_a_cyclic_error(tmp_path, capsys):
+    # every link mass in the robot file: the compliance model predicts what a payload does, the cyclic one
+    # predicts nothing, so the design mounts the payload the cell offers on most of the new poses
+    model = load_robot("ur10e")
+    arm, q = sweep_case(model, "joint_compliance", seed=0)
+    first = arm.campaign(q)
+    data, poses = tmp_path / "sweeps.csv", tmp_path / "poses.csv"
+    write_measurements(data, q_rad=first.obs.q, xyz_mm=first.obs.xyz_mm)
+    code = main(["analyze", "--robot", "ur10e", "--data", str(data), "--json", "--discriminate", "6",
+                 "-o", str(poses), "--payload-kg", "10"])
+    doc = json.loads(capsys.readouterr().out)
+    assert code == 0 and doc["cause"] == "none"
+    assert {t["cause"] for t in doc["indistinguishable"]} == {"joint_compliance", "cyclic_joint_error"}
+    rows = _read_poses(poses, model, payload=True)
+    q_new, payload = rows[:, :-1], rows[:, -1]
+    assert set(payload) <= {0.0, 10.0} and np.sum(payload == 10.0) >= 4
+    second = arm.campaign(q_new, payload_kg=payload)
+    both = tmp_path / "both.csv"
+    write_measurements(both, q_rad=np.concatenate([first.obs.q, q_new]),
+                       xyz_mm=np.concatenate([first.obs.xyz_mm, second.obs.xyz_mm]),
+                       payload_kg=np.concatenate([np.zeros(len(q)), payload]))
+    code = main(["analyze", "--robot", "ur10e", "--data", str(both), "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    assert (doc["cause"], doc["where"]) == ("joint_compliance", {"joint": 3}), doc["candidates"][:3]
