@@ -206,3 +206,15 @@ def test_hidden_effect_is_named_through_gross_outliers_with_a_robust_loss(cause,
     if effect.joint is not None:
         assert where_joint(finding) == case.effects[0].joint + 1, finding.where
     assert finding.gain_pct >= 50.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(4))
+def test_robust_loss_raises_no_alarm_on_effect_free_data_with_gross_outliers(seed):
+    from cellcal.solvers.analyze import AnalyzeOptions
+
+    model = load_robot(ROBOTS[seed % len(ROBOTS)])
+    case = make_case(model, [], [], n=60, noise_scale=NOISE[seed % len(NOISE)], seed=300 + seed)
+    obs = with_gross_outliers(case.campaign.obs, case.noise_mm, seed)
+    finding = analyze(model, obs, case.campaign.ctx, AnalyzeOptions(loss="soft_l1"))
+    assert finding.cause == "none", (finding.candidates[0].label, finding.notes)
