@@ -8,7 +8,9 @@ the other. For each: does the first analysis report the pair as indistinguishabl
 many poses the design says suffice; and does the analysis of the sweeps plus the proposed
 poses, measured on the same simulated arm, name the hidden cause at the elbow. The
 baseline, in the same run: the sweeps plus as many random configurations over the
-workspace (what a campaign without a design would add).
+workspace (what a campaign without a design would add). Where the design itself says
+more poses are needed (up to MAX_FOLLOWED), the analysis also runs with that many
+designed poses: whether its count is worth following.
 """
 from __future__ import annotations
 
@@ -33,6 +35,7 @@ from hidden_cases import SWEEP_ROBOT, elbow_pair, sweep_case  # noqa: E402  (a t
 
 CAUSES = ("joint_compliance", "cyclic_joint_error")
 ELBOW = 3  # 1-based, as the finding says it
+MAX_FOLLOWED = 40  # poses measured when following the design's own count beyond --poses
 
 
 def _with(first: Observations, second: Observations) -> tuple[Observations, Context]:
@@ -62,12 +65,14 @@ def one(model, cause: str, seed: int, n_poses: int) -> dict:
     plan = design(finding, first.ctx, n_poses, np.random.default_rng(seed))
     row["design_s"] = time.perf_counter() - started
     row["needed"] = plan.needed
-    for name, q_new in (("designed", plan.q_rad), ("random", full_workspace(model, n_poses,
-                                                                             np.random.default_rng(1000 + seed)))):
+    trials = [("designed", plan.q_rad), ("random", full_workspace(model, n_poses, np.random.default_rng(1000 + seed)))]
+    if plan.needed is not None and n_poses < plan.needed <= MAX_FOLLOWED:  # as many as the design says suffice
+        trials.append(("followed", design(finding, first.ctx, plan.needed, np.random.default_rng(seed)).q_rad))
+    for name, q_new in trials:
         obs, ctx = _with(first.obs, arm.campaign(q_new).obs)
         again = analyze(model, obs, ctx)
         row[name] = {"cause": again.cause, "where": again.where, "named": _names(again, cause),
-                     "margin_pct": 100.0 * again.margin}
+                     "margin_pct": 100.0 * again.margin, "poses": len(q_new)}
     return row
 
 
@@ -89,18 +94,20 @@ def main(argv=None) -> int:
     print(f"\n{model.name}, one-joint-at-a-time sweeps ({len(rows) // len(CAUSES)} seeds per cause), "
           f"{args.poses} new poses:")
     print(f"{'hidden at the elbow':22s} {'tie reported':>12s} {'named (designed)':>17s} {'named (random)':>15s} "
-          f"{'poses needed (median, max)':>27s}")
+          f"{'poses needed (median, max)':>27s} {'named, count followed':>21s}")
     summary = {}
     for cause in CAUSES:
         mine = [r for r in rows if r["cause"] == cause]
         needed = [r["needed"] for r in mine if r.get("needed") is not None]
         counts = {k: sum(1 for r in mine if r.get(k, {}).get("named")) for k in ("designed", "random")}
+        # the design's own count followed where it asked for more than --poses, else the designed poses
+        followed = sum(1 for r in mine if r.get("followed", r.get("designed", {})).get("named"))
         tied = sum(r["pair_tied"] for r in mine)
         summary[cause] = {"seeds": len(mine), "pair_tied": tied, **{f"named_{k}": v for k, v in counts.items()},
-                          "needed": needed}
+                          "needed": needed, "named_count_followed": followed}
         spread = f"{int(np.median(needed))}, {max(needed)}" if needed else "-"
         print(f"{cause:22s} {tied:>9d}/{len(mine)} {counts['designed']:>14d}/{len(mine)} "
-              f"{counts['random']:>12d}/{len(mine)} {spread:>27s}")
+              f"{counts['random']:>12d}/{len(mine)} {spread:>27s} {followed:>18d}/{len(mine)}")
     times = [r["analysis_s"] for r in rows]
     design_times = [r["design_s"] for r in rows if "design_s" in r]
     print(f"analysis of the sweeps {np.median(times):.2f} s median; design {np.median(design_times):.2f} s median"

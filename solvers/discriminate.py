@@ -100,9 +100,7 @@ def design(finding: Finding, ctx: Context, n: int, rng: np.random.Generator,
     scorer = finding.scorer
     if len(tied) < 2 or scorer is None:
         raise DesignError("nothing to tell apart: the analysis found no explanations these data cannot separate")
-    model, fit, obs = scorer.model, scorer.geometric_fit, scorer.obs
-    n_targets = len(obs.target_names)
-    q_cand = _candidates(model, n_candidates, rng)
+    q_cand = _candidates(scorer.model, n_candidates, rng)
     usual_kg = 0.0 if ctx.payload_kg is None else float(ctx.payload_kg[-1])
     note = ""
     if payload_kg is not None:

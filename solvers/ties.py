@@ -17,12 +17,12 @@ import dataclasses
 from dataclasses import dataclass
 
 # Largest size of each effect commonly reported for serial industrial arms: (how the keys of the
-# cause's magnitude end, largest typical value, what it means); the largest of those keys is judged. Gravity deflection of a joint: stiffness
-# 1e4..1e6 N m/rad against gravity torques up to a few kN m, a few hundredths of a degree
-# typical, 0.5 deg an extreme; gear and encoder cyclic errors: an arc minute or two
-# (0.02-0.05 deg), 0.1 deg an extreme; backlash after assembly: below 0.1 deg; thermal
-# growth: steel 12, aluminium 23 ppm/K; a tilt between parallel axes after machining: below
-# 0.5 deg; trigger latency of sensor and IO: below 100 ms.
+# cause's magnitude end, largest typical value, what it means); the largest of those keys is judged.
+# Gravity deflection of a joint: stiffness 1e4..1e6 N m/rad against gravity torques up to a few
+# kN m, a few hundredths of a degree typical, 0.5 deg an extreme; gear and encoder cyclic errors:
+# an arc minute or two (0.02-0.05 deg), 0.1 deg an extreme; backlash after assembly: below 0.1 deg;
+# thermal growth: steel 12, aluminium 23 ppm/K; a tilt between parallel axes after machining:
+# below 0.5 deg; trigger latency of sensor and IO: below 100 ms.
 TYPICAL_MAX = {
     "joint_compliance": ("deflection_rms_deg", 0.5, "joint deflection under gravity"),
     "cyclic_joint_error": ("amplitude_deg", 0.1, "gear or encoder cyclic error"),

@@ -17,7 +17,7 @@ from cellcal.daemon.cli import main
 from cellcal.routines.dataset import write_measurements
 from cellcal.solvers.analyze import MIN_GAIN, MIN_MARGIN, Naming
 from cellcal.solvers.ties import TYPICAL_MAX, tied_explanations
-from hidden_cases import SWEEP_ROBOT, elbow_pair, sweep_case  # tests/hidden_cases.py: a fixture, not part of the package
+from hidden_cases import SWEEP_ROBOT, elbow_pair, sweep_case  # tests/hidden_cases.py: a fixture
 from test_analyze import BASELINE, StubScorer, scored
 
 
@@ -107,7 +107,8 @@ def test_sweeps_tie_and_the_proposed_poses_name_the_hidden_cause(cause, tmp_path
     assert elbow_pair(doc["indistinguishable"]), doc["indistinguishable"]
     assert all("margin" in t["why"] or "column span" in t["why"] for t in doc["indistinguishable"])
     assert doc["discriminate"]["poses"] == 12 and doc["discriminate"]["needed"] <= 12
-    assert doc["discriminate"]["payload_kg"] is None and "payload change not considered" in doc["discriminate"]["summary"]
+    plan = doc["discriminate"]
+    assert plan["payload_kg"] is None and "payload change not considered" in plan["summary"]
 
     q_new = _read_poses(poses, model)
     assert q_new.shape == (12, model.n_joints)
