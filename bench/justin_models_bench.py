@@ -18,6 +18,11 @@ whatever loss the fit used. Models:
 - lumped point masses with a third axis per joint: bending about the axis normal to the
   joint axis and its bending axis (the model file has no parameter for it: Cartesian
   columns, the target turned about that axis);
+- lumped point masses and the elastic mount (the analysis' model for trees,
+  ``effects.elastic_mount``): the whole robot tilts about the two horizontal axes through
+  its base under the gravity moment of every link point; with a horizontal shift of the
+  pivot in proportion (the analysis leaves the shift out: its nonlinear fit converges
+  slowly with it);
 - bilinear: one compliance per rotation / bending axis times masses shared by every axis
   above them (point masses; then point masses and centre-of-mass moments), fitted by
   alternating least squares from equal masses at the link points.
@@ -43,6 +48,7 @@ from cellcal.config.robot_files import load_robot
 from cellcal.daemon.importers import dlr_justin
 from cellcal.solvers import crossval, se3
 from cellcal.solvers.analyze import NEIGHBOUR_RAD, AnalyzeOptions, _geometric_baseline
+from cellcal.solvers.effects.elastic_mount import mount_columns
 from cellcal.solvers.gravity import point_mass_regressors, tree_sites
 from cellcal.solvers.measurement_model import Observations, jacobian_chunks
 
@@ -70,7 +76,11 @@ def elastic_columns(model, fit, obs):
                         axis_of.append(param)
                         moment_of.append((str(key), a - 1))
     third = third_axis_columns(model, fit, obs, lambda p: jx[:, :, p])
-    return jx[:, :, fit.free], np.stack(cols, axis=2), np.array(axis_of), moment_of, third
+    points = {}
+    for site in tree_sites(model, fit.x[: fit.layout.n_kin], obs.q):
+        points.update(zip(site["point_keys"], site["points"]))
+    mount = [mount_columns(model, fit.layout, fit.x, obs, list(points.values()), shifts)[0] for shifts in (False, True)]
+    return jx[:, :, fit.free], np.stack(cols, axis=2), np.array(axis_of), moment_of, third, mount
 
 
 def third_axis_columns(model, fit, obs, jx_theta):
@@ -193,7 +203,7 @@ def main(argv=None) -> int:
     with threadpool_limits(limits=1, user_api="blas"):
         folds = crossval.fold_ids(obs.q, 5, 0, NEIGHBOUR_RAD)
         fit = _geometric_baseline(model, obs, folds, AnalyzeOptions())
-        jg, je, axis_of, moment_of, third = elastic_columns(model, fit, obs)
+        jg, je, axis_of, moment_of, third, mount = elastic_columns(model, fit, obs)
         masses = np.array([m == -1 for _, m in moment_of])
         ng, r = jg.shape[2], fit.residuals_mm
         point = np.concatenate([jg, je[:, :, masses]], axis=2)
@@ -206,6 +216,10 @@ def main(argv=None) -> int:
             ("lumped point masses + centre-of-mass moments", full, fit_plain),
             ("lumped point masses, third bending axis", np.concatenate([point, third], axis=2), fit_plain),
             ("the same, Huber loss", np.concatenate([point, third], axis=2), fit_huber),
+            ("lumped point masses, elastic mount", np.concatenate([point, mount[0]], axis=2), fit_plain),
+            ("the same, Huber loss", np.concatenate([point, mount[0]], axis=2), fit_huber),
+            ("lumped point masses, elastic mount with pivot shift", np.concatenate([point, mount[1]], axis=2),
+             fit_plain),
             ("bilinear: compliance x shared point masses", point,
              fit_bilinear(ng, axis_of[masses], [k for k, m in zip(moment_of, masses) if m], args.iterations)),
             ("bilinear: compliance x shared mass moments", full,

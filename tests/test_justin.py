@@ -48,16 +48,16 @@ def test_tree_model_reproduces_the_published_nominal_error(justin_csv):
 
 
 @pytest.mark.slow
-def test_analyze_names_compliance_with_believable_sizes_and_3p5mm_held_out(justin_csv, tmp_path, capsys):
+def test_analyze_names_compliance_with_believable_sizes_below_the_published_held_out(justin_csv, tmp_path, capsys):
     code = main(["analyze", "--robot", "config/robots/agile-justin.yaml" if Path("config/robots").exists()
                  else "agile-justin", "--data", str(justin_csv), "--json", "--report", str(tmp_path)])
     doc = json.loads(capsys.readouterr().out)
     assert code == 0
     assert doc["cause"] == "joint_compliance"
     assert doc["baseline"]["heldout_mean_mm"] < 10.6  # published geometric calibration: 10.6 mm
-    # the same 5-fold grouped protocol as the analysis bench: 3.50 mm held-out mean (published with
-    # CAD masses: 3.3 mm)
-    assert doc["extended"]["heldout_mean_mm"] == pytest.approx(3.50, abs=0.05)
+    # the same 5-fold grouped protocol as the analysis bench, joints and the elastic mount without
+    # CAD masses: 3.23 mm held-out mean (published with CAD masses: 3.3 mm)
+    assert doc["extended"]["heldout_mean_mm"] == pytest.approx(3.23, abs=0.05)
     # sizes a person can believe: deflections only where determined, the rest grouped or bounded
     places = doc["magnitude"]["places"]
     believed = [e for e in places if e["kind"] in ("determined", "group")]

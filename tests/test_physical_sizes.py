@@ -69,3 +69,34 @@ def test_places_that_trade_are_grouped_and_the_group_is_right():
     assert np.deg2rad(group["deflection_std_deg"]) == pytest.approx(theta_true[:2].sum() * np.std(d[:, 0]), rel=0.02)
     assert group["deflection_std_deg"] >= DETERMINED_SIGMAS * group["standard_error_deg"]
     assert "a+b_deflection_std_deg" in flat and "a_deflection_std_deg" not in flat
+
+
+def test_mount_columns_are_the_whole_robot_turned_about_a_horizontal_axis():
+    """A tree on an elastic mount: each column is the targets' motion when the robot turns about a
+    horizontal axis through its base, scaled by a link point's gravity moment about that axis."""
+    from cellcal.solvers import se3
+    from cellcal.solvers.effects.elastic_mount import horizontal_axes, mount_columns
+    from cellcal.solvers.gravity import tree_sites
+    from cellcal.solvers.measurement_model import Layout, Observations, predict
+
+    model = load_robot("agile-justin")
+    layout = Layout(model, ("right", "left"))
+    x = layout.initial()
+    x[layout.base] = [100.0, -50.0, 20.0, 0.1, -0.2, 0.3]
+    q = np.random.default_rng(0).uniform(-1, 1, (6, model.n_joints))
+    obs = Observations(np.repeat(q, 2, axis=0), np.zeros((12, 3)), np.tile([0, 1], 6), ("right", "left"))
+    points = {}
+    for site in tree_sites(model, x[: layout.n_kin], obs.q):
+        points.update(zip(site["point_keys"], site["points"]))
+    cols, names, places = mount_columns(model, layout, x, obs, list(points.values()))
+    assert cols.shape == (12, 3, len(names)) and set(places) == {"mount.tilt1", "mount.tilt2"}
+    axes = horizontal_axes(model.gravity)
+    assert np.abs(axes @ model.gravity).max() < 1e-12 and np.allclose(axes @ axes.T, np.eye(2))
+    for a, label in enumerate(("mount.tilt1", "mount.tilt2")):
+        k = int(np.flatnonzero(np.any(places[label] != 0, axis=0))[0])
+        moment = places[label][:, k]
+        tilted = x.copy()  # the robot turned by a small angle about the axis, in its own base frame
+        rot = se3.rotvec_to_matrix(x[layout.base][3:]) @ se3.rotvec_to_matrix(1e-6 * axes[a])
+        tilted[layout.base.start + 3: layout.base.stop] = se3.matrix_to_rotvec(rot)
+        moved = (predict(layout, tilted, obs) - predict(layout, x, obs)) / 1e-6
+        assert cols[:, :, k] == pytest.approx(moved * moment[:, None], rel=1e-4, abs=1e-6)

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..gravity import gravity_torques, point_mass_regressors, torque_regressors, tree_sites
 from .base import Cause, JointBasis, Term
+from .elastic_mount import mount_columns
 
 MIN_TORQUE_SPREAD = 1e-6  # a joint whose gravity torque never changes (vertical axis) has no candidate
 
@@ -41,7 +42,9 @@ class JointCompliance(Cause):
         deflect by point-mass gravity torques of everything downstream (masses unknown)."""
         k = x[: layout.n_kin]
         by_chain: dict[str, dict] = {}
+        every_point = {}
         for site in tree_sites(model, k, obs.q):
+            every_point.update(zip(site["point_keys"], site["points"]))
             if not site["points"]:
                 continue
             basis = {}
@@ -59,16 +62,25 @@ class JointCompliance(Cause):
                 group = by_chain.setdefault(model.param_names[site["theta"]].split(".")[0], {"basis": [], "names": []})
                 group["basis"].append(basis)
                 group["names"] += names
+        # the whole tree also tilts on its mount (``elastic_mount``): with the root branch, and with all
+        mount = mount_columns(model, layout, x, obs, list(every_point.values()))
         out = []
-        for where, group in by_chain.items():
-            out.append(self._param_term(model, {"branch": where}, group["basis"], group["names"], len(obs)))
+        for i, (where, group) in enumerate(by_chain.items()):
+            out.append(self._param_term(model, {"branch": where}, group["basis"], group["names"], len(obs),
+                                        mount=mount if i == 0 else None))
         if len(out) > 1:
             out.append(self._param_term(model, {"branches": list(by_chain)},
                                         [b for g in by_chain.values() for b in g["basis"]],
-                                        [n for g in by_chain.values() for n in g["names"]], len(obs), multi=True))
+                                        [n for g in by_chain.values() for n in g["names"]], len(obs), multi=True,
+                                        mount=mount))
         return out
 
-    def _param_term(self, model, where, bases, names, n_rows, multi=False):
+    def _param_term(self, model, where, bases, names, n_rows, multi=False, mount=None):
+        """One term moving the frames' parameters (bases: [{param: (N, k)}], columns side by side),
+        and with mount = (columns, names, places) from ``mount_columns`` the mount's tilt after them."""
+        n_param = len(names)
+        if mount is not None and mount[1]:
+            names = list(names) + mount[1]
         m = len(names)
         param_basis: dict[int, np.ndarray] = {}
         col = 0
@@ -80,8 +92,19 @@ class JointCompliance(Cause):
         # what each moved parameter is called, for the report: torso.theta2 -> torso.joint2
         labels = {p: model.param_names[p].replace("theta", "joint").replace("alpha", "bend_before")
                   for p in param_basis}
-        return Term(self.id, where, tuple(names), param_basis=param_basis, units=("rad",) * m, multi=multi,
-                    extra={"labels": labels})
+        if m == n_param:
+            return Term(self.id, where, tuple(names), param_basis=param_basis, units=("rad",) * m, multi=multi,
+                        extra={"labels": labels})
+        cols, _, places = mount
+        cart = np.zeros((n_rows, 3, m))
+        cart[:, :, n_param:] = cols
+        tilt = {}
+        for label, d in places.items():
+            tilt[label] = np.zeros((n_rows, m))
+            tilt[label][:, n_param:] = d
+        return Term(self.id, where, tuple(names), param_basis=param_basis, cart_basis=cart,
+                    units=("rad",) * n_param + ("mm",) * (m - n_param), multi=multi,
+                    extra={"labels": labels, "mount_places": tilt})
 
     def terms(self, model, layout, x, obs, ctx):
         if not model.joint_elements:
@@ -112,7 +135,8 @@ class JointCompliance(Cause):
         """Every deflecting place of the term: a tree's frame rotations and bending axes, a
         serial arm's joints; with known masses each joint's compliance (rad/N m) is a theta entry."""
         if term.param_basis:
-            return [(term.extra["labels"][p], basis) for p, basis in term.param_basis.items()], {}
+            return ([(term.extra["labels"][p], basis) for p, basis in term.param_basis.items()]
+                    + list(term.extra.get("mount_places", {}).items())), {}
         joints = [term.where["joint"]] if "joint" in term.where else term.where["joints"]
         basis = term.joint_basis
         out = [(f"joint{j}", basis.values @ basis.mix[:, j - 1, :]) for j in joints]
