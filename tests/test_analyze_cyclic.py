@@ -11,7 +11,7 @@ from cellcal.config.robot_files import load_robot
 from cellcal.sims.physical_arm import HiddenEffect
 from cellcal.solvers.analyze import analyze, heldout_with_terms
 from cellcal.solvers.effects import JointBasis, Term
-from cellcal.solvers.effects.cyclic_joint_error import (fitted_errors, harmonics, order_bound, periodogram)
+from cellcal.solvers.effects.cyclic_joint_error import fitted_errors, harmonics, order_bound, periodogram, pursuit
 from hidden_cases import make_case
 
 ROBOTS = ("ur10e", "abb-irb4600", "elite-ec66")
@@ -185,3 +185,21 @@ def test_periodic_error_that_is_no_few_sinusoids_is_fitted_as_a_periodic_spline(
     (kept,) = calibrated.periodic
     outside = np.array([spline.coverage_rad[0][0] - 0.05, spline.coverage_rad[-1][1] + 0.05])
     assert np.allclose(kept.delta_rad(inside), fitted) and np.all(kept.delta_rad(outside) == 0.0)
+
+
+def test_order_pursuit_from_sums_matches_refitting_on_the_rows():
+    rng = np.random.default_rng(3)
+    q = rng.uniform(-3.0, 3.0, 1500)
+    weight = rng.uniform(0.5, 2.0, 1500)
+    delta = 2e-3 * np.sin(33 * q + 0.3) + 1e-3 * np.sin(37 * q + 1.0) + 6e-4 * np.cos(34 * q)
+    projected = weight * (delta + rng.normal(0.0, 3e-4, 1500))
+    picked, left = [], projected  # the same pursuit, refitting the picked orders on the rows each time
+    for _ in range(5):
+        orders, _, power = periodogram(q, left, weight, 100)
+        power[np.asarray(picked, dtype=int) - 1] = -np.inf
+        picked.append(int(orders[np.argmax(power)]))
+        b = harmonics(q, picked)
+        coef = np.linalg.solve(b.T @ (b * weight[:, None]), b.T @ projected)
+        left = projected - weight * (b @ coef)
+    assert pursuit(q, projected, weight, 100, 5) == picked
+    assert picked[:3] == [33, 37, 34]
