@@ -227,3 +227,30 @@ class Routine(abc.ABC):
     @abc.abstractmethod
     def solve(cls, dataset, cell: Cell, options) -> Result:
         """The result of a recorded dataset: a pure solver call, residuals, gates."""
+
+
+class StepRoutine(Routine):
+    """A routine whose plan is a list of steps, each a move and what that move records
+    (``None`` for a move that only gets the tool there), behind a design that is checked
+    (and may refuse the plan) before anything moves. Subclasses implement ``steps`` and
+    ``check_design``."""
+
+    @abc.abstractmethod
+    def steps(self) -> list[tuple[Move, object]]:
+        """Every move with what it records, from the cell file alone."""
+
+    @abc.abstractmethod
+    def check_design(self):
+        """The design the plan gives (expected errors, conditioning); raises PlanRefused
+        if it cannot meet the routine's targets."""
+
+    def plan(self) -> list[Move]:
+        self.check_design()
+        return [move for move, _ in self.steps()]
+
+    def steps_of(self, plan: list[Move]) -> list[tuple[Move, object]]:
+        """This routine's steps, once `plan` is found to be its plan for this cell file."""
+        steps = self.steps()
+        if [m.label for m in plan] != [m.label for m, _ in steps]:
+            raise RoutineError("the plan given is not this routine's plan for this cell file")
+        return steps

@@ -56,7 +56,7 @@ from ..config.robot_files import load_robot
 from ..solvers import handshake as hs
 from ..solvers import se3
 from ..solvers.inverse import inverse, tcp_frames
-from .base import Devices, Move, PlanRefused, Result, Routine, RoutineError
+from .base import Devices, Move, PlanRefused, Result, RoutineError, StepRoutine
 from .handshake_result import handshake_result
 from .records import Dataset
 from .tcp_npoint import axis_sigma_mm, restore_tcp
@@ -115,7 +115,7 @@ def _tilted(axis: np.ndarray, tilt_rad: float, azimuth_rad: float) -> np.ndarray
     return np.cos(tilt_rad) * axis + np.sin(tilt_rad) * frame[:, 0]
 
 
-class Handshake(Routine):
+class Handshake(StepRoutine):
     name = "handshake"
     section = "handshake"
     needs = ("robot",)
@@ -276,16 +276,10 @@ class Handshake(Routine):
                 "plan more points, a larger half_extent_m or more tilt_deg")
         return design
 
-    def plan(self) -> list[Move]:
-        self.check_design()
-        return [move for move, _ in self.steps()]
-
     # -- measure ---------------------------------------------------------------------
 
     def measure(self, devices: Devices, robot, plan: list[Move], progress) -> Dataset:
-        steps = self.steps()
-        if [m.label for m in plan] != [m.label for m, _ in steps]:
-            raise RoutineError("the plan given is not this routine's plan for this cell file")
+        steps = self.steps_of(plan)
         o = self.options
         design = self.check_design()
         points = hs.point_set([m.point_m * 1e3 for m in self.meetings()])

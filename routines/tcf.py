@@ -41,7 +41,7 @@ from ..solvers import pivot as pv
 from ..solvers import se3
 from ..solvers.inverse import inverse
 from . import gates
-from .base import Devices, Gate, Move, Parameter, PlanRefused, Result, Routine, RoutineError
+from .base import Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError, StepRoutine
 from .drawing import axis_crossings
 from .records import Dataset
 from .tcp_npoint import JOINT_SPEED_RAD_S, LIFT_MM, axis_sigma_mm, down_orientation, flange_frames, restore_tcp
@@ -63,7 +63,7 @@ class TcfOptions:
     tcp_mm: np.ndarray | None
 
 
-class Tcf(Routine):
+class Tcf(StepRoutine):
     name = "tcf"
     section = "tcf"
     needs = ("robot",)
@@ -180,16 +180,10 @@ class Tcf(Routine):
         steps.append((Move.joint("home", cell.home_q_rad, joint_speed, joint_accel), None))
         return steps
 
-    def plan(self) -> list[Move]:
-        self.check_design()
-        return [move for move, _ in self.steps()]
-
     # -- measure ---------------------------------------------------------------------
 
     def measure(self, devices: Devices, robot, plan: list[Move], progress) -> Dataset:
-        steps = self.steps()
-        if [m.label for m in plan] != [m.label for m, _ in steps]:
-            raise RoutineError("the plan given is not this routine's plan for this cell file")
+        steps = self.steps_of(plan)
         o = self.options
         design = self.check_design()
         progress(f"tcf: {o.turns} turns of the tool, the shank touched at {o.near_mm:g} and {o.far_mm:g} mm behind "

@@ -50,7 +50,7 @@ from ..solvers import se3
 from ..solvers.inverse import inverse, tcp_frames
 from ..solvers.robot_model import KinematicModel
 from . import gates
-from .base import Devices, Gate, Move, Parameter, PlanRefused, Result, Routine, RoutineError
+from .base import Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError, StepRoutine
 from .drawing import seats_about_pivot
 from .records import Dataset
 
@@ -118,7 +118,7 @@ def restore_tcp(robot, tool_pose) -> None:
         pass
 
 
-class TcpNpoint(Routine):
+class TcpNpoint(StepRoutine):
     name = "tcp-npoint"
     section = "tcp_npoint"
     needs = ("robot",)
@@ -213,16 +213,10 @@ class TcpNpoint(Routine):
         steps.append((Move.joint("home", cell.home_q_rad, joint_speed, joint_accel), None))
         return steps
 
-    def plan(self) -> list[Move]:
-        self.check_design()
-        return [move for move, _ in self.steps()]
-
     # -- measure ---------------------------------------------------------------------
 
     def measure(self, devices: Devices, robot, plan: list[Move], progress) -> Dataset:
-        steps = self.steps()
-        if [m.label for m in plan] != [m.label for m, _ in steps]:
-            raise RoutineError("the plan given is not this routine's plan for this cell file")
+        steps = self.steps_of(plan)
         o = self.options
         design = self.check_design()
         progress(f"tcp-npoint: {o.orientations} orientations tilted {o.spread_deg:g} and {o.spread_deg / 2:g} deg "
