@@ -147,3 +147,20 @@ def errors_per_pose(series: dict[str, tuple[np.ndarray, np.ndarray]], expected_m
                    "validation poses took no part in the fit.",
                    (Panel("error per pose", "pose (in the order measured)", "error (mm)", tuple(layers),
                           equal_axes=False),))
+
+
+def meeting_points(points_mm, residuals_mm, expected_mm: float) -> Drawing:
+    """Two robots' tips meeting: where each meeting was (robot a's base frame, from above and
+    from the side) and how far the two fitted tips stayed apart there, per axis."""
+    points, residuals = np.asarray(points_mm, float), np.asarray(residuals_mm, float)
+    panels = [Panel(f"meeting points, {name}", f"{'xyz'[i]} (mm)", f"{'xyz'[j]} (mm)",
+                    (Layer("meetings", points[:, [i, j]]),)) for name, (i, j) in (("from above", (0, 1)),
+                                                                                  ("from the side", (0, 2)))]
+    n = np.arange(1, len(points) + 1)
+    layers = [Layer(f"{axis} apart", np.column_stack([n, residuals[:, k]])) for k, axis in enumerate("xyz")]
+    layers += [Layer(f"+- expected {expected_mm:.3f} mm", np.array([[1, expected_mm], [len(n), expected_mm]]), "fitted"),
+               Layer("_expected", np.array([[1, -expected_mm], [len(n), -expected_mm]]), "fitted", paired=True)]
+    panels.append(Panel("the fitted tips apart at each meeting", "meeting", "a's tip less b's (mm)", tuple(layers),
+                        equal_axes=False))
+    return Drawing("Where the two needle tips met (robot a's base frame), and how far apart the fitted frame and "
+                   "tips put them at each meeting (the residual, per axis).", tuple(panels))

@@ -367,4 +367,6 @@ class Handshake(StepRoutine):
         except hs.HandshakeRefused as exc:
             raise RoutineError(f"{dataset.path}: {exc}: not solved") from None
         design = hs.design(*frames["a"], *frames["b"], *tips, sigma)
-        return handshake_result(cls.name, dataset, cell, options, fit, design)
+        rotation_a, position_a = frames["a"]
+        points = np.einsum("nij,j->ni", rotation_a, fit.tip_a_mm) + position_a
+        return handshake_result(cls.name, dataset, cell, options, fit, design, points)

@@ -11,13 +11,16 @@ from ..solvers import handshake as hs
 from ..solvers import se3
 from . import gates
 from .base import Gate, Parameter, Result
+from .drawing import meeting_points
 
 PLAUSIBLE_BASE_MM = 30.0  # a base found this far from where it was installed is doubted ...
 PLAUSIBLE_BASE_DEG = 2.0  # ... or turned this far
 MAX_STD_FACTOR = 1.0  # a frame coordinate whose std is above its target is not determined
 
 
-def handshake_result(name, dataset, cell: Cell, options, fit: hs.HandshakeFit, design: hs.Design) -> Result:
+def handshake_result(name, dataset, cell: Cell, options, fit: hs.HandshakeFit, design: hs.Design,
+                     points_mm) -> Result:
+    """`points_mm` (N, 3): where robot a's fitted tip was at each meeting, in a's base frame."""
     n = len(fit.residuals_mm)
     expected = float(np.sqrt(2.0) * options.repeatability_mm * np.sqrt(max(3 * n - hs.N_UNKNOWNS, 1) / (3 * n)))
     rms = float(np.sqrt(np.mean(np.sum(fit.residuals_mm**2, axis=1))))
@@ -78,4 +81,4 @@ def handshake_result(name, dataset, cell: Cell, options, fit: hs.HandshakeFit, d
              "tip_a_mm": fit.tip_a_mm.tolist(), "tip_b_mm": fit.tip_b_mm.tolist(),
              "meeting_residuals_mm": np.linalg.norm(fit.residuals_mm, axis=1).tolist()}
     return Result(name, params, fit.residuals_mm, expected, fit.condition, gate_list, frame=frame, notes=notes,
-                  extra=extra)
+                  extra=extra, drawing=meeting_points(points_mm, fit.residuals_mm, expected / np.sqrt(3.0)))

@@ -28,6 +28,7 @@ from cellcal.sims.truth import truth_of_cell
 from cellcal.solvers import handshake as hs
 from cellcal.solvers import se3
 from cellcal.solvers.inverse import tcp_poses
+from report_check import assert_report_draws, layer
 from test_routine_framework import RecordingRobot, within_limits
 
 TARGET_MM, TARGET_DEG = 0.1, 0.01  # with 12 points at 0.02 mm repeatability
@@ -99,6 +100,15 @@ def test_the_dataset_re_solves_to_the_same_frame_and_too_few_rows_are_refused(me
     three.write(tmp_path / "three.csv")
     with pytest.raises(RoutineError, match="3 meeting points: .* at least 4 points not on one plane"):
         runner.solve_file("handshake", dual, tmp_path / "three.csv")
+
+
+def test_the_run_report_draws_the_meetings_and_how_far_apart_the_fit_leaves_the_tips(measured, tmp_path):
+    result, _, _, _ = measured
+    assert_report_draws(result, tmp_path, "meeting points, from above", "the fitted tips apart at each meeting")
+    apart = np.column_stack([layer(result, "the fitted tips apart at each meeting", f"{c} apart")[:, 1] for c in "xyz"])
+    np.testing.assert_allclose(apart, result.residuals_mm, atol=1e-12)
+    above = layer(result, "meeting points, from above", "meetings")
+    assert len(above) == 12 and np.ptp(above, axis=0).min() >= 50.0  # spread over the shared workspace, mm
 
 
 def _synthetic(points_mm, seed=1):
