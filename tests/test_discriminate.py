@@ -147,3 +147,31 @@ def test_a_payload_change_is_proposed_where_it_separates_compliance_from_a_cycli
     code = main(["analyze", "--robot", "ur10e", "--data", str(both), "--json"])
     doc = json.loads(capsys.readouterr().out)
     assert (doc["cause"], doc["where"]) == ("joint_compliance", {"joint": 3}), doc["candidates"][:3]
+
+
+def test_the_greedy_gain_is_the_rise_of_the_refitted_residual_sum_of_squares():
+    # the design's rank-3 update against refitting from scratch with the candidate's rows added
+    from cellcal.solvers.discriminate import _Pair
+
+    rng = np.random.default_rng(3)
+    x_old, mean_old = rng.normal(size=(40, 3, 5)), rng.normal(size=(40, 3))
+    x_cand, mean_cand = rng.normal(size=(7, 3, 5)), rng.normal(size=(7, 3))
+    pair = _Pair(0, 1, x_old, mean_old, x_cand, mean_cand)
+
+    def rss(x, y):
+        flat = x.reshape(-1, 5)
+        return float(np.sum((flat @ np.linalg.lstsq(flat, y.ravel(), rcond=None)[0] - y.ravel()) ** 2))
+
+    gains, leverage = pair.gains()
+    for c in range(7):
+        rise = rss(np.concatenate([x_old, x_cand[c:c + 1]]), np.concatenate([mean_old, mean_cand[c:c + 1]])) \
+            - rss(x_old, mean_old)
+        assert gains[c] == pytest.approx(rise, rel=1e-6)
+        flat = x_old.reshape(-1, 5)
+        assert leverage[c] == pytest.approx(np.trace(x_cand[c] @ np.linalg.solve(flat.T @ flat, x_cand[c].T)), rel=1e-6)
+    pair.add(2, gains[2], 0.0)  # after adding one, the next gains are against the grown fit
+    gains_after, _ = pair.gains()
+    grown_x, grown_y = np.concatenate([x_old, x_cand[2:3]]), np.concatenate([mean_old, mean_cand[2:3]])
+    rise = (rss(np.concatenate([grown_x, x_cand[5:6]]), np.concatenate([grown_y, mean_cand[5:6]]))
+            - rss(grown_x, grown_y))
+    assert gains_after[5] == pytest.approx(rise, rel=1e-6) and pair.added == pytest.approx(gains[2])
