@@ -104,7 +104,7 @@ class Naming:
     candidates: tuple[Scored, ...]  # best first; a simpler explanation that wins a tie goes first
     margin: float  # how much higher (fraction) the best other cause's held-out error is
     notes: tuple[str, ...] = ()
-    tie: str = ""  # how a near-tie was settled: "nested", "both" (two effects) or "ambiguous"
+    tie: str = ""  # how a near-tie was settled: "nested", "both" (two effects), "ambiguous" or "unseparated"
 
 
 def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = AnalyzeOptions(),
@@ -253,6 +253,17 @@ class LinearisedScorer:
     def heldout_errors_mm(self, terms: tuple[Term, ...]) -> np.ndarray:
         """(N,) held-out error of each measurement with geometry and these terms."""
         return self.heldout_errors_many([terms])[0]
+
+    def separation_mm2(self, fitted: Term, refitted: Term) -> float:
+        """Residual sum of squares (mm^2) left on these data when geometry + `refitted` is fitted to
+        what geometry + `fitted`, fitted to the data, predicts: how far apart the data put the two
+        explanations (the T-criterion of the design already measured). Computed in the space of the
+        R factor of [columns | residuals], which keeps every inner product of those vectors."""
+        full = self.factors.r_all()
+        fitted_cols, refitted_cols = full[:, self.estimated((fitted,))], full[:, self.estimated((refitted,))]
+        predicted = fitted_cols @ np.linalg.lstsq(fitted_cols, full[:, self.n_columns], rcond=None)[0]
+        miss = predicted - refitted_cols @ np.linalg.lstsq(refitted_cols, predicted, rcond=None)[0]
+        return float(miss @ miss)
 
     def is_nested(self, inner: Term, outer: Term) -> bool:
         """Does geometry + outer span every column of inner? (Then outer explains nothing

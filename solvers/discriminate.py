@@ -41,13 +41,12 @@ from .effects import periodic_spline
 from .effects.cyclic_joint_error import CyclicJointError, harmonics
 from .measurement_model import Observations, jacobian_chunks
 from .pose_design import clear_of_mount
+from .ties import DECIDE_LAMBDA, MEAN_PER_SIGMA  # predictions 4.65 sigma apart: a midpoint decision errs < 1%
 
-DECIDE_LAMBDA = (2.0 * 2.326) ** 2  # predictions 4.65 sigma apart: a midpoint decision errs < 1%
 MARGIN_SAFETY = 1.5
 N_CANDIDATES = 2000  # random configurations within the joint limits the design chooses from
 LIMIT_MARGIN_RAD = np.deg2rad(2.0)  # keep clear of the joint limits
 DEFAULT_SPAN_RAD = np.deg2rad(170.0)  # a robot file without limits
-MEAN_PER_SIGMA = np.sqrt(8.0 / np.pi)  # mean length of 3-D noise per standard deviation of one coordinate
 
 
 class DesignError(ValueError):

@@ -6,7 +6,11 @@ instance, makes the gravity torque on the swept joint a first harmonic of its an
 so compliance of that joint and a first-order cyclic error of it fit alike. The
 tie is reported with its reason: the same column span (one explanation's model
 lies in the other's, to ``analyze.NESTED_RTOL``), or held-out errors within the
-margin. When one of them is named all the same, the grounds are stated: the
+margin. A lead beyond the margin is a tie too when the data themselves do not
+separate the two: each fitted to the data, the other refitted to its predictions
+misses them by fewer than sqrt(DECIDE_LAMBDA) noise standard deviations over all
+rows (for the closer direction). A held-out lead then comes from how the folds fall
+on a few loosely determined parameters, not from anything the data show. When one of them is named all the same, the grounds are stated: the
 simpler of two nested explanations, or physical plausibility -- the size each
 would need against what robots of this class show (``TYPICAL_MAX``). Only a
 different experiment can decide a tie that neither settles (``discriminate``).
@@ -15,6 +19,14 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+
+import numpy as np
+
+# Two explanations whose predictions, each fitted, lie fewer than 2 * 2.33 noise standard deviations
+# apart over all the data (summed squares) cannot be told apart by a decision that errs below 1% either
+# way; the experiment design asks the same of the poses it proposes (``discriminate``).
+DECIDE_LAMBDA = (2.0 * 2.326) ** 2
+MEAN_PER_SIGMA = np.sqrt(8.0 / np.pi)  # mean length of 3-D noise per standard deviation of one coordinate
 
 # Largest size of each effect commonly reported for serial industrial arms: (how the keys of the
 # cause's magnitude end, largest typical value, what it means); the largest of those keys is judged.
@@ -84,9 +96,19 @@ def tied_explanations(naming, baseline, scorer, min_gain: float, min_margin: flo
             continue
         picked.append(c)
         causes.add(c.cause)
+    apart = None
+    if len(picked) == 1 and naming.named is picked[0]:  # named by the margin: do the data themselves separate them?
+        runner_up, apart = _unseparated(picked[0], candidates, baseline, scorer, min_gain)
+        if runner_up is None:
+            return TieReport(naming)
+        picked.append(runner_up)
+        note = (f"{picked[0].label} leads {runner_up.label} by {100 * naming.margin:.1f}% held-out, but fitted to "
+                f"these data their predictions lie only {apart:.1f} noise standard deviations apart, "
+                f"{np.sqrt(DECIDE_LAMBDA):.1f} needed to tell them apart")
+        naming = dataclasses.replace(naming, named=None, tie="unseparated", notes=naming.notes + (note,))
     if len(picked) < 2:
         return TieReport(naming)
-    entries = [Tied(c, _why(c, picked[1] if c is picked[0] else picked[0], scorer, min_margin)) for c in picked]
+    entries = [Tied(c, _why(c, picked[1] if c is picked[0] else picked[0], scorer, min_margin, apart)) for c in picked]
     if naming.named is not None:  # the simpler of two nested explanations
         grounds = (f"{naming.named.label} is named as the simpler explanation: the other needs more "
                    f"parameters to say the same on these data")
@@ -102,10 +124,27 @@ def tied_explanations(naming, baseline, scorer, min_gain: float, min_margin: flo
     return TieReport(naming, tuple(entries), grounds)
 
 
-def _why(c, other, scorer, min_margin: float) -> str:
+def _unseparated(best, candidates, baseline, scorer, min_gain: float):
+    """(the best single-place candidate of another cause, how many noise standard deviations apart the
+    two put the data) when it also explains the data (gains min_gain) and they lie fewer than
+    sqrt(DECIDE_LAMBDA) apart, the closer direction counted (either may be the truth); else (None, None).
+    The noise is what the best explanation leaves on held-out data."""
+    other = next((c for c in candidates if c.cause != best.cause and not c.terms[0].multi), None)
+    if other is None or 1.0 - other.heldout_mean_mm / baseline.heldout_mean_mm < min_gain:
+        return None, None
+    sigma_mm = best.heldout_mean_mm / MEAN_PER_SIGMA
+    a, b = best.terms[0], other.terms[0]
+    lam = min(scorer.separation_mm2(a, b), scorer.separation_mm2(b, a)) / sigma_mm**2
+    return (other, float(np.sqrt(lam))) if lam < DECIDE_LAMBDA else (None, None)
+
+
+def _why(c, other, scorer, min_margin: float, apart: float | None = None) -> str:
     a, b = c.terms[0], other.terms[0]
     if scorer.is_nested(a, b) or scorer.is_nested(b, a):
         return f"same column span as {other.label}: on these data one model contains the other"
+    if apart is not None:
+        return (f"fitted to these data, its predictions and those of {other.label} lie {apart:.1f} noise "
+                f"standard deviations apart, fewer than the {np.sqrt(DECIDE_LAMBDA):.1f} needed to tell them apart")
     apart = 100.0 * abs(c.heldout_mean_mm / other.heldout_mean_mm - 1.0)
     return (f"held-out error {apart:.1f}% from that of {other.label}, within the "
             f"{100 * min_margin:.0f}% margin needed to tell causes apart")

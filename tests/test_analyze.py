@@ -130,10 +130,14 @@ def scored(cause: str, heldout_mean_mm: float, size: int = 1) -> Scored:
 
 
 class StubScorer:
-    """Answers the naming rule's two tie questions with fixed values."""
+    """Answers the naming rule's tie questions with fixed values (separation: residual sum of squares,
+    mm^2, of one explanation refitted to the other's predictions)."""
 
-    def __init__(self, pair_mean_mm: float = 1.0, nested: bool = False):
-        self.pair_mean_mm, self.nested = pair_mean_mm, nested
+    def __init__(self, pair_mean_mm: float = 1.0, nested: bool = False, separation_mm2: float = 1e6):
+        self.pair_mean_mm, self.nested, self.separation = pair_mean_mm, nested, separation_mm2
+
+    def separation_mm2(self, fitted, refitted):
+        return self.separation
 
     def heldout_errors_mm(self, terms):
         return np.full(20, self.pair_mean_mm)

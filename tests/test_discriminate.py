@@ -15,18 +15,18 @@ import pytest
 from cellcal.config.robot_files import load_robot
 from cellcal.daemon.cli import main
 from cellcal.routines.dataset import write_measurements
-from cellcal.solvers.analyze import MIN_GAIN, MIN_MARGIN, Naming
-from cellcal.solvers.ties import TYPICAL_MAX, tied_explanations
+from cellcal.solvers.analyze import MIN_GAIN, MIN_MARGIN, Naming, analyze
+from cellcal.solvers.ties import DECIDE_LAMBDA, MEAN_PER_SIGMA, TYPICAL_MAX, tied_explanations
 from hidden_cases import SWEEP_ROBOT, elbow_pair, sweep_case  # tests/hidden_cases.py: a fixture
 from test_analyze import BASELINE, StubScorer, scored
 
 
 
-def ties(candidates, tie="ambiguous", named=None, nested=False, sizes=None):
-    naming = Naming(named=named, candidates=tuple(candidates), margin=0.01, tie=tie)
+def ties(candidates, tie="ambiguous", named=None, nested=False, sizes=None, margin=0.01, separation_mm2=1e6):
+    naming = Naming(named=named, candidates=tuple(candidates), margin=margin, tie=tie)
     sizes = sizes or {}
-    return tied_explanations(naming, BASELINE, StubScorer(nested=nested), MIN_GAIN, MIN_MARGIN,
-                             lambda s: sizes.get(s.cause, {}))
+    return tied_explanations(naming, BASELINE, StubScorer(nested=nested, separation_mm2=separation_mm2), MIN_GAIN,
+                             MIN_MARGIN, lambda s: sizes.get(s.cause, {}))
 
 
 def test_a_tie_within_the_margin_is_reported_with_its_reason_and_nothing_is_named():
@@ -63,6 +63,24 @@ def test_two_effects_present_or_nothing_to_explain_are_no_tie():
     assert ties([a, b], tie="both", named=a).entries == ()
     small = scored("joint_compliance", 1.0 - 0.5 * MIN_GAIN), scored("cyclic_joint_error", 0.96)
     assert ties(small).entries == ()
+
+
+def test_a_lead_beyond_the_margin_is_a_tie_when_the_data_do_not_separate_the_two_predictions():
+    a, b = scored("cyclic_joint_error", 0.50), scored("joint_compliance", 0.50 * (1 + MIN_MARGIN) + 0.005)
+    sigma_mm = 0.50 / MEAN_PER_SIGMA
+    sizes = {"joint_compliance": {"deflection_rms_deg": 0.02}, "cyclic_joint_error": {"amplitude_deg": 0.02}}
+    close = ties([a, b], tie="", named=a, margin=0.09, sizes=sizes, separation_mm2=0.5 * DECIDE_LAMBDA * sigma_mm**2)
+    assert [t.scored for t in close.entries] == [a, b] and close.naming.named is None
+    assert close.naming.tie == "unseparated"
+    assert f"{np.sqrt(0.5 * DECIDE_LAMBDA):.1f} noise standard deviations apart" in close.entries[0].why
+    assert "needed to tell them apart" in close.naming.notes[-1]
+    # the same lead with predictions 1.5 x the decision distance apart: named as before
+    far = ties([a, b], tie="", named=a, margin=0.09, sizes=sizes, separation_mm2=2.25 * DECIDE_LAMBDA * sigma_mm**2)
+    assert far.entries == () and far.naming.named is a
+    # a runner-up that explains too little against geometry alone is no rival, however close
+    weak = scored("joint_compliance", 1.0 - 0.5 * MIN_GAIN)
+    alone = ties([a, weak], tie="", named=a, margin=0.9, separation_mm2=0.0)
+    assert alone.entries == () and alone.naming.named is a
 
 
 @pytest.mark.parametrize("argv,message", [
@@ -175,3 +193,21 @@ def test_the_greedy_gain_is_the_rise_of_the_refitted_residual_sum_of_squares():
     rise = (rss(np.concatenate([grown_x, x_cand[5:6]]), np.concatenate([grown_y, mean_cand[5:6]]))
             - rss(grown_x, grown_y))
     assert gains_after[5] == pytest.approx(rise, rel=1e-6) and pair.added == pytest.approx(gains[2])
+
+
+def test_the_separation_is_the_refitted_miss_computed_from_the_whole_jacobian():
+    # the R-factor shortcut against least squares on every row's columns
+    model = load_robot(SWEEP_ROBOT)
+    arm, q = sweep_case(model, "joint_compliance", seed=0)
+    run = arm.campaign(q)
+    finding = analyze(model, run.obs, run.ctx)
+    scorer = finding.scorer
+    a, b = (t.scored.terms[0] for t in finding.indistinguishable)
+    j = np.concatenate([cols.reshape(-1, scorer.n_columns) for _, cols in scorer._columns()])
+    r = scorer.baseline_residuals_mm.ravel()
+    for fitted, refitted in ((a, b), (b, a)):
+        x, y = j[:, scorer.estimated((fitted,))], j[:, scorer.estimated((refitted,))]
+        predicted = x @ np.linalg.lstsq(x, r, rcond=None)[0]
+        miss = predicted - y @ np.linalg.lstsq(y, predicted, rcond=None)[0]
+        assert scorer.separation_mm2(fitted, refitted) == pytest.approx(float(miss @ miss), rel=1e-6)
+    assert scorer.separation_mm2(a, a) == pytest.approx(0.0, abs=1e-9 * float(r @ r))
