@@ -104,7 +104,7 @@ def tied_explanations(naming, baseline, scorer, min_gain: float, min_margin: flo
         picked.append(runner_up)
         note = (f"{picked[0].label} leads {runner_up.label} by {100 * naming.margin:.1f}% held-out, but fitted to "
                 f"these data their predictions lie only {apart:.1f} noise standard deviations apart, "
-                f"{np.sqrt(DECIDE_LAMBDA):.1f} needed to tell them apart")
+                f"{np.sqrt(DECIDE_LAMBDA):.2f} needed to tell them apart")
         naming = dataclasses.replace(naming, named=None, tie="unseparated", notes=naming.notes + (note,))
     if len(picked) < 2:
         return TieReport(naming)
@@ -144,7 +144,7 @@ def _why(c, other, scorer, min_margin: float, apart: float | None = None) -> str
         return f"same column span as {other.label}: on these data one model contains the other"
     if apart is not None:
         return (f"fitted to these data, its predictions and those of {other.label} lie {apart:.1f} noise "
-                f"standard deviations apart, fewer than the {np.sqrt(DECIDE_LAMBDA):.1f} needed to tell them apart")
+                f"standard deviations apart, fewer than the {np.sqrt(DECIDE_LAMBDA):.2f} needed to tell them apart")
     apart = 100.0 * abs(c.heldout_mean_mm / other.heldout_mean_mm - 1.0)
     return (f"held-out error {apart:.1f}% from that of {other.label}, within the "
             f"{100 * min_margin:.0f}% margin needed to tell causes apart")
