@@ -21,11 +21,13 @@ demo: $(STAMP)
 demo-identify: $(STAMP)
 	$(BIN)/cellcal sim-campaign --robot ur10e --poses 60 --out out/demo
 
+# two workers, a test file each at a time (module fixtures such as a running sim-net stay
+# in one worker): most end-to-end cases wait on simulated devices that run in real time
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not slow"
 
 bench: $(STAMP)
 	$(BIN)/python bench/identify_bench.py
