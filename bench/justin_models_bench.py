@@ -3,7 +3,7 @@
     python -m bench.justin_models_bench [--iterations 30]
 
 Every model is fitted with the geometry (the analysis' geometric baseline, linearised
-there, as ``analyze.LinearisedScorer`` scores candidates) on the training rows of the
+there, as ``linearised_scorer.LinearisedScorer`` scores candidates) on the training rows of the
 analysis' own folds (5 groups of neighbouring configurations, seed 0) and scored on the
 held-out rows: plain mean and RMS of the 3-D error over **all** held-out measurements,
 whatever loss the fit used. Models:

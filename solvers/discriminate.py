@@ -35,7 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .analyze import MIN_MARGIN, Finding, term_columns
+from .analyze import MIN_MARGIN, Finding
+from .linearised_scorer import term_columns
 from .effects import CAUSES, Context, JointBasis
 from .effects import periodic_spline
 from .effects.cyclic_joint_error import CyclicJointError, harmonics

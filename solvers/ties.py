@@ -5,7 +5,7 @@ margin of each other (``analyze.MIN_MARGIN``): a one-joint-at-a-time sweep, for
 instance, makes the gravity torque on the swept joint a first harmonic of its angle,
 so compliance of that joint and a first-order cyclic error of it fit alike. The
 tie is reported with its reason: the same column span (one explanation's model
-lies in the other's, to ``analyze.NESTED_RTOL``), or held-out errors within the
+lies in the other's, to ``linearised_scorer.NESTED_RTOL``), or held-out errors within the
 margin. A lead beyond the margin is a tie too when the data themselves do not
 separate the two: each fitted to the data, the other refitted to its predictions
 misses them by fewer than sqrt(DECIDE_LAMBDA) noise standard deviations over all
