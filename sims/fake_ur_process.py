@@ -20,7 +20,8 @@ import tempfile
 import threading
 import time
 
-from .fake_ur import CONTROL_PORT, FAULT_KINDS, HOME_Q, FakeUrController
+from .fake_ur import CONTROL_PORT, HOME_Q, FakeUrController
+from .fake_ur_control import FAULT_KINDS
 
 
 class ControlClient:
