@@ -11,6 +11,7 @@ every command passes the cell's limits. Results of every routine have the same s
 from __future__ import annotations
 
 import abc
+import contextlib
 import json
 import math
 from dataclasses import dataclass, field
@@ -20,7 +21,7 @@ import numpy as np
 
 from ..config.cells import Cell
 from ..config.reader import Section
-from ..drivers.interfaces import Robot, Tracker, TriggerInput
+from ..drivers.interfaces import DeviceError, Robot, Tracker, TriggerInput
 from .drawing import Drawing
 
 
@@ -196,6 +197,23 @@ def _finite(value):
 Progress = Callable[[str], None]
 
 
+@contextlib.contextmanager
+def drawn_tool(robot, tool_pose):
+    """The controller on the tool as drawn while a routine measures (its moves and contacts
+    are planned for that tool); the tool frame from before (yielded) given back afterwards,
+    also after a fault, as far as the robot still takes it (the service gives it back once
+    the robot is ready again)."""
+    before = np.asarray(robot.tcp(), dtype=float)
+    robot.set_tcp(tool_pose)
+    try:
+        yield before
+    finally:
+        try:
+            robot.set_tcp(before)
+        except DeviceError:
+            pass
+
+
 class Routine(abc.ABC):
     """One measuring routine. Subclasses set ``name`` (``tcp-laser``) and ``section``
     (``tcp_laser``), and implement the four steps."""
@@ -247,6 +265,23 @@ class StepRoutine(Routine):
     def plan(self) -> list[Move]:
         self.check_design()
         return [move for move, _ in self.steps()]
+
+    def contact_rows(self, robot, plan: list[Move], steps, missed: Callable[[Move], str],
+                     record: Callable[[object, np.ndarray], dict]) -> tuple[list[dict], float]:
+        """Run the plan. At each step that records, its contact search must have touched (else
+        RoutineError: ``missed(move)`` says what it did not find, and nothing moves after) and
+        ``record(what the step records, joints there)`` gives its row. Returns the rows and
+        the motion time (s, robot clock)."""
+        t0 = robot.samples()[-1].t_s
+        rows = []
+        for move, (_, what) in zip(plan, steps):
+            found = robot.run(move)
+            if what is None:
+                continue
+            if not found.contact:
+                raise RoutineError(f"{move.label}: {missed(move)} (nothing moved after)")
+            rows.append(record(what, np.asarray(robot.actual_q(), dtype=float)))
+        return rows, float(robot.samples()[-1].t_s - t0)
 
     def steps_of(self, plan: list[Move]) -> list[tuple[Move, object]]:
         """This routine's steps, once `plan` is found to be its plan for this cell file."""

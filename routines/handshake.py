@@ -56,10 +56,10 @@ from ..config.robot_files import load_robot
 from ..solvers import handshake as hs
 from ..solvers import se3
 from ..solvers.inverse import inverse, tcp_frames
-from .base import Devices, Move, PlanRefused, Result, RoutineError, StepRoutine
+from .base import Devices, Move, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
 from .handshake_result import handshake_result
 from .records import Dataset
-from .tcp_npoint import axis_sigma_mm, restore_tcp
+from .tcp_npoint import axis_sigma_mm
 
 JOINT_SPEED_RAD_S = 1.0
 # the unit cube's points in the order they are used: two interleaved tetrahedra (the
@@ -198,7 +198,7 @@ class Handshake(StepRoutine):
 
     def steps(self) -> list[tuple[Move, Meeting | None]]:
         """Every motion and, for the searches, which meeting it is."""
-        cell, o = self.cell, self.options
+        cell = self.cell
         limits = cell.limits
         speed, accel, joint_accel = limits["tcp_speed_m_s"], limits["tcp_accel_m_s2"], limits["joint_accel_rad_s2"]
         joint_speed = min(JOINT_SPEED_RAD_S, limits["joint_speed_rad_s"])
@@ -288,21 +288,15 @@ class Handshake(StepRoutine):
                  f"base error {design.position_mm:.4f} mm, {design.rotation_deg:.5f} deg (1 sigma) at "
                  f"{o.repeatability_mm:g} mm repeatability, condition {design.condition:.3g}")
         robot_b = robot.peer("b")
-        before = {"a": np.asarray(robot.tcp(), dtype=float), "b": np.asarray(robot_b.tcp(), dtype=float)}
-        robot.set_tcp(self.cell.robots["a"].tool.tcp_pose)
-        robot_b.set_tcp(self.cell.robots["b"].tool.tcp_pose)
-        try:
+        with drawn_tool(robot, self.cell.robots["a"].tool.tcp_pose), \
+                drawn_tool(robot_b, self.cell.robots["b"].tool.tcp_pose) as before_b:
             rows, cycle_s = self._meet(robot, robot_b, steps, progress)
-        finally:
-            restore_tcp(robot, before["a"])
-            restore_tcp(robot_b, before["b"])
-        columns = {k: np.array([row[k] for row in rows], dtype=float) for k in rows[0]}
         meta = {"planned_tip_a_m": self.cell.robots["a"].tool.tcp_m.tolist(),
                 "planned_tip_b_m": self.cell.robots["b"].tool.tcp_m.tolist(),
                 "base_b_as_installed": self.cell.robots["b"].base_pose.tolist(),
                 "repeatability_mm": o.repeatability_mm, "cycle_time_s": cycle_s,
-                "tool_frame_before_b": before["b"].tolist()}
-        return Dataset(self.name, columns, meta)
+                "tool_frame_before_b": before_b.tolist()}
+        return Dataset.of_rows(self.name, rows, meta)
 
     def _meet(self, robot, robot_b, steps, progress) -> tuple[list[dict], float]:
         """Run the steps; robot b's moves of each meeting re-aimed by what the meetings so far

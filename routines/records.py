@@ -59,6 +59,11 @@ class Dataset:
     version: str = ""
     path: str | None = None
 
+    @classmethod
+    def of_rows(cls, routine: str, rows: list[dict], meta: dict) -> "Dataset":
+        """A dataset of numeric rows, each a dict of column -> value (the first row names the columns)."""
+        return cls(routine, {k: np.array([row[k] for row in rows], dtype=float) for k in rows[0]}, meta)
+
     def __len__(self) -> int:
         return len(next(iter(self.columns.values()))) if self.columns else 0
 

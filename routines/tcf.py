@@ -30,6 +30,7 @@ Section ``tcf`` of the cell file (all optional)::
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,10 +42,10 @@ from ..solvers import pivot as pv
 from ..solvers import se3
 from ..solvers.inverse import inverse
 from . import gates
-from .base import Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError, StepRoutine
+from .base import Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
 from .drawing import axis_crossings
 from .records import Dataset
-from .tcp_npoint import JOINT_SPEED_RAD_S, LIFT_MM, axis_sigma_mm, down_orientation, flange_frames, restore_tcp
+from .tcp_npoint import JOINT_SPEED_RAD_S, LIFT_MM, axis_sigma_mm, down_orientation, flange_frames
 
 SIDES = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # base frame
 CONTACT_TOLERANCE_MM = 0.25  # shank plus ball radius from the touches may be this far from the drawing
@@ -189,33 +190,25 @@ class Tcf(StepRoutine):
         progress(f"tcf: {o.turns} turns of the tool, the shank touched at {o.near_mm:g} and {o.far_mm:g} mm behind "
                  f"the tip from four sides: condition {design.condition:.3g}, expected axis error "
                  f"{np.rad2deg(design.expected_error):.4f} deg (1 sigma) at {o.repeatability_mm:g} mm repeatability")
-        before = np.asarray(robot.tcp(), dtype=float)
-        robot.set_tcp(self.cell.tool.tcp_pose)
-        try:
-            t0 = robot.samples()[-1].t_s
-            rows = []
-            for move, (_, touch) in zip(plan, steps):
-                found = robot.run(move)
-                if touch is None:
-                    continue
-                if not found.contact:
-                    raise RoutineError(
-                        f"{move.label}: the contact search went {move.travel_m * 1e3:g} mm without touching the "
-                        f"stylus: is [stylus] centre_m {np.round(self.cell.stylus['centre_m'], 4).tolist()} m right, "
-                        "and the tool as [tool] draws it? (nothing moved after)")
-                q = np.asarray(robot.actual_q(), dtype=float)
-                rows.append({**touch, **{f"q{j + 1}_rad": v for j, v in enumerate(q)}})
-                if len(rows) % len(SIDES) == 0:
-                    progress(f"tcf: turn {touch['turn']}, touches at {touch['height_mm']:g} mm done")
-            cycle_s = float(robot.samples()[-1].t_s - t0)
-        finally:
-            restore_tcp(robot, before)
-        columns = {k: np.array([row[k] for row in rows], dtype=float) for k in rows[0]}
+        def missed(move):
+            return (f"the contact search went {move.travel_m * 1e3:g} mm without touching the stylus: is [stylus] "
+                    f"centre_m {np.round(self.cell.stylus['centre_m'], 4).tolist()} m right, and the tool as [tool] "
+                    "draws it?")
+
+        recorded = itertools.count(1)
+
+        def record(touch, q):
+            if next(recorded) % len(SIDES) == 0:  # the last of a height's touches
+                progress(f"tcf: turn {touch['turn']}, touches at {touch['height_mm']:g} mm done")
+            return {**touch, **{f"q{j + 1}_rad": v for j, v in enumerate(q)}}
+
+        with drawn_tool(robot, self.cell.tool.tcp_pose):
+            rows, cycle_s = self.contact_rows(robot, plan, steps, missed, record)
         meta = {"tool_radius_m": self.cell.tool.radius_m, "stylus_radius_m": float(self.cell.stylus["radius_m"]),
                 "planned_tool": self.cell.tool.tcp_pose.tolist(), "clearance_mm": o.clearance_mm,
                 "search_speed_mm_s": o.search_speed_mm_s, "repeatability_mm": o.repeatability_mm,
                 "cycle_time_s": cycle_s}
-        return Dataset(self.name, columns, meta)
+        return Dataset.of_rows(self.name, rows, meta)
 
     # -- solve -----------------------------------------------------------------------
 

@@ -42,12 +42,11 @@ import numpy as np
 from ..config.cells import Cell
 from ..config.reader import Section
 from ..config.robot_files import load_robot
-from ..drivers.interfaces import DeviceError
 from ..solvers import se3
 from ..solvers import tcp_laser as laser
 from ..solvers.inverse import tcp_poses
 from . import gates
-from .base import Devices, Gate, Move, Parameter, Result, Routine, RoutineError
+from .base import Devices, Gate, Move, Parameter, Result, Routine, RoutineError, drawn_tool
 from .drawing import beam_crossings
 from .records import Dataset
 
@@ -206,9 +205,7 @@ class TcpLaser(Routine):
             raise RoutineError("the plan given is not this routine's plan for this cell file")
         if devices.trigger is None:
             raise RoutineError(f"{self.cell.path}: tcp-laser needs a trigger in [drivers]")
-        before = np.asarray(robot.tcp(), dtype=float)
-        robot.set_tcp(self.cell.tool.tcp_pose)
-        try:
+        with drawn_tool(robot, self.cell.tool.tcp_pose):
             devices.trigger.events(0.0)  # edges from before the routine are not its own
             samples = list(robot.samples())[-1:]
             t0 = samples[0].t_s
@@ -229,11 +226,6 @@ class TcpLaser(Routine):
             samples += robot.samples(samples[-1].t_s)
             for i in range(checked, len(steps)):
                 rows += self._edges_of(i, events, starts, steps, plan)
-        finally:
-            try:
-                robot.set_tcp(before)
-            except DeviceError:
-                pass
         return self._dataset(rows, samples, t0)
 
     def _edges_of(self, i, events, starts, steps, plan) -> list[tuple]:

@@ -44,13 +44,12 @@ import numpy as np
 from ..config.cells import Cell
 from ..config.reader import Section
 from ..config.robot_files import load_robot
-from ..drivers.interfaces import DeviceError
 from ..solvers import pivot as pv
 from ..solvers import se3
 from ..solvers.inverse import inverse, tcp_frames
 from ..solvers.robot_model import KinematicModel
 from . import gates
-from .base import Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError, StepRoutine
+from .base import Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
 from .drawing import seats_about_pivot
 from .records import Dataset
 
@@ -108,14 +107,6 @@ def unit_option(section: Section, key: str) -> np.ndarray | None:
         return None
     axis = section.vector(key, 3, nonzero=True)
     return axis / np.linalg.norm(axis)
-
-
-def restore_tcp(robot, tool_pose) -> None:
-    """Give the controller back the tool frame it had (also after a fault: best effort)."""
-    try:
-        robot.set_tcp(tool_pose)
-    except DeviceError:
-        pass
 
 
 class TcpNpoint(StepRoutine):
@@ -222,37 +213,28 @@ class TcpNpoint(StepRoutine):
         progress(f"tcp-npoint: {o.orientations} orientations tilted {o.spread_deg:g} and {o.spread_deg / 2:g} deg "
                  f"about the pivot, turned +-{o.turn_deg:g} deg about the tool axis: condition {design.condition:.3g}, expected TCP "
                  f"error {design.expected_error:.4f} mm (1 sigma) at {o.repeatability_mm:g} mm repeatability")
-        before = np.asarray(robot.tcp(), dtype=float)
-        robot.set_tcp(self.cell.tool.tcp_pose)
-        try:
+        with drawn_tool(robot, self.cell.tool.tcp_pose):
             rows, cycle_s = self._seats(robot, plan, steps, progress)
-        finally:
-            restore_tcp(robot, before)
-        columns = {k: np.array([row[k] for row in rows], dtype=float) for k in rows[0]}
         meta = {"tool_radius_m": self.cell.tool.radius_m, "planned_tool": self.cell.tool.tcp_pose.tolist(),
                 "pivot_point_m": np.asarray(self.cell.pivot_m).tolist(), "spread_deg": o.spread_deg,
                 "turn_deg": o.turn_deg, "approach_mm": o.approach_mm, "search_speed_mm_s": o.search_speed_mm_s,
                 "repeatability_mm": o.repeatability_mm, "cycle_time_s": cycle_s}
-        return Dataset(self.name, columns, meta)
+        return Dataset.of_rows(self.name, rows, meta)
 
     def _seats(self, robot, plan, steps, progress) -> tuple[list[dict], float]:
         o = self.options
-        t0 = robot.samples()[-1].t_s
-        rows = []
-        for move, (_, seat) in zip(plan, steps):
-            found = robot.run(move)
-            if seat is None:
-                continue
-            if not found.contact:
-                raise RoutineError(
-                    f"{move.label}: the contact search along the tool axis went {move.travel_m * 1e3:g} mm without "
-                    f"touching the pivot: is [pivot] point_m {np.round(self.cell.pivot_m, 4).tolist()} m right, "
-                    "and the fixture there? (nothing moved after)")
-            q = np.asarray(robot.actual_q(), dtype=float)
-            rows.append({**seat, **{f"q{j + 1}_rad": v for j, v in enumerate(q)},
-                         **dict(zip(("x_m", "y_m", "z_m", "rx", "ry", "rz"), robot.actual_tcp_pose()))})
+
+        def missed(move):
+            return (f"the contact search along the tool axis went {move.travel_m * 1e3:g} mm without touching the "
+                    f"pivot: is [pivot] point_m {np.round(self.cell.pivot_m, 4).tolist()} m right, and the fixture "
+                    "there?")
+
+        def record(seat, q):
             progress(f"tcp-npoint: seat {seat['seat']} of {o.orientations} recorded")
-        return rows, float(robot.samples()[-1].t_s - t0)
+            return {**seat, **{f"q{j + 1}_rad": v for j, v in enumerate(q)},
+                    **dict(zip(("x_m", "y_m", "z_m", "rx", "ry", "rz"), robot.actual_tcp_pose()))}
+
+        return self.contact_rows(robot, plan, steps, missed, record)
 
     # -- solve -----------------------------------------------------------------------
 

@@ -34,7 +34,7 @@ from ..solvers import stylus as fitting
 from ..solvers import stylus_design as design
 from ..solvers.inverse import inverse, tcp_frames
 from . import gates
-from .base import Gate, Move, Parameter, Result, Routine, RoutineError
+from .base import Gate, Move, Parameter, Result, Routine, RoutineError, drawn_tool
 from .drawing import contacts_on_cylinder
 from .records import Dataset
 
@@ -288,35 +288,9 @@ class TcpStylus(Routine):
         return touched
 
     def measure(self, devices, robot, plan, progress):
-        cell, o = self.cell, self.options
-        before = np.asarray(robot.tcp(), float)
-        robot.set_tcp(cell.tool.tcp_pose)
-        samples = robot.samples()
-        t0 = samples[-1].t_s if samples else 0.0
-        probes = self.probes()
-        rows, kinds, estimate, prev = [], [], None, None
-        q = np.asarray(robot.actual_q(), float)
-        try:
-            for n, probe in enumerate(probes, start=1):
-                if probe.refit:
-                    estimate = self._estimate(rows, kinds, probe.kind == "side" and estimate is None)
-                    offset = estimate.stylus_mm - np.asarray(cell.stylus["centre_m"]) * 1e3
-                    progress(f"contact {n}: re-aimed on {len(rows)} contacts; the stylus is "
-                             f"{np.linalg.norm(offset):.3f} mm from where [stylus] says")
-                shift, approach = self._reaim(probe, estimate)
-                steps, prev, q = self._steps(n, probe, prev, shift, approach, q)
-                for move in steps[:-5]:
-                    robot.run(move)
-                robot.run(steps[-5])
-                touched = self._touch(robot, n, steps, approach)
-                robot.run(steps[-1])
-                kinds.append(probe.kind)
-                rows.append([n, probe.group, probe.height_mm, probe.roll_deg, *touched.q_rad, *touched.tcp_pose,
-                             *approach, o.touch_speed_m_s])
-            for move in self._leave(prev):
-                robot.run(move)
-        finally:
-            robot.set_tcp(before)
+        cell = self.cell
+        with drawn_tool(robot, cell.tool.tcp_pose):
+            rows, kinds, t0 = self._contacts(robot, progress)
         times = np.array([s.t_s for s in robot.samples(t0)])
         data = np.array(rows, dtype=float)
         columns = {name: data[:, i] for i, name in enumerate(COLUMNS)}
@@ -327,6 +301,34 @@ class TcpStylus(Routine):
                 "tool_radius_m": cell.tool.radius_m, "stylus_radius_m": cell.stylus["radius_m"],
                 "stylus_file_m": np.asarray(cell.stylus["centre_m"]).tolist()}
         return Dataset(self.name, columns, meta)
+
+    def _contacts(self, robot, progress) -> tuple[list, list, float]:
+        """Every contact, re-aimed on what the earlier ones showed: (rows, kinds, start time s)."""
+        cell, o = self.cell, self.options
+        samples = robot.samples()
+        t0 = samples[-1].t_s if samples else 0.0
+        probes = self.probes()
+        rows, kinds, estimate, prev = [], [], None, None
+        q = np.asarray(robot.actual_q(), float)
+        for n, probe in enumerate(probes, start=1):
+            if probe.refit:
+                estimate = self._estimate(rows, kinds, probe.kind == "side" and estimate is None)
+                offset = estimate.stylus_mm - np.asarray(cell.stylus["centre_m"]) * 1e3
+                progress(f"contact {n}: re-aimed on {len(rows)} contacts; the stylus is "
+                         f"{np.linalg.norm(offset):.3f} mm from where [stylus] says")
+            shift, approach = self._reaim(probe, estimate)
+            steps, prev, q = self._steps(n, probe, prev, shift, approach, q)
+            for move in steps[:-5]:
+                robot.run(move)
+            robot.run(steps[-5])
+            touched = self._touch(robot, n, steps, approach)
+            robot.run(steps[-1])
+            kinds.append(probe.kind)
+            rows.append([n, probe.group, probe.height_mm, probe.roll_deg, *touched.q_rad, *touched.tcp_pose,
+                         *approach, o.touch_speed_m_s])
+        for move in self._leave(prev):
+            robot.run(move)
+        return rows, kinds, t0
 
     def _estimate(self, rows, kinds, coarse_only: bool) -> fitting.Estimate:
         """What the contacts so far say (the coarse result, or the fit of every side contact)."""
