@@ -190,6 +190,7 @@ class Tcf(StepRoutine):
         progress(f"tcf: {o.turns} turns of the tool, the shank touched at {o.near_mm:g} and {o.far_mm:g} mm behind "
                  f"the tip from four sides: condition {design.condition:.3g}, expected axis error "
                  f"{np.rad2deg(design.expected_error):.4f} deg (1 sigma) at {o.repeatability_mm:g} mm repeatability")
+
         def missed(move):
             return (f"the contact search went {move.travel_m * 1e3:g} mm without touching the stylus: is [stylus] "
                     f"centre_m {np.round(self.cell.stylus['centre_m'], 4).tolist()} m right, and the tool as [tool] "
