@@ -20,7 +20,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from cellcal.config.robot_files import load_robot
-from cellcal.sims.physical_arm import HiddenEffect
+from cellcal.sims.physics.physical_arm import HiddenEffect
 from cellcal.solvers import crossval
 from cellcal.solvers.analyze import NEIGHBOUR_RAD, AnalyzeOptions, analyze
 from cellcal.solvers.extended_model import fit_extended
@@ -78,7 +78,7 @@ def main(argv=None) -> int:
                   f"-> {finding.cause} {finding.where}", file=sys.stderr)
         justin = Path(__file__).resolve().parents[2] / "shared" / "data" / "dlr-agile-justin" / "measurements.csv"
         if justin.exists():  # the real data set: 500 poses x 2 markers on a tree
-            from cellcal.daemon.importers import dlr_justin
+            from cellcal.measurements.importers import dlr_justin
             from cellcal.solvers.effects import Context, approach_directions
             from cellcal.solvers.measurement_model import Observations
 

@@ -20,8 +20,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from cellcal.config.robot_files import load_robot
-from cellcal.sims.physical_arm import HiddenEffect, PhysicalArm
-from cellcal.sims.workspace import full_workspace
+from cellcal.sims.physics.physical_arm import HiddenEffect, PhysicalArm
+from cellcal.sims.physics.workspace import full_workspace
 from cellcal.solvers.analyze import AnalyzeOptions, analyze
 from cellcal.solvers.calibrated_model import from_fit
 from cellcal.solvers.compensate import OK, compensate, compensate_each, rigid_frames

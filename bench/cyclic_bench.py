@@ -20,7 +20,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from cellcal.config.robot_files import load_robot
-from cellcal.sims.physical_arm import HiddenEffect
+from cellcal.sims.physics.physical_arm import HiddenEffect
 from cellcal.solvers.analyze import analyze
 from cellcal.solvers.effects import cyclic_joint_error
 

@@ -24,7 +24,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from cellcal.config.robot_files import load_robot
-from cellcal.sims.workspace import full_workspace
+from cellcal.sims.physics.workspace import full_workspace
 from cellcal.solvers.analyze import analyze
 from cellcal.solvers.discriminate import design
 from cellcal.solvers.effects import Context, approach_directions

@@ -5,7 +5,7 @@
 
 1. RTDE receive at 500 Hz against the fake UR controller (its own process): every
    2 ms package counted by the controller's ``timestamp``, through our lossless reader
-   (``drivers/ur_rtde_state.py``) and, in the same window, through ur_rtde's
+   (``drivers/ur/state.py``) and, in the same window, through ur_rtde's
    ``RTDEReceiveInterface`` polled every ``--poll-ms`` (in a child process, so that the
    two readers do not share a GIL); first idle, then with ``--busy`` CPU-bound
    processes running. Received/expected and lost, for each.
@@ -90,8 +90,8 @@ def rtde_poll_child(host: str, seconds: float, poll_ms: float) -> int:
 
 
 def rtde_receive_run(host: str, seconds: float, busy: int, poll_ms: float) -> dict:
-    from cellcal.drivers.ur_rtde_state import UrStateStream
-    from cellcal.sims.fake_ur_process import FakeUrProcess
+    from cellcal.drivers.ur.state import UrStateStream
+    from cellcal.sims.fake_ur.process import FakeUrProcess
 
     hogs = []
     with FakeUrProcess(host):
@@ -146,8 +146,8 @@ def print_rtde_table(runs: list[dict]) -> None:
 # -- part 3: panel --------------------------------------------------------------------
 
 def panel_latency(presses: int, poll_s: float, seed: int = 0) -> dict:
-    from cellcal.drivers.modbus_panel import ModbusPanel
-    from cellcal.sims.modbus_server import ModbusCellServer
+    from cellcal.drivers.modbus.panel import ModbusPanel
+    from cellcal.sims.net.modbus_server import ModbusCellServer
 
     rng = np.random.default_rng(seed)
     seen = threading.Event()

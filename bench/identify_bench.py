@@ -45,8 +45,8 @@ import scipy
 from bench.pso import PSOConfig, run_pso, structural_mask
 from bench.pybotics_runner import PyboticsUnavailable, run_pybotics
 from cellcal.config.robot_files import load_robot
-from cellcal.sims.kinematic_arm import SimulatedArm
-from cellcal.sims.workspace import full_workspace
+from cellcal.sims.physics.kinematic_arm import SimulatedArm
+from cellcal.sims.physics.workspace import full_workspace
 from cellcal.solvers.identify import IdentifyOptions, identify, initial_base_and_targets
 from cellcal.solvers.measurement_model import Layout, Observations, predict
 

@@ -46,7 +46,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from cellcal.config.robot_files import load_robot
-from cellcal.daemon.importers import dlr_justin
+from cellcal.measurements.importers import dlr_justin
 from cellcal.solvers import crossval, se3
 from cellcal.solvers.analyze import NEIGHBOUR_RAD, AnalyzeOptions, _geometric_baseline
 from cellcal.solvers.effects.elastic_mount import mount_columns

@@ -45,7 +45,7 @@ import json, sys, time
 import numpy as np
 from threadpoolctl import threadpool_limits
 from cellcal.config.robot_files import load_robot
-from cellcal.routines.dataset import read_measurements
+from cellcal.measurements.table import read_measurements
 from cellcal.solvers.analyze import analyze
 from cellcal.solvers.effects import Context, approach_directions
 from cellcal.solvers.identify import identify
@@ -104,7 +104,7 @@ def data_file(rows: int) -> Path:
     if not path.exists():
         DATA.mkdir(parents=True, exist_ok=True)
         say(f"writing {path.name} with cellcal sim-data")
-        subprocess.run([sys.executable, "-m", "cellcal.daemon.cli", "sim-data", "--robot", ROBOT, "--poses",
+        subprocess.run([sys.executable, "-m", "cellcal.cli.main", "sim-data", "--robot", ROBOT, "--poses",
                         str(rows), "--effect", EFFECT, "--seed", "1", "-o", str(path)],
                        check=True, env=_env(package_tree(ROOT, RESULTS / "current-pkg")), stdout=subprocess.DEVNULL)
     return path
@@ -119,7 +119,7 @@ def run_command(pkg: Path, command: str, data: Path, tag: str) -> dict:
     out_path = RESULTS / f"large-{tag}-{command}-{data.stem}.json"
     with open(out_path, "wb") as out, open(os.devnull, "wb") as err:
         t0 = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-m", "cellcal.daemon.cli", command, "--robot", ROBOT,
+        proc = subprocess.Popen([sys.executable, "-m", "cellcal.cli.main", command, "--robot", ROBOT,
                                  "--data", str(data), "--json"], stdout=out, stderr=err, env=_env(pkg))
         _, status, usage = os.wait4(proc.pid, 0)
         wall = time.perf_counter() - t0

@@ -47,7 +47,7 @@ from cellcal.solvers import se3
 from cellcal.solvers import stylus as fitting
 from cellcal.solvers import stylus_design as design
 from cellcal.solvers.chain import forward
-from cellcal.sims.truth import truth_of_cell
+from cellcal.sims.physics.truth import truth_of_cell
 
 RESULTS = Path(__file__).resolve().parent / "results" / "stylus.json"
 SEED_MINUTES = (5.0, 7.0)  # the seed's time for 200 contacts (Section 4.1), hardware not named

@@ -59,9 +59,9 @@ def error_stats(errors_m) -> dict:
 # -- robot digital input through RTDE ------------------------------------------------
 
 def rtde_trigger_sweeps(host: str, sweeps: int, seed: int = 0, speeds_mm_s=SPEEDS_MM_S) -> list[dict]:
-    from cellcal.drivers.ur_rtde_robot import UrRtdeRobot
-    from cellcal.drivers.ur_rtde_trigger import UrDigitalInputTrigger
-    from cellcal.sims.fake_ur_process import FakeUrProcess
+    from cellcal.drivers.ur.robot import UrRtdeRobot
+    from cellcal.drivers.ur.trigger import UrDigitalInputTrigger
+    from cellcal.sims.fake_ur.process import FakeUrProcess
 
     rng = np.random.default_rng(seed)
     rows = []
@@ -118,8 +118,8 @@ class _ModbusLink:
     label = "Modbus TCP"
 
     def __init__(self):
-        from cellcal.drivers.modbus_trigger import ModbusTrigger
-        from cellcal.sims.modbus_server import ModbusCellServer
+        from cellcal.drivers.modbus.trigger import ModbusTrigger
+        from cellcal.sims.net.modbus_server import ModbusCellServer
 
         self.server = ModbusCellServer(ring_size=16).start()
         self.trigger = ModbusTrigger(port=self.server.port)  # default poll, 5 ms
@@ -136,8 +136,8 @@ class _SerialLink:
     label = "serial"
 
     def __init__(self):
-        from cellcal.drivers.serial_trigger import SerialTrigger
-        from cellcal.sims.serial_barrier import SerialBarrier
+        from cellcal.drivers.triggers.serial_line import SerialTrigger
+        from cellcal.sims.net.serial_barrier import SerialBarrier
 
         self.barrier = SerialBarrier()
         self.trigger = SerialTrigger(self.barrier.tty_path)
@@ -154,8 +154,8 @@ class _CanLink:
     label = "CAN"
 
     def __init__(self):
-        from cellcal.drivers.can_trigger import CanTrigger
-        from cellcal.sims.can_barrier import CanBarrier
+        from cellcal.drivers.triggers.can_bus import CanTrigger
+        from cellcal.sims.net.can_barrier import CanBarrier
 
         channel = f"cellcal-bench-{uuid.uuid4().hex}"
         self.trigger = CanTrigger(channel, interface="virtual")

@@ -36,9 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..solvers import se3
-from .reader import ConfigError, Section, read_yaml, resolve, shipped
-from .robot_files import ModelError, load_robot
+from cellcal.solvers import se3
+from cellcal.config.reader import ConfigError, Section, read_yaml, resolve, shipped
+from cellcal.config.robot_files import ModelError, load_robot
 
 DEVICE_KINDS = ("robot", "trigger", "tracker", "panel")
 _SECTIONS = {"cell", "drivers", "robots", "workspace", "limits", "tool", "beams", "stylus", "pivot", "sim_truth"}
@@ -111,11 +111,6 @@ class BeamSpec:
     radius_m: float  # half the beam width
     channel: int
     level_when_blocked: bool
-
-    def as_model(self) -> dict:
-        """The scene model form ({"kind": "beam", ...}) the simulated cells take."""
-        return {"kind": "beam", "point_m": self.point_m.tolist(), "direction": self.direction.tolist(),
-                "radius_m": self.radius_m, "channel": self.channel, "level_when_blocked": self.level_when_blocked}
 
 
 @dataclass(frozen=True)

@@ -27,10 +27,10 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
-from ..solvers.calibrated_model import STRUCTURAL, CalibratedModel, Effect, with_structural
-from ..solvers.effects import CAUSES
-from .reader import Section, read_yaml
-from .robot_files import ANGLE_UNITS, LENGTH_UNITS, ModelError, load_robot, resolve_robot
+from cellcal.solvers.calibrated_model import STRUCTURAL, CalibratedModel, Effect, with_structural
+from cellcal.solvers.effects import CAUSES
+from cellcal.config.reader import Section, read_yaml
+from cellcal.config.robot_files import ANGLE_UNITS, LENGTH_UNITS, ModelError, load_robot, resolve_robot
 
 EXTENSION_KEYS = ("calibration", "effects")
 CALIBRATION_KEYS = {"written_by", "command", "date_utc", "source_model", "dataset", "heldout", "base", "targets",

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..solvers.chain import Chain, Element
-from ..solvers.robot_model import KinematicModel, Link
-from ..solvers.se3 import orthonormalize
-from .reader import ConfigError, Section, read_yaml, resolve, shipped
+from cellcal.solvers.chain import Chain, Element
+from cellcal.solvers.robot_model import KinematicModel, Link
+from cellcal.solvers.se3 import orthonormalize
+from cellcal.config.reader import ConfigError, Section, read_yaml, resolve, shipped
 
 LENGTH_UNITS = {"mm": 1.0, "m": 1000.0}
 ANGLE_UNITS = {"deg": math.pi / 180.0, "rad": 1.0}

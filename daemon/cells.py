@@ -11,10 +11,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..config.cells import Cell, CellFileError, read_cell, shipped_cells
-from ..drivers import registry
-from ..drivers.registry import DriverConfigError
-from ..routines import registry as routines
+from cellcal.config.cells import Cell, CellFileError, read_cell, shipped_cells
+from cellcal.drivers import registry
+from cellcal.drivers.registry import DriverConfigError
+from cellcal.routines import registry as routines
 
 __all__ = ["Cell", "CellDrivers", "CellFileError", "load_cell", "open_drivers", "shipped_cells"]
 

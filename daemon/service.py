@@ -34,13 +34,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..drivers.interfaces import DeviceError, DeviceTimeout, RobotState
-from ..routines import registry, runner
-from ..routines.base import PlanRefused, Result, RoutineAborted, RoutineError
-from ..routines.gates import frame_change
-from .notify import Notifier
-from .store import Store
-from .write_back import TOLERANCE, write_back
+from cellcal.drivers.interfaces import DeviceError, DeviceTimeout, RobotState
+from cellcal.routines import registry, runner
+from cellcal.routines.base import PlanRefused, Result, RoutineAborted, RoutineError
+from cellcal.routines.gates import frame_change
+from cellcal.daemon.notify import Notifier
+from cellcal.daemon.store import Store
+from cellcal.daemon.write_back import TOLERANCE, write_back
 
 log = logging.getLogger("cellcal.daemon")
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..drivers.interfaces import DeviceError, Robot, StoredToolFrame
+from cellcal.drivers.interfaces import DeviceError, Robot, StoredToolFrame
 
 TOLERANCE = 1e-9  # m and rad: the controller must report what was sent
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from functools import reduce
 
-from .interfaces import ProtocolError
+from cellcal.drivers.interfaces import ProtocolError
 
 _HEX2 = re.compile(rb"[0-9A-Fa-f]{2}")
 

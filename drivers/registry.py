@@ -17,29 +17,29 @@ import importlib
 import inspect
 from typing import Callable
 
-from ..config.cells import DEVICE_KINDS
-from ..config.reader import ConfigError
+from cellcal.config.cells import DEVICE_KINDS
+from cellcal.config.reader import ConfigError
 
 KINDS = DEVICE_KINDS
 
 # (kind, name) -> "module:factory", imported on first use
 _BUILTIN: dict[tuple[str, str], str] = {
-    ("panel", "modbus"): "cellcal.drivers.modbus_panel:ModbusPanel",
-    ("trigger", "modbus"): "cellcal.drivers.modbus_trigger:ModbusTrigger",
-    ("trigger", "serial"): "cellcal.drivers.serial_trigger:SerialTrigger",
-    ("trigger", "can"): "cellcal.drivers.can_trigger:CanTrigger",
+    ("panel", "modbus"): "cellcal.drivers.modbus.panel:ModbusPanel",
+    ("trigger", "modbus"): "cellcal.drivers.modbus.trigger:ModbusTrigger",
+    ("trigger", "serial"): "cellcal.drivers.triggers.serial_line:SerialTrigger",
+    ("trigger", "can"): "cellcal.drivers.triggers.can_bus:CanTrigger",
     ("tracker", "socket"): "cellcal.drivers.tracker_socket:TrackerSocket",
-    ("robot", "ur_rtde"): "cellcal.drivers.ur_rtde_robot:UrRtdeRobot",
-    ("trigger", "ur_digital_input"): "cellcal.drivers.ur_rtde_trigger:UrDigitalInputTrigger",
-    ("robot", "sim"): "cellcal.sims.sim_devices:SimRobot",
-    ("trigger", "sim"): "cellcal.sims.sim_devices:SimTrigger",
-    ("tracker", "sim"): "cellcal.sims.sim_devices:SimTracker",
-    ("panel", "sim"): "cellcal.sims.sim_devices:SimPanel",
+    ("robot", "ur_rtde"): "cellcal.drivers.ur.robot:UrRtdeRobot",
+    ("trigger", "ur_digital_input"): "cellcal.drivers.ur.trigger:UrDigitalInputTrigger",
+    ("robot", "sim"): "cellcal.sims.inproc.devices:SimRobot",
+    ("trigger", "sim"): "cellcal.sims.inproc.devices:SimTrigger",
+    ("tracker", "sim"): "cellcal.sims.inproc.devices:SimTracker",
+    ("panel", "sim"): "cellcal.sims.inproc.devices:SimPanel",
 }
 _FACTORIES: dict[tuple[str, str], Callable] = {}
 # backend name -> "module:callable"(cell) building the one object its devices share
 _SHARED: dict[str, str] = {
-    "sim": "cellcal.sims.sim_world:world_of_cell",
+    "sim": "cellcal.sims.inproc.world:world_of_cell",
 }
 
 
@@ -99,7 +99,7 @@ def check(kind: str, name: str, options: dict) -> None:
 
 
 # the hidden truth of a simulated cell, for scoring a simulated run's report (never its solving)
-_SIM_TRUTH = "cellcal.sims.truth:truth_of_cell"
+_SIM_TRUTH = "cellcal.sims.physics.truth:truth_of_cell"
 
 
 def simulated_truth(cell, model):

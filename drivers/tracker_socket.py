@@ -43,10 +43,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .checksum_lines import checked_body, framed
-from .interfaces import DeviceError, DeviceTimeout, ProtocolError, Tracker, TrackerMeasurement
-from ..config.reader import Section
-from .registry import DriverConfigError
+from cellcal.drivers.checksum_lines import checked_body, framed
+from cellcal.drivers.interfaces import DeviceError, DeviceTimeout, ProtocolError, Tracker, TrackerMeasurement
+from cellcal.config.reader import Section
+from cellcal.drivers.registry import DriverConfigError
 
 DEFAULT_PORT = 5025
 MAX_LINE_BYTES = 512

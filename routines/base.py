@@ -19,10 +19,10 @@ from typing import Callable
 
 import numpy as np
 
-from ..config.cells import Cell
-from ..config.reader import Section
-from ..drivers.interfaces import DeviceError, Robot, Tracker, TriggerInput
-from .drawing import Drawing
+from cellcal.config.cells import Cell
+from cellcal.config.reader import Section
+from cellcal.drivers.interfaces import DeviceError, Robot, Tracker, TriggerInput
+from cellcal.routines.drawing import Drawing
 
 
 class RoutineError(RuntimeError):
@@ -187,6 +187,26 @@ def tool_frame_json(pose) -> dict:
     return {"x_mm": pose[0] * 1e3, "y_mm": pose[1] * 1e3, "z_mm": pose[2] * 1e3,
             "rx_deg": math.degrees(pose[3]), "ry_deg": math.degrees(pose[4]), "rz_deg": math.degrees(pose[5]),
             "pose_m_rad": pose.tolist()}
+
+
+FRAME_KEYS = ("x_mm", "y_mm", "z_mm", "rx_deg", "ry_deg", "rz_deg")  # tool_frame_json's numbers, in order
+
+
+def frame_text(frame, angle_digits: int = 4) -> str:
+    """A frame on one line as people read it: ``x 1.2345 y .. z .. mm, rx 0.1234 ry .. rz .. deg``.
+    `frame` is a pose [x, y, z, rx, ry, rz] (m, rad) or a dict with :func:`tool_frame_json`'s keys
+    (a base frame a routine found has them too)."""
+    f = frame if isinstance(frame, dict) else tool_frame_json(frame)
+    a = angle_digits
+    return (f"x {f['x_mm']:.4f} y {f['y_mm']:.4f} z {f['z_mm']:.4f} mm, "
+            f"rx {f['rx_deg']:.{a}f} ry {f['ry_deg']:.{a}f} rz {f['rz_deg']:.{a}f} deg")
+
+
+def gate_line(gate) -> str:
+    """A quality gate on one line: ``[pass] name: why`` or ``[FAIL] name: why``. `gate` is a
+    :class:`Gate` or its JSON (:meth:`Gate.as_json`, as a result's JSON and the store give it)."""
+    g = gate.as_json() if isinstance(gate, Gate) else gate
+    return f"[{'pass' if g['passed'] else 'FAIL'}] {g['name']}: {g['why']}"
 
 
 def _finite(value):

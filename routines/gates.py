@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..config.cells import ToolSpec
-from ..solvers import se3
-from .base import Gate
+from cellcal.config.cells import ToolSpec
+from cellcal.solvers import se3
+from cellcal.routines.base import Gate
 
 RESIDUAL_FACTOR = 3.0  # residual RMS may be this many times the expected noise
 MAX_CONDITION = 1e6  # of the scaled normal equations: beyond, some direction is barely measured

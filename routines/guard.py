@@ -26,13 +26,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config.cells import Cell, ToolSpec
-from ..config.robot_files import load_robot
-from ..drivers.interfaces import ContactResult, Robot
-from ..solvers import se3
-from ..solvers.inverse import inverse, tcp_frames, tcp_poses
-from ..solvers.robot_model import KinematicModel
-from .base import Move, PlanRefused, RoutineAborted
+from cellcal.config.cells import Cell, ToolSpec
+from cellcal.config.robot_files import load_robot
+from cellcal.drivers.interfaces import ContactResult, Robot
+from cellcal.solvers import se3
+from cellcal.solvers.inverse import inverse, tcp_frames, tcp_poses
+from cellcal.solvers.robot_model import KinematicModel
+from cellcal.routines.base import Move, PlanRefused, RoutineAborted
 
 JOINT_PATH_SAMPLES = 24  # points along a joint move at which the TCP is checked against the box
 STRAIGHT_PATH_SAMPLES = 12  # ... and along a linear move or a search, for the clearance between tools

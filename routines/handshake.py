@@ -50,16 +50,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config.cells import Cell
-from ..config.reader import Section
-from ..config.robot_files import load_robot
-from ..solvers import handshake as hs
-from ..solvers import se3
-from ..solvers.inverse import inverse, tcp_frames
-from .base import Devices, Move, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
-from .handshake_result import handshake_result
-from .records import Dataset
-from .tcp_npoint import axis_sigma_mm
+from cellcal.config.cells import Cell
+from cellcal.config.reader import Section
+from cellcal.config.robot_files import load_robot
+from cellcal.solvers import handshake as hs
+from cellcal.solvers import se3
+from cellcal.solvers.inverse import inverse, tcp_frames
+from cellcal.routines.base import Devices, Move, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
+from cellcal.routines.handshake_result import handshake_result
+from cellcal.routines.records import Dataset
+from cellcal.routines.tcp_npoint import axis_sigma_mm
 
 JOINT_SPEED_RAD_S = 1.0
 # the unit cube's points in the order they are used: two interleaved tetrahedra (the

@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..config.cells import Cell
-from ..solvers import handshake as hs
-from ..solvers import se3
-from . import gates
-from .base import Gate, Parameter, Result
-from .drawing import meeting_points
+from cellcal.config.cells import Cell
+from cellcal.solvers import handshake as hs
+from cellcal.solvers import se3
+from cellcal.routines import gates
+from cellcal.routines.base import Gate, Parameter, Result, frame_text
+from cellcal.routines.drawing import meeting_points
 
 PLAUSIBLE_BASE_MM = 30.0  # a base found this far from where it was installed is doubted ...
 PLAUSIBLE_BASE_DEG = 2.0  # ... or turned this far
@@ -61,8 +61,7 @@ def handshake_result(name, dataset, cell: Cell, options, fit: hs.HandshakeFit, d
              "cell_file": "robots:\n  b:\n    base_m: [" + ", ".join(f"{v:.7f}" for v in pose[:3])
                           + "]\n    base_rotvec_deg: [" + ", ".join(f"{np.rad2deg(v):.6f}" for v in rotvec) + "]"}
     start_turn = se3.matrix_to_rotvec(fit.start_rotation.T @ fit.rotation)
-    notes = [f"robot b's base in robot a's frame: x {frame['x_mm']:.4f} y {frame['y_mm']:.4f} z {frame['z_mm']:.4f} "
-             f"mm, rx {frame['rx_deg']:.5f} ry {frame['ry_deg']:.5f} rz {frame['rz_deg']:.5f} deg (+- {std_mm:.4f} mm, "
+    notes = [f"robot b's base in robot a's frame: {frame_text(frame, angle_digits=5)} (+- {std_mm:.4f} mm, "
              f"{std_deg:.5f} deg); for the cell file: " + " ".join(frame["cell_file"].split()),
              f"{n} meeting points, conditioning {fit.points.condition:.3g} (spread "
              f"{np.round(fit.points.spread_mm, 1).tolist()} mm RMS along their principal axes); the fit's condition "

@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .base import jsonable
-from .dataset import DatasetError
+from cellcal.routines.base import jsonable
+from cellcal.measurements.table import DatasetError
 
 MAGIC = "# cellcal dataset"
 HEADER_KEYS = ("routine", "cell", "robot", "cellcal", "created", "complete", "meta")

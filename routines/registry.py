@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import importlib
 
-from ..config.cells import Cell, CellFileError
-from .base import Routine
+from cellcal.config.cells import Cell, CellFileError
+from cellcal.routines.base import Routine
 
 ROUTINES: dict[str, str] = {
     "tcp-laser": "cellcal.routines.tcp_laser:TcpLaser",
@@ -19,10 +19,6 @@ ROUTINES: dict[str, str] = {
     "tracker": "cellcal.routines.tracker:TrackerCampaign",
     "handshake": "cellcal.routines.handshake:Handshake",
 }
-
-
-def section_of(name: str) -> str:
-    return name.replace("-", "_")
 
 
 def available() -> list[str]:

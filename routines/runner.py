@@ -13,13 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config.cells import Cell
-from ..config.robot_files import load_robot
-from ..drivers.interfaces import DeviceError
-from .base import Devices, Move, Progress, Result, Routine, RoutineError
-from .guard import ArmState, GuardedRobot, MotionGuard
-from .records import Dataset, read_dataset
-from .registry import read_options, routine_class
+from cellcal.config.cells import Cell
+from cellcal.config.robot_files import load_robot
+from cellcal.drivers.interfaces import DeviceError
+from cellcal.routines.base import Devices, Move, Progress, Result, Routine, RoutineError
+from cellcal.routines.guard import ArmState, GuardedRobot, MotionGuard
+from cellcal.routines.records import Dataset, read_dataset
+from cellcal.routines.registry import read_options, routine_class
 
 
 @dataclass

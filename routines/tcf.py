@@ -35,17 +35,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config.cells import Cell
-from ..config.reader import Section
-from ..config.robot_files import load_robot
-from ..solvers import pivot as pv
-from ..solvers import se3
-from ..solvers.inverse import inverse
-from . import gates
-from .base import Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
-from .drawing import axis_crossings
-from .records import Dataset
-from .tcp_npoint import JOINT_SPEED_RAD_S, LIFT_MM, axis_sigma_mm, down_orientation, flange_frames
+from cellcal.config.cells import Cell
+from cellcal.config.reader import Section
+from cellcal.config.robot_files import load_robot
+from cellcal.solvers import pivot as pv
+from cellcal.solvers import se3
+from cellcal.solvers.inverse import inverse
+from cellcal.routines import gates
+from cellcal.routines.base import Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
+from cellcal.routines.drawing import axis_crossings
+from cellcal.routines.records import Dataset
+from cellcal.routines.tcp_npoint import JOINT_SPEED_RAD_S, LIFT_MM, axis_sigma_mm, down_orientation, flange_frames
 
 SIDES = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # base frame
 CONTACT_TOLERANCE_MM = 0.25  # shank plus ball radius from the touches may be this far from the drawing
@@ -245,7 +245,7 @@ class Tcf(StepRoutine):
             raise RoutineError(f"{dataset.path}: {exc}") from None
         result = _result(cls.name, dataset, cell, options, fit, design, pairs, drawn, sigma)
         crossing = np.array([p["midpoint_mm"] for p in pairs]) - fit.offsets[line]
-        result.drawing = axis_crossings(line, args[3], crossing, crossing - fit.residuals,
+        result.drawing = axis_crossings(line, args[3], crossing, crossing - fit.residuals_mm,
                                         [f"turn {k // 2 + 1}, {'xy'[k % 2]} line" for k in range(len(fit.offsets))])
         return result
 
@@ -284,9 +284,9 @@ def _result(name, dataset, cell: Cell, options: TcfOptions, fit: pv.AxisFit, des
     planned = np.asarray(meta["planned_tool"], dtype=float)
     tcp_m = options.tcp_mm / 1e3 if options.tcp_mm is not None else planned[:3]
     frame = np.concatenate([tcp_m, se3.rotvec_from_z(fit.axis)])
-    n, dof = len(fit.residuals), len(fit.residuals) - len(fit.offsets) - 2
+    n, dof = len(fit.residuals_mm), len(fit.residuals_mm) - len(fit.offsets) - 2
     expected = sigma * np.sqrt(dof / n)
-    rms = float(np.sqrt(np.mean(fit.residuals**2)))
+    rms = float(np.sqrt(np.mean(fit.residuals_mm**2)))
     reach = [p["reach_mm"] for p in pairs if "reach_mm" in p]
     drawn_reach = (float(meta["tool_radius_m"]) + float(meta["stylus_radius_m"])) * 1e3
     reach_mm = float(np.mean(reach)) if reach else float("nan")
@@ -318,5 +318,5 @@ def _result(name, dataset, cell: Cell, options: TcfOptions, fit: pv.AxisFit, des
              "design_condition": design.condition, "contact_reach_mm": reach_mm,
              "n_touches": int(len(dataset)), "n_crossings": n,
              "rotation_about_axis": "convention: solvers.se3.rotvec_from_z(axis)"}
-    return Result(name, params, fit.residuals, float(expected), fit.condition, gate_list, tool_frame=frame,
+    return Result(name, params, fit.residuals_mm, float(expected), fit.condition, gate_list, tool_frame=frame,
                   notes=notes, extra=extra)

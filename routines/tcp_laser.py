@@ -39,16 +39,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config.cells import Cell
-from ..config.reader import Section
-from ..config.robot_files import load_robot
-from ..solvers import se3
-from ..solvers import tcp_laser as laser
-from ..solvers.inverse import tcp_poses
-from . import gates
-from .base import Devices, Gate, Move, Parameter, Result, Routine, RoutineError, drawn_tool
-from .drawing import beam_crossings
-from .records import Dataset
+from cellcal.config.cells import Cell
+from cellcal.config.reader import Section
+from cellcal.config.robot_files import load_robot
+from cellcal.solvers import se3
+from cellcal.solvers import tcp_laser as laser
+from cellcal.solvers.inverse import tcp_poses
+from cellcal.routines import gates
+from cellcal.routines.base import Devices, Gate, Move, Parameter, Result, Routine, RoutineError, drawn_tool
+from cellcal.routines.drawing import beam_crossings
+from cellcal.routines.records import Dataset
 
 EDGE_WAIT_S = 0.2  # after the last motion, for edges still on their way
 APPROACH_SLACK_MM = 1.0  # beyond the search margin and the speed ramp, so edges fall at constant speed
@@ -364,7 +364,7 @@ def _result(name, fit: laser.LaserFit, geometry, beams, cell: Cell, options: Las
              f"the tool radius is taken from [tool] ({geometry.tool_radius_mm:g} mm): the barrier measures only "
              "the tool radius plus the beam's half width",
              "the beams' directions are taken from [beams]; their positions are fitted"]
-    if not fit.converged:
+    if not fit.success:
         notes.append(f"the fit did not converge: {fit.message}")
     extra = {"latency_ms": latency_ms, "latency_std_ms": latency_std_ms,
              "tcp_std_mm": float(np.linalg.norm(fit.tip_std_mm)), "axis_std_deg": fit.axis_std_deg,

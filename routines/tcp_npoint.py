@@ -41,17 +41,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config.cells import Cell
-from ..config.reader import Section
-from ..config.robot_files import load_robot
-from ..solvers import pivot as pv
-from ..solvers import se3
-from ..solvers.inverse import inverse, tcp_frames
-from ..solvers.robot_model import KinematicModel
-from . import gates
-from .base import Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
-from .drawing import seats_about_pivot
-from .records import Dataset
+from cellcal.config.cells import Cell
+from cellcal.config.reader import Section
+from cellcal.config.robot_files import load_robot
+from cellcal.solvers import pivot as pv
+from cellcal.solvers import se3
+from cellcal.solvers.inverse import inverse, tcp_frames
+from cellcal.solvers.robot_model import KinematicModel
+from cellcal.routines import gates
+from cellcal.routines.base import Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
+from cellcal.routines.drawing import seats_about_pivot
+from cellcal.routines.records import Dataset
 
 LIFT_MM = 40.0  # above the first and after the last approach point, clear of the fixture
 JOINT_SPEED_RAD_S = 1.0
@@ -258,7 +258,7 @@ class TcpNpoint(StepRoutine):
                                f"{design.condition:.3g}): not solved")
         fit = pv.fit_pivot(rotations, positions, noise_floor=sigma, k=options.outlier_k)
         result = _result(cls.name, dataset, cell, options, fit, design)
-        result.drawing = seats_about_pivot(positions - fit.pivot_point, fit.residuals, fit.kept,
+        result.drawing = seats_about_pivot(positions - fit.pivot_point, fit.residuals_mm, fit.kept,
                                            float(np.linalg.norm(fit.tool_point)), result.expected_noise_mm)
         return result
 
@@ -273,9 +273,9 @@ def _result(name, dataset, cell: Cell, options: NpointOptions, fit: pv.PivotFit,
     frame = np.concatenate([tcp_mm / 1e3, se3.rotvec_from_z(axis)])
     seats = dataset["seat"].astype(int) if "seat" in dataset.columns else np.arange(1, len(dataset) + 1)
     n_kept = int(fit.kept.sum())
-    kept_residuals = fit.residuals[fit.kept]
+    kept_residuals = fit.residuals_mm[fit.kept]
     expected = options.repeatability_mm * np.sqrt((3 * n_kept - 6) / (3 * n_kept))
-    lengths = np.linalg.norm(fit.residuals, axis=1)
+    lengths = np.linalg.norm(fit.residuals_mm, axis=1)
     notes, rejected = [], [int(seats[i]) for i in fit.rejected]
     for i in fit.rejected:
         where = (f" (tilted toward {dataset['azimuth_deg'][i]:.0f} deg)" if "azimuth_deg" in dataset.columns else "")

@@ -26,17 +26,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config.cells import Cell
-from ..config.reader import Section
-from ..config.robot_files import load_robot
-from ..solvers import se3
-from ..solvers import stylus as fitting
-from ..solvers import stylus_design as design
-from ..solvers.inverse import inverse, tcp_frames
-from . import gates
-from .base import Gate, Move, Parameter, Result, Routine, RoutineError, drawn_tool
-from .drawing import contacts_on_cylinder
-from .records import Dataset
+from cellcal.config.cells import Cell
+from cellcal.config.reader import Section
+from cellcal.config.robot_files import load_robot
+from cellcal.solvers import se3
+from cellcal.solvers import stylus as fitting
+from cellcal.solvers import stylus_design as design
+from cellcal.solvers.inverse import inverse, tcp_frames
+from cellcal.routines import gates
+from cellcal.routines.base import Gate, Move, Parameter, Result, Routine, RoutineError, drawn_tool
+from cellcal.routines.drawing import contacts_on_cylinder
+from cellcal.routines.records import Dataset
 
 SEARCH_MARGIN_MM = 5.0  # a search goes this far beyond where the contact is expected
 MAX_OUTLIER_SHARE = 0.2

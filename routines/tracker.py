@@ -29,16 +29,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config.robot_files import load_robot
-from ..drivers.interfaces import DeviceError
-from ..solvers import se3
-from ..solvers.identify import IdentificationError, IdentifyOptions, identify
-from ..solvers.measurement_model import Observations
-from ..solvers.pose_design import Sight, path_clear, select_poses, sighted_candidates, tour
-from . import gates
-from .base import Gate, Move, Parameter, Result, Routine, RoutineError
-from .drawing import errors_per_pose
-from .records import Dataset
+from cellcal.config.robot_files import load_robot
+from cellcal.drivers.interfaces import DeviceError
+from cellcal.solvers import se3
+from cellcal.solvers.identify import IdentificationError, IdentifyOptions, identify
+from cellcal.solvers.measurement_model import Observations
+from cellcal.solvers.pose_design import Sight, path_clear, select_poses, sighted_candidates, tour
+from cellcal.routines import gates
+from cellcal.routines.base import Gate, Move, Parameter, Result, Routine, RoutineError, frame_text
+from cellcal.routines.drawing import errors_per_pose
+from cellcal.routines.records import Dataset
 
 MIN_CAL_ROWS = 10  # as cellcal identify: fewer rows cannot carry a kinematic identification
 PLAUSIBLE_MM = 5.0  # an arm's lengths are within this of its drawing ...
@@ -396,8 +396,7 @@ def _frame(found, options: TrackerOptions) -> dict:
 
 
 def _frame_note(frame: dict) -> str:
-    return (f"robot base in the instrument frame: x {frame['x_mm']:.4f} y {frame['y_mm']:.4f} z {frame['z_mm']:.4f} mm, "
-            f"rx {frame['rx_deg']:.5f} ry {frame['ry_deg']:.5f} rz {frame['rz_deg']:.5f} deg; for the cell file: "
+    return (f"robot base in the instrument frame: {frame_text(frame, angle_digits=5)}; for the cell file: "
             + frame["cell_file"].replace("\n  ", " "))
 
 

@@ -23,13 +23,13 @@ from typing import Sequence
 
 import numpy as np
 
-from . import crossval, lsq, physical_sizes, ties
-from .effects import CAUSES, Context, Term
-from .identify import Identification, IdentifyOptions, identify_variants
-from .extended_model import ExtendedFit, embed, fit_extended
-from .measurement_model import Layout, Observations, jacobian_chunks, predict
-from .linearised_scorer import LinearisedScorer
-from .robust_scoring import LINEAR, RobustScoring, trimmed_mean
+from cellcal.solvers import crossval, lsq, physical_sizes, ties
+from cellcal.solvers.effects import CAUSES, Context, Term
+from cellcal.solvers.identify import Identification, IdentifyOptions, identify_variants
+from cellcal.solvers.extended_model import ExtendedFit, embed, fit_extended
+from cellcal.solvers.measurement_model import Layout, Observations, jacobian_chunks, predict
+from cellcal.solvers.linearised_scorer import LinearisedScorer
+from cellcal.solvers.robust_scoring import LINEAR, RobustScoring, trimmed_mean
 
 MIN_GAIN = 0.10  # held-out mean error must drop by 10% against geometry alone
 MIN_MARGIN = 0.08  # ... and the best other cause must stay 8% above the named one

@@ -21,14 +21,14 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import se3
-from .chain import forward, point_jacobians
-from .effects import CAUSES, Context, Term
-from .effects.cyclic_joint_error import PeriodicJointError, fitted_errors
-from .effects.periodic_spline import PeriodicSpline
-from .extended_model import combine_bases, param_columns
-from .measurement_model import Layout, Observations
-from .robot_model import KinematicModel, with_hayati_beta
+from cellcal.solvers import se3
+from cellcal.solvers.chain import forward, point_jacobians
+from cellcal.solvers.effects import CAUSES, Context, Term
+from cellcal.solvers.effects.cyclic_joint_error import PeriodicJointError, fitted_errors
+from cellcal.solvers.effects.periodic_spline import PeriodicSpline
+from cellcal.solvers.extended_model import combine_bases, param_columns
+from cellcal.solvers.measurement_model import Layout, Observations
+from cellcal.solvers.robot_model import KinematicModel, with_hayati_beta
 
 NOT_APPLIED = {
     "trigger_latency": "a latency of the instrument's trigger, not of the arm's position",

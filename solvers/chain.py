@@ -17,8 +17,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-ROTATIONS = ("rx", "ry", "rz")
-TRANSLATIONS = ("tx", "ty", "tz")
 _AXIS = {"x": 0, "y": 1, "z": 2}
 
 

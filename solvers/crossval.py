@@ -18,7 +18,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .lsq import RFactor, chunks, stacked_r
+from cellcal.solvers.lsq import RFactor, chunks, stacked_r
 
 
 NEIGHBOUR_RAD = np.deg2rad(2.0)  # configurations this close carry nearly the same information: one fold

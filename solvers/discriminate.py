@@ -35,14 +35,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .analyze import MIN_MARGIN, Finding
-from .linearised_scorer import term_columns
-from .effects import CAUSES, Context, JointBasis
-from .effects import periodic_spline
-from .effects.cyclic_joint_error import CyclicJointError, harmonics
-from .measurement_model import Observations, jacobian_chunks
-from .pose_design import clear_of_mount
-from .ties import DECIDE_LAMBDA, MEAN_PER_SIGMA  # predictions 4.65 sigma apart: a midpoint decision errs < 1%
+from cellcal.solvers.analyze import MIN_MARGIN, Finding
+from cellcal.solvers.linearised_scorer import term_columns
+from cellcal.solvers.effects import CAUSES, Context, JointBasis
+from cellcal.solvers.effects import periodic_spline
+from cellcal.solvers.effects.cyclic_joint_error import CyclicJointError, harmonics
+from cellcal.solvers.measurement_model import Observations, jacobian_chunks
+from cellcal.solvers.pose_design import clear_of_mount
+from cellcal.solvers.ties import DECIDE_LAMBDA, MEAN_PER_SIGMA  # predictions 4.65 sigma apart: a midpoint decision errs < 1%
 
 MARGIN_SAFETY = 1.5
 N_CANDIDATES = 2000  # random configurations within the joint limits the design chooses from

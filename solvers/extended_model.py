@@ -8,13 +8,15 @@ from the geometry are held at 0 (the identifiability rule of ``identify``).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
-from . import identifiability, lsq
-from .effects import JointBasis, Term
-from .measurement_model import Layout, Observations, jacobian, predict
+from cellcal.solvers import identifiability, lsq
+from cellcal.solvers.effects import JointBasis, Term
+from cellcal.solvers.fit_result import FitResult, from_solver
+from cellcal.solvers.measurement_model import Layout, Observations, jacobian, predict
 
 
 class TermBases(NamedTuple):
@@ -56,13 +58,9 @@ def param_columns(jacobian_x: np.ndarray, stacked) -> np.ndarray:
     return np.matmul(jacobian_x[:, :, params], basis)
 
 
-def column_scale(flat: np.ndarray) -> np.ndarray:
-    """RMS target displacement (mm) per unit of each column; 1 for empty columns."""
-    return norm_scale(np.sqrt(np.sum(flat**2, axis=0)), len(flat) // 3)
-
-
 def norm_scale(norms: np.ndarray, n_rows: int) -> np.ndarray:
-    """``column_scale`` from the columns' norms over n_rows measurements (3 coordinates each)."""
+    """RMS target displacement (mm) per unit of each column, from the columns' norms over n_rows
+    measurements (3 coordinates each); 1 for empty columns."""
     scale = np.asarray(norms, dtype=float) / np.sqrt(max(n_rows, 1))
     scale[scale == 0] = 1.0
     return scale
@@ -135,7 +133,12 @@ class ExtendedModel:
         return np.concatenate([j for _, j in self.jacobian_chunks(z)])
 
 
-class ExtendedFit(NamedTuple):
+@dataclass(frozen=True)
+class ExtendedFit(FitResult):
+    """Geometry and terms fitted together; status, message, success and nfev as
+    :func:`.lsq.levenberg_marquardt` (scipy's "lm") reports them, no covariance
+    (:func:`.physical_sizes.theta_covariance_root` makes the part that is needed)."""
+
     x: np.ndarray
     theta: np.ndarray  # 0 where this data cannot separate a term parameter from the geometry
     estimated: np.ndarray  # bool over z = (x[free], theta): the unknowns the fit estimated
@@ -185,7 +188,7 @@ def fit_extended(layout, obs, x, free, terms, prior_mm, loss: str = "linear", f_
     z = with_estimated(sol.x)
     x_fit, theta = model.unpack(z)
     theta = np.where(~estimated[model.n_free:], 0.0, theta)
-    return ExtendedFit(x_fit, theta, estimated, z, model.residuals_mm(z), model)
+    return ExtendedFit(x_fit, theta, estimated, z, model.residuals_mm(z), model, **from_solver(sol))
 
 
 def embed(x: np.ndarray, n_kin: int, extra: int, fill=0.0) -> np.ndarray:

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .chain import forward
-from .lsq import chunks
-from .robot_model import KinematicModel
+from cellcal.solvers.chain import forward
+from cellcal.solvers.lsq import chunks
+from cellcal.solvers.robot_model import KinematicModel
 
 
 def joint_frames(model: KinematicModel, params: np.ndarray, q: np.ndarray):

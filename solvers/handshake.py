@@ -30,7 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from . import se3
+from cellcal.solvers import se3
+from cellcal.solvers.fit_result import FitResult, from_solver
 
 MIN_POINTS = 4
 N_UNKNOWNS = 12  # turn (3), translation (3), tip a (3), tip b (3)
@@ -85,7 +86,10 @@ def check_points(points_mm, min_out_of_plane_mm: float) -> PointSet:
 
 
 @dataclass(frozen=True)
-class HandshakeFit:
+class HandshakeFit(FitResult):
+    """b's base in a's frame and both tips; status, message, success and nfev are least_squares' own,
+    covariance that of the twelve unknowns in the order of NAMES (the turn about a's axes)."""
+
     rotation: np.ndarray  # 3x3: robot b's base frame -> robot a's
     translation_mm: np.ndarray  # b's base origin in a's frame
     tip_a_mm: np.ndarray  # a's needle tip, a's flange frame
@@ -98,7 +102,6 @@ class HandshakeFit:
     start_rotation: np.ndarray  # the closed-form start
     start_translation_mm: np.ndarray
     points: PointSet
-    nfev: int
 
     @property
     def pose(self) -> np.ndarray:
@@ -200,16 +203,4 @@ def fit_handshake(ra, pa, rb, pb, tip_a_mm, tip_b_mm, *, min_out_of_plane_mm: fl
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     return HandshakeFit(rotation, translation, tip_a, tip_b, std, r.reshape(-1, 3), sigma0, float(sigma),
                         _scaled_condition(jac),
-                        rotation0, translation0, points, int(solution.nfev))
-
-
-def seed_four_point(at_a_mm, at_b_mm) -> tuple[np.ndarray, np.ndarray]:
-    """The published procedure's frame: the 12 entries of [R | T] solved linearly from four
-    point pairs (tips from a separate TCP calibration), then R orthonormalised (the nearest
-    rotation). Kept as the baseline the bench compares with."""
-    at_a, at_b = np.asarray(at_a_mm, dtype=float)[:4], np.asarray(at_b_mm, dtype=float)[:4]
-    if len(at_a) < 4:
-        raise HandshakeRefused(f"{len(at_a)} point pairs: the four-point solution needs four")
-    homogeneous = np.hstack([at_b, np.ones((4, 1))])
-    m = np.linalg.solve(homogeneous, at_a).T  # (3, 4): at_a = M [at_b; 1]
-    return se3.orthonormalize(m[:, :3]), m[:, 3]
+                        rotation0, translation0, points, covariance=cov, **from_solver(solution))

@@ -30,12 +30,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import crossval, identifiability
-from .identifiability import CorrelatedGroup, HeldParameter
-from .identifiability import human as _human
-from .kinematic_fit import Fit, at_start, covariance, f_scale_of, fit, initial_base_and_targets, register, scales
-from .measurement_model import Layout, Observations, jacobian_chunks, predict
-from .robot_model import KinematicModel
+from cellcal.solvers import crossval, identifiability
+from cellcal.solvers.fit_result import FitResult
+from cellcal.solvers.identifiability import CorrelatedGroup, HeldParameter
+from cellcal.solvers.identifiability import human as _human
+from cellcal.solvers.kinematic_fit import Fit, at_start, covariance, f_scale_of, fit, initial_base_and_targets, register, scales
+from cellcal.solvers.measurement_model import Layout, Observations, jacobian_chunks, predict
+from cellcal.solvers.robot_model import KinematicModel
 
 LOSSES = ("linear", "soft_l1", "huber", "cauchy")
 REGULARIZE = ("cv", "none")
@@ -75,8 +76,11 @@ class IdentifyOptions:
 
 
 @dataclass(frozen=True)
-class Identification:
-    """What identify() found, with named fields in the manner of scipy's OptimizeResult."""
+class Identification(FitResult):
+    """What identify() found, with named fields in the manner of scipy's OptimizeResult: status,
+    success and nfev of the final fit, as scipy.optimize.least_squares reports them (status > 0:
+    converged), its message in words with what was held after it; covariance of x in x's units
+    (0 in the rows and columns of what was held)."""
 
     layout: Layout
     # full unknown vector as Layout orders it: kinematic parameters (lengths mm, angles rad),
@@ -100,14 +104,7 @@ class Identification:
     structural_rank: int  # geometric directions the poses separate at all
     noise_rank: int  # of those, directions above the noise
     condition: float
-    status: int  # of the final fit, as scipy.optimize.least_squares reports it (> 0: converged)
-    message: str  # in words: how the fit ended, and what was held after it
-    nfev: int  # function evaluations of the final fit
     seconds: float
-
-    @property
-    def success(self) -> bool:
-        return self.status > 0
 
     @property
     def held_at_nominal(self) -> tuple[str, ...]:
@@ -272,6 +269,8 @@ def _final_stage(start: _Start, obs, options, say, t0) -> Identification:
     final, free = trust.fit, trust.free
     std = np.zeros(layout.size)
     std[free] = np.sqrt(np.clip(np.diag(trust.cov), 0, None))
+    cov = np.zeros((layout.size, layout.size))
+    cov[np.ix_(free, free)] = trust.cov
     # estimated, but only as well as the prior allows: below the noise on their own
     weak = tuple(n for i, n in enumerate(model.param_names) if free[i] and not noisy.keep[i])
     sv = np.linalg.svd(start.r1[:, free], compute_uv=False)
@@ -289,7 +288,8 @@ def _final_stage(start: _Start, obs, options, say, t0) -> Identification:
         residuals_mm=final.residuals_mm, residuals_nominal_mm=before.residuals_mm, noise_mm=trust.noise_mm,
         first_pass_noise_mm=start.noise, structural_rank=start.structural.rank, noise_rank=noisy.rank,
         condition=float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf"),
-        status=final.status, message=message, nfev=final.nfev, seconds=time.perf_counter() - t0,
+        status=final.status, message=message, success=final.success, nfev=final.nfev, covariance=cov,
+        seconds=time.perf_counter() - t0,
     )
 
 

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import se3
-from .chain import forward
-from .robot_model import KinematicModel
+from cellcal.solvers import se3
+from cellcal.solvers.chain import forward
+from cellcal.solvers.robot_model import KinematicModel
 
 
 def tcp_frames(model: KinematicModel, q_rad, tool_pose=None, params=None) -> tuple[np.ndarray, np.ndarray]:

@@ -11,18 +11,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import lsq, se3
-from .chain import forward
-from .measurement_model import Layout, Observations, jacobian_chunks, predict, predict_base
+from cellcal.solvers import lsq, se3
+from cellcal.solvers.fit_result import FitResult, from_solver
+from cellcal.solvers.chain import forward
+from cellcal.solvers.measurement_model import Layout, Observations, jacobian_chunks, predict, predict_base
 
 
 @dataclass(frozen=True)
-class Fit:
+class Fit(FitResult):
+    """status, message, success and nfev as :func:`.lsq.levenberg_marquardt` (scipy's "lm") reports
+    them; no covariance (:func:`covariance` makes it for the fits that need it)."""
+
     x: np.ndarray  # full unknown vector, units as in Identification.x
     residuals_mm: np.ndarray  # (N, 3) predicted - measured
-    nfev: int
-    status: int  # scipy.optimize.least_squares' status: > 0 converged, 0 evaluation limit, < 0 bad input
-    message: str  # its message
 
     @property
     def errors(self) -> np.ndarray:
@@ -88,8 +89,7 @@ def fit(layout: Layout, obs: Observations, x_start: np.ndarray, free: np.ndarray
     sol = lsq.levenberg_marquardt(evaluate, x_start[free], scale[free], ftol=1e-12, xtol=1e-12, gtol=1e-12,
                                   max_nfev=None if loss == "linear" else 200)
     x = unpack(sol.x)
-    return Fit(x=x, residuals_mm=predict(layout, x, obs) - obs.xyz_mm, nfev=sol.nfev,
-               status=sol.status, message=sol.message)
+    return Fit(x=x, residuals_mm=predict(layout, x, obs) - obs.xyz_mm, **from_solver(sol))
 
 
 def initial_base_and_targets(layout: Layout, obs: Observations, x: np.ndarray | None = None) -> np.ndarray:

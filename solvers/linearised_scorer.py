@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import crossval, identifiability
-from .effects import Term
-from .extended_model import embed, norm_scale, param_columns, stack_param_bases
-from .identify import Identification
-from .measurement_model import Layout, Observations, jacobian_chunks
-from .robust_scoring import LINEAR, RobustScoring
+from cellcal.solvers import crossval, identifiability
+from cellcal.solvers.effects import Term
+from cellcal.solvers.extended_model import embed, norm_scale, param_columns, stack_param_bases
+from cellcal.solvers.identify import Identification
+from cellcal.solvers.measurement_model import Layout, Observations, jacobian_chunks
+from cellcal.solvers.robust_scoring import LINEAR, RobustScoring
 
 NESTED_RTOL = 0.02  # one term's columns lie in another's span to this relative residual (2%)
 

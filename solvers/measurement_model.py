@@ -11,10 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import se3
-from .chain import forward, point_jacobians_by_component
-from .lsq import chunks
-from .robot_model import KinematicModel
+from cellcal.solvers import se3
+from cellcal.solvers.chain import forward, point_jacobians_by_component
+from cellcal.solvers.lsq import chunks
+from cellcal.solvers.robot_model import KinematicModel
 
 BASE_NAMES = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
 

@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import solve_triangular
 
-from . import identifiability, lsq
+from cellcal.solvers import identifiability, lsq
 
 DETERMINED_SIGMAS = 3.0  # a size stands on its own at this many standard errors
 GROUP_R = 0.5  # places whose deflection errors correlate this strongly are reported together

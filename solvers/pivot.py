@@ -15,7 +15,9 @@ the tip, e the line's direction, R the flange rotation and a the axis in the fla
 frame: linear in the lines' offsets o and in a's part across the drawn axis
 (:func:`fit_axis`).
 
-Lengths are in whatever unit the caller uses (the routines pass mm); angles in radians.
+Lengths are in mm (the maths holds in any unit; the routines pass mm and the results' names
+say mm); angles in radians. Both fits are closed form: they report status 1 and success, or
+success False with the reason when the design is singular (:mod:`.fit_result`).
 """
 from __future__ import annotations
 
@@ -24,7 +26,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq
 
+from cellcal.solvers.fit_result import FitResult, degenerate, solved
+
 MAD_TO_SIGMA = 1.4826  # median absolute deviation of a normal variable -> its standard deviation
+SINGULAR_CONDITION = 1e12  # a design conditioned worse than this determines nothing
 
 
 def pivot_matrix(rotations) -> np.ndarray:
@@ -50,7 +55,7 @@ class Design:
 def _design(a: np.ndarray, sigma: float, take: slice) -> Design:
     singular = np.linalg.svd(a, compute_uv=False)
     condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else float("inf")
-    if not np.isfinite(condition) or condition > 1e12:
+    if not np.isfinite(condition) or condition > SINGULAR_CONDITION:
         n = len(range(*take.indices(a.shape[1])))
         return Design(float("inf"), np.full(n, np.inf), float("inf"))
     cov = np.linalg.inv(a.T @ a)[take, take] * sigma**2
@@ -75,10 +80,12 @@ def smallest_setting(expected_error, target: float, low: float, high: float) -> 
 
 
 @dataclass(frozen=True)
-class PivotFit:
+class PivotFit(FitResult):
+    """The tip centre and the seat; covariance of (t, c) from the kept residuals."""
+
     tool_point: np.ndarray  # t: the tip centre in the flange frame
     pivot_point: np.ndarray  # c: the seat in the base frame
-    residuals: np.ndarray  # (N, 3) R_i t + p_i - c for every seat, rejected ones included
+    residuals_mm: np.ndarray  # (N, 3) R_i t + p_i - c for every seat, rejected ones included
     kept: np.ndarray  # (N,) bool
     rejected: list  # seat indices in the order they were rejected
     scale: float  # the per-axis standard deviation outliers were judged against
@@ -126,8 +133,15 @@ def fit_pivot(rotations, positions, *, noise_floor: float, k: float = 4.0, min_k
     sigma_fit = np.sqrt(ssr / dof) if dof > 0 else float("nan")
     cov = np.linalg.pinv(a.T @ a) * sigma_fit**2
     singular = np.linalg.svd(a, compute_uv=False)
+    condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else float("inf")
+    seats = f"{int(kept.sum())} of {n} seats"
+    if condition <= SINGULAR_CONDITION:
+        ended = solved(f"tip centre and seat solved by linear least squares over {seats}")
+    else:
+        ended = degenerate(f"the {seats} do not determine the tip centre: their orientations turn about one "
+                           f"axis at most (condition {condition:.3g})")
     return PivotFit(t, c, residuals, kept, rejected, scale, np.sqrt(np.diag(cov)[:3]), np.sqrt(np.diag(cov)[3:]),
-                    float(singular[0] / singular[-1]) if singular[-1] > 0 else float("inf"))
+                    condition, covariance=cov, **ended)
 
 
 # -- the tool axis from moves along it -------------------------------------------------------------
@@ -176,12 +190,14 @@ def axis_design(line, rotations, directions, heights, drawn_axis, sigma: float) 
 
 
 @dataclass(frozen=True)
-class AxisFit:
+class AxisFit(FitResult):
+    """The tool axis; covariance of (the line offsets, the two tilts) from the residuals."""
+
     axis: np.ndarray  # unit, flange frame, from the flange toward the tip
     tilt: np.ndarray  # (2,) rad: the axis' part across the drawn axis (on `across(drawn_axis)`)
     tilt_std: np.ndarray  # (2,) rad, from the residuals
     offsets: np.ndarray  # (L,) each line's offset
-    residuals: np.ndarray  # (M,) per midpoint
+    residuals_mm: np.ndarray  # (M,) per midpoint
     condition: float  # of the design, offsets scaled to the tilts
 
 
@@ -207,6 +223,12 @@ def fit_axis(line, rotations, directions, heights, midpoints, drawn_axis) -> Axi
     dof = a.shape[0] - a.shape[1]
     cov = np.linalg.pinv(a.T @ a) * float(residuals @ residuals) / dof
     singular = np.linalg.svd(a * _offset_scale(a, n_lines), compute_uv=False)
-    return AxisFit(axis, tilt, np.sqrt(np.diag(cov)[n_lines:]), x[:n_lines], residuals,
-                   float(singular[0] / singular[-1]) if singular[-1] > 0 else float("inf"))
+    condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else float("inf")
+    if condition <= SINGULAR_CONDITION:
+        ended = solved(f"axis and {n_lines} line offsets solved by linear least squares over {a.shape[0]} midpoints")
+    else:
+        ended = degenerate(f"the {a.shape[0]} midpoints do not determine the axis' tilt and the line offsets "
+                           f"(condition {condition:.3g})")
+    return AxisFit(axis, tilt, np.sqrt(np.diag(cov)[n_lines:]), x[:n_lines], residuals, condition,
+                   covariance=cov, **ended)
 

@@ -17,11 +17,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import identifiability
-from .identify import scales
-from .chain import forward
-from .measurement_model import Layout, Observations, jacobian
-from .robot_model import KinematicModel
+from cellcal.solvers import identifiability
+from cellcal.solvers.identify import scales
+from cellcal.solvers.chain import forward
+from cellcal.solvers.measurement_model import Layout, Observations, jacobian
+from cellcal.solvers.robot_model import KinematicModel
 
 
 @dataclass(frozen=True)

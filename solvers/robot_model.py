@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .chain import Chain, Element
+from cellcal.solvers.chain import Chain, Element
 
 
 @dataclass(frozen=True)

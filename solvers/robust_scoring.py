@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .kinematic_fit import f_scale_of
-from .lsq import _loss
+from cellcal.solvers.kinematic_fit import f_scale_of
+from cellcal.solvers.lsq import _loss
 
 TRIM = 0.10  # gross outliers up to 10% of the measurements stay out of every held-out score
 

@@ -49,13 +49,6 @@ def homogeneous(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     return out
 
 
-def invert(transform: np.ndarray) -> np.ndarray:
-    r = transform[..., :3, :3]
-    t = transform[..., :3, 3]
-    rt = np.swapaxes(r, -1, -2)
-    return homogeneous(rt, -np.einsum("...ij,...j->...i", rt, t))
-
-
 def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
     """Rodrigues' formula, vectorised; exact near zero."""
     rotvec = np.asarray(rotvec, dtype=float)

@@ -32,7 +32,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import least_squares
 
-from . import se3
+from cellcal.solvers import se3
+from cellcal.solvers.fit_result import FitResult, from_solver
 
 SIDE, FACE = 0, 1
 LOSSES = ("linear", "soft_l1", "huber", "cauchy")
@@ -164,8 +165,13 @@ class Setup:
         return e1, np.cross(u0, e1)
 
 
-@dataclass
-class StylusFit:
+@dataclass(frozen=True)
+class StylusFit(FitResult):
+    """The tool axis, tip and stylus. status and message are those of the last least_squares solve
+    (the plain fit of the contacts kept), nfev counts the evaluations of every solve (those of the
+    side contacts' fit the end face starts from included); covariance is of x,
+    from the kept contacts' residual variance."""
+
     names: tuple[str, ...]
     x: np.ndarray
     line: Line
@@ -175,7 +181,6 @@ class StylusFit:
     residuals_mm: np.ndarray  # of every contact given, kept or not
     kept: np.ndarray  # bool: used in the final fit
     jacobian: np.ndarray  # of the kept contacts, at x
-    covariance: np.ndarray  # of x, from the kept contacts' residual variance
     sigma_mm: float  # residual RMS of the kept contacts (dof-corrected)
     setup: "Setup"  # the parameterisation x refers to
     notes: list[str] = field(default_factory=list)
@@ -281,11 +286,13 @@ def fit(contacts: Contacts, setup: Setup, stylus_start_mm: np.ndarray, *, loss: 
         raise ValueError(f"loss must be one of {', '.join(LOSSES)}")
     with_face = bool(np.any(contacts.kind == FACE))
     side = contacts.kind == SIDE
+    nfev_before = 0  # of the side contacts' fit the end face starts from
     if with_face and side.sum() > len(names_of(setup, False)):
         # the side contacts alone fix the axis and the stylus: start the end face from them
         first = fit(contacts.rows(side), setup, stylus_start_mm, loss=loss, noise_mm=noise_mm, reject_k=reject_k)
         setup = replace(setup, start=first.line, radius_mm=first.radius_mm if setup.fit_radius else setup.radius_mm)
         stylus_start_mm = first.stylus_mm
+        nfev_before = first.nfev
     names = names_of(setup, with_face)
     x0 = np.zeros(len(names))
     x0[4:7] = stylus_start_mm
@@ -299,13 +306,15 @@ def fit(contacts: Contacts, setup: Setup, stylus_start_mm: np.ndarray, *, loss: 
     x_scale = 1.0 / scales(names)
     kept = np.ones(len(contacts), bool)
     notes = []
+    solutions = []  # every least_squares result, in order: the last is the fit's
 
     def solve(x_start, rows, how, f_scale=1.0):
         sub = contacts.rows(rows)
-        return least_squares(lambda x: residuals(x, sub, setup, with_face),
-                             x_start, jac=lambda x: residuals(x, sub, setup, with_face, jac=True)[1],
-                             method="trf", loss=how, f_scale=f_scale, x_scale=x_scale,
-                             xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200).x
+        solutions.append(least_squares(lambda x: residuals(x, sub, setup, with_face),
+                                       x_start, jac=lambda x: residuals(x, sub, setup, with_face, jac=True)[1],
+                                       method="trf", loss=how, f_scale=f_scale, x_scale=x_scale,
+                                       xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200))
+        return solutions[-1].x
 
     if loss == "linear":
         x = solve(x0, kept, "linear")
@@ -338,8 +347,9 @@ def fit(contacts: Contacts, setup: Setup, stylus_start_mm: np.ndarray, *, loss: 
     covariance = sigma**2 * np.linalg.pinv(j.T @ j)
     c, u, _, stylus, radius, t, _, _ = _unpack(x, setup, with_face)
     line = Line(c, u)
+    ended = {**from_solver(solutions[-1]), "nfev": nfev_before + sum(int(sol.nfev) for sol in solutions)}
     return StylusFit(names, x, line, c + t * u if with_face else None, stylus, float(radius), r_all, kept,
-                     j, covariance, sigma, setup, notes)
+                     j, sigma, setup, notes, covariance=covariance, **ended)
 
 
 def best_fit(contacts: Contacts, starts: list[Estimate], stylus_radius_mm: float, radius_mm: float,

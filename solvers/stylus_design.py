@@ -21,12 +21,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import qr
 
-from . import se3
-from . import stylus as fitting
-from .chain import forward, point_jacobians
-from .inverse import inverse, tcp_frames, tcp_poses
-from .robot_model import KinematicModel
-from .stylus import Estimate, StylusFit, scales
+from cellcal.solvers import se3
+from cellcal.solvers import stylus as fitting
+from cellcal.solvers.chain import forward, point_jacobians
+from cellcal.solvers.inverse import inverse, tcp_frames, tcp_poses
+from cellcal.solvers.robot_model import KinematicModel
+from cellcal.solvers.stylus import Estimate, StylusFit, scales
 
 STRUCTURAL_RTOL = 1e-9  # singular values below this times the largest: a direction the data do not see
 HEIGHT_BAND = 0.15  # side contacts lie in the lowest and the highest 15 % of the heights

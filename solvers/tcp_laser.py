@@ -31,7 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from . import se3
+from cellcal.solvers import se3
+from cellcal.solvers.fit_result import FitResult, from_solver
 
 NULL_RTOL = 1e-7  # singular values of the column-scaled Jacobian below this (relative) are null directions
 STEP = {"mm": 1e-4, "rad": 1e-7, "ms": 1e-4}
@@ -62,12 +63,14 @@ class LaserEdges:
 
 
 @dataclass(frozen=True)
-class LaserFit:
+class LaserFit(FitResult):
+    """The fitted tool, beams and latency; status, message, success and nfev are least_squares' own,
+    covariance that of x (the noise model's, see :func:`fit`)."""
+
     names: tuple[str, ...]
     units: tuple[str, ...]  # "mm", "rad" or "ms" per parameter
     x: np.ndarray  # every parameter, in its unit (offsets from the geometry for beams, absolute otherwise)
     std: np.ndarray
-    cov: np.ndarray
     tip_mm: np.ndarray
     axis: np.ndarray
     beam_points_mm: np.ndarray  # (K, 3): the fitted point of each beam (direction held)
@@ -80,8 +83,6 @@ class LaserFit:
     undetermined: tuple[str, ...]  # parameters the data do not determine (null directions)
     tip_std_mm: np.ndarray  # (3,)
     axis_std_deg: float  # of the axis direction (the larger of the two tilts)
-    converged: bool
-    message: str
 
     @property
     def tool_frame(self) -> np.ndarray:
@@ -245,8 +246,8 @@ def fit(edges: LaserEdges, geometry: LaserGeometry, repeatability_mm: float, jit
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     tip, axis, points, reach, latency = model.unpack(x)
     axis_std = float(np.degrees(max(std[3], std[4])))
-    return LaserFit(model.names, model.units, x, std, cov, tip, axis, points, reach, latency, float(std[-1]) / 1e3,
-                    res, sigma, condition, undetermined, std[:3], axis_std, bool(sol.success), str(sol.message))
+    return LaserFit(model.names, model.units, x, std, tip, axis, points, reach, latency, float(std[-1]) / 1e3,
+                    res, sigma, condition, undetermined, std[:3], axis_std, covariance=cov, **from_solver(sol))
 
 
 def crossing_offsets(edges: LaserEdges, geometry: LaserGeometry, fit: LaserFit) -> np.ndarray:

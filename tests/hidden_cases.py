@@ -15,9 +15,9 @@ import numpy as np
 from cellcal.solvers.identify import IdentifyOptions, identify
 from cellcal.solvers.measurement_model import Layout, Observations, jacobian
 from cellcal.solvers.robot_model import KinematicModel
-from cellcal.sims.kinematic_arm import TrackerNoise
-from cellcal.sims.physical_arm import Campaign, HiddenEffect, PhysicalArm
-from cellcal.sims.workspace import full_workspace, joint_sweeps
+from cellcal.sims.physics.kinematic_arm import TrackerNoise
+from cellcal.sims.physics.physical_arm import Campaign, HiddenEffect, PhysicalArm
+from cellcal.sims.physics.workspace import full_workspace, joint_sweeps
 
 BASE_REPEATABILITY_MM = 0.05
 

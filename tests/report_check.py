@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cellcal.daemon.run_report import write_run_report
+from cellcal.reports.run import write_run_report
 
 
 def assert_report_draws(result, folder, *captions: str) -> str:

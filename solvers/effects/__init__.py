@@ -1,11 +1,11 @@
 """The named causes of ``cellcal analyze`` (ids as in the project's causes vocabulary)."""
-from .backlash import Backlash
-from .base import Cause, Context, JointBasis, Term, approach_directions
-from .cyclic_joint_error import CyclicJointError
-from .joint_compliance import JointCompliance
-from .parallel_axis_tilt import ParallelAxisTilt
-from .thermal_drift import ThermalDrift
-from .trigger_latency import TriggerLatency
+from cellcal.solvers.effects.backlash import Backlash
+from cellcal.solvers.effects.base import Cause, Context, JointBasis, Term, approach_directions
+from cellcal.solvers.effects.cyclic_joint_error import CyclicJointError
+from cellcal.solvers.effects.joint_compliance import JointCompliance
+from cellcal.solvers.effects.parallel_axis_tilt import ParallelAxisTilt
+from cellcal.solvers.effects.thermal_drift import ThermalDrift
+from cellcal.solvers.effects.trigger_latency import TriggerLatency
 
 CAUSES: dict[str, Cause] = {c.id: c for c in (JointCompliance(), Backlash(), ThermalDrift(), CyclicJointError(),
                                               ParallelAxisTilt(), TriggerLatency())}

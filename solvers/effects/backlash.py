@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Cause, JointBasis, Term
+from cellcal.solvers.effects.base import Cause, JointBasis, Term
 
 
 class Backlash(Cause):

@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..measurement_model import Layout, Observations
-from ..robot_model import KinematicModel
+from cellcal.solvers.measurement_model import Layout, Observations
+from cellcal.solvers.robot_model import KinematicModel
 
 
 @dataclass(frozen=True)

@@ -29,10 +29,10 @@ from functools import partial
 
 import numpy as np
 
-from ..crossval import NEIGHBOUR_RAD, fold_ids
-from ..measurement_model import jacobian_chunks
-from . import periodic_spline
-from .base import Cause, JointBasis, Term
+from cellcal.solvers.crossval import NEIGHBOUR_RAD, fold_ids
+from cellcal.solvers.measurement_model import jacobian_chunks
+from cellcal.solvers.effects import periodic_spline
+from cellcal.solvers.effects.base import Cause, JointBasis, Term
 
 MIN_RANGE_RAD = np.deg2rad(60.0)  # a joint that barely moves shows no period
 MAX_ORDER = 120  # content measured on real arms reaches ~40; the scan goes well past it

@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import se3
-from ..gravity import point_mass_regressors
-from ..measurement_model import predict
+from cellcal.solvers import se3
+from cellcal.solvers.gravity import point_mass_regressors
+from cellcal.solvers.measurement_model import predict
 
 MIN_MOMENT_SPREAD = 1e-6  # a point whose moment never changes has no column (as for the joints)
 

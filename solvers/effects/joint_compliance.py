@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..gravity import gravity_torques, point_mass_regressors, torque_regressors, tree_sites
-from .base import Cause, JointBasis, Term
-from .elastic_mount import mount_columns
+from cellcal.solvers.gravity import gravity_torques, point_mass_regressors, torque_regressors, tree_sites
+from cellcal.solvers.effects.base import Cause, JointBasis, Term
+from cellcal.solvers.effects.elastic_mount import mount_columns
 
 MIN_TORQUE_SPREAD = 1e-6  # a joint whose gravity torque never changes (vertical axis) has no candidate
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..robot_model import parallel_joint_pairs, with_hayati_beta
-from .base import Cause, Term
+from cellcal.solvers.robot_model import parallel_joint_pairs, with_hayati_beta
+from cellcal.solvers.effects.base import Cause, Term
 
 
 class ParallelAxisTilt(Cause):

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..measurement_model import jacobian_chunks
-from .base import Cause, Term
+from cellcal.solvers.measurement_model import jacobian_chunks
+from cellcal.solvers.effects.base import Cause, Term
 
 WARMUP_TAU_S = (600.0, 1800.0, 3600.0, 7200.0)
 

@@ -1,0 +1,185 @@
+"""``cellcal analyze``: what is the rigid model getting wrong?"""
+from __future__ import annotations
+
+import json
+
+
+from cellcal.config.robot_files import load_robot
+from cellcal.routines.base import jsonable
+from cellcal.measurements.table import check_joint_limits, joint_velocities, read_measurements
+from cellcal.solvers.analyze import AnalyzeOptions, Finding, Scored, analyze
+from cellcal.solvers.identify import LOSSES
+from cellcal.solvers.effects import CAUSES, Context, approach_directions
+from cellcal.solvers.effects.cyclic_joint_error import order_search
+from cellcal.solvers.physical_sizes import describe
+from cellcal.cli import model_out
+from cellcal.cli import discriminate as discriminate_cmd
+from cellcal.cli.common import ReportError, UsageError, check_folds, print_progress
+
+MIN_MEASUREMENTS = 30
+
+
+def add_parser(sub):
+    p = sub.add_parser(
+        "analyze", help="find, name and size the effect the rigid model misses",
+        description="Compare measured data with the rigid kinematic model (geometry calibrated), "
+                    "rank the named causes by held-out error, and name one only when it wins clearly; "
+                    "otherwise the answer is 'none'.")
+    p.add_argument("--robot", required=True, help="robot model file (YAML) or shipped name")
+    p.add_argument("--data", required=True, metavar="DATA.csv", help="measurement CSV, rows in measured order")
+    p.add_argument("--report", metavar="DIR", help="write plots and a readable page of the finding here")
+    p.add_argument("--causes", nargs="+", choices=tuple(CAUSES), default=tuple(CAUSES), metavar="CAUSE",
+                   help=f"candidate causes to consider (default: all of {', '.join(CAUSES)})")
+    p.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
+    p.add_argument("--loss", choices=LOSSES, default="linear",
+                   help="robust loss against gross outliers, as identify's; the held-out scores then leave out "
+                        "each model's largest 10%% of errors (default: linear, i.e. least squares)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    model_out.add_argument(p, analyze=True)
+    discriminate_cmd.add_arguments(p)
+    p.set_defaults(func=run)
+
+
+def _context(table) -> Context:
+    return Context(direction=approach_directions(table.q_rad), t_s=table.t_s, temp_c=table.temp_c,
+                   payload_kg=table.payload_kg, dq_rad_s=joint_velocities(table))
+
+
+def _scored(s: Scored) -> dict:
+    return {"cause": s.cause, "where": s.where, "label": s.label, "heldout_mean_mm": s.heldout_mean_mm}
+
+
+def finding_json(f: Finding, n: int) -> dict:
+    out = {
+        "cause": f.cause,
+        "where": f.where,
+        "magnitude": f.magnitude,
+        "baseline": {"heldout_mean_mm": f.baseline.heldout_mean_mm},
+        "extended": {"heldout_mean_mm": f.extended.heldout_mean_mm},
+        "gain_pct": f.gain_pct,
+        "margin_pct": 100.0 * f.margin,
+        "candidates": [_scored(c) for c in f.candidates],
+        "notes": list(f.notes),
+        **discriminate_cmd.tie_json(f),
+        "n": n,
+        "seconds": f.seconds,
+    }
+    out.update(_coverage_json(f))
+    out["heldout_trimmed_pct"] = 100.0 * f.baseline.trim  # largest errors each score leaves out (robust loss)
+    if f.second is not None:
+        out["second"] = _scored(f.second)
+        out["both"] = {"label": f.both.label, "heldout_mean_mm": f.both.heldout_mean_mm,
+                       "magnitude": f.both.magnitude}
+    return out
+
+
+def _spectra(f: Finding) -> dict | None:
+    """The cyclic order scan of this analysis, when the cause was scored."""
+    return next((t.extra["spectra"] for c in f.candidates for t in c.terms if "spectra" in t.extra), None)
+
+
+def _coverage_json(f: Finding) -> dict:
+    """Joint angles the data cover, the cyclic orders scanned, and the fitted effect for later use."""
+    out = {"joint_coverage_deg": {str(j + 1): list(r) for j, r in enumerate(f.joint_range_deg)}}
+    if (spectra := _spectra(f)) is not None:
+        out["cyclic_order_search"] = order_search(spectra)
+    if f.extended.details is not None:
+        out["effect"] = f.extended.details
+    return out
+
+
+def _coverage_text(f: Finding) -> list[str]:
+    lines = []
+    for err in (f.extended.details or {}).get("errors", []):
+        cover = ", ".join(f"{lo:+.1f}..{hi:+.1f}" for lo, hi in err["coverage_deg"])
+        what = f"orders {err['orders']}" if "orders" in err else f"periodic spline, {err['spline_knots']} knots"
+        lines.append(f"  joint {err['joint']}: {what}, known over {cover} deg")
+    if lines:
+        lines.append(f"  {f.extended.details['outside_coverage']}")
+    if (spectra := _spectra(f)) is not None:
+        search = order_search(spectra)
+        lines.append("cyclic orders scanned: " + ", ".join(f"joint {j} 1-{v['orders'][1]}"
+                                                          for j, v in search["joints"].items()))
+        lines.append(f"  ({search['rule']})")
+    lines.append("joint coverage (deg): " + ", ".join(f"{j + 1}: {lo:+.1f}..{hi:+.1f}"
+                                                      for j, (lo, hi) in enumerate(f.joint_range_deg)))
+    return lines
+
+
+def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
+    lines = [f"cellcal analyze: {robot}, {n} measurements", ""]
+    if f.cause == "none" and f.indistinguishable:
+        lines.append("finding: none -- these data cannot tell apart the explanations below")
+    elif f.cause == "none":
+        lines.append("finding: none -- no candidate beats the geometric model clearly on held-out data")
+    else:
+        where = ", ".join(f"{k} {v}" for k, v in f.where.items())
+        lines.append(f"finding: {f.cause} ({where})")
+        for k, v in f.magnitude.items():
+            lines += describe(v) if isinstance(v, list) else [f"  {k:32s} {v:.6g}"]
+    lines.append(f"held-out mean error: geometry only {f.baseline.heldout_mean_mm:.4f} mm, "
+                 f"with the effect {f.extended.heldout_mean_mm:.4f} mm (gain {f.gain_pct:.1f}%)"
+                 + (f", each without its largest {100 * f.baseline.trim:.0f}% (robust loss)"
+                    if f.baseline.trim else ""))
+    lines += _coverage_text(f)
+    if f.second is not None:
+        lines.append(f"second effect: {f.second.label}; both fitted: {f.both.heldout_mean_mm:.4f} mm")
+    lines += [f"  note: {note}" for note in (*f.notes, *not_scored)]
+    lines += discriminate_cmd.tie_lines(f)
+    lines += ["", "candidates (held-out mean error, mm):"]
+    for c in f.candidates[:10]:
+        lines.append(f"  {c.heldout_mean_mm:8.4f}  {c.label}")
+    if len(f.candidates) > 10:
+        lines.append(f"  ... {len(f.candidates) - 10} more (--json lists all)")
+    lines.append(f"\n{f.seconds:.1f} s")
+    return "\n".join(lines)
+
+
+def run(args) -> int:
+    check_folds(args.folds)
+    model_out.check_target(args.write_model)
+    discriminate_cmd.check_arguments(args)
+    model = load_robot(args.robot)
+    table = read_measurements(args.data, model.n_joints)
+    check_joint_limits(table, model.joint_limits, model.name)
+    if len(table) < MIN_MEASUREMENTS:
+        raise UsageError(f"{args.data}: {len(table)} measurements; the analysis needs at least {MIN_MEASUREMENTS}")
+    obs = table.observations()
+    ctx = _context(table)
+    requested = tuple(dict.fromkeys(args.causes))
+    unscorable = {c: why for c in requested if (why := CAUSES[c].unscorable(model, ctx))}
+    if len(unscorable) == len(requested):
+        raise UsageError(f"{args.data}: none of the requested causes can be scored on these data: "
+                         + "; ".join(f"{c} {why}" for c, why in unscorable.items()))
+    not_scored = [f"{c} not scored: {why}" for c, why in unscorable.items()]
+    for note in not_scored:
+        print_progress(note)
+    causes = tuple(c for c in requested if c not in unscorable)
+    finding = analyze(model, obs, ctx, AnalyzeOptions(folds=args.folds, causes=causes, loss=args.loss),
+                      progress=print_progress)
+    text = finding_text(finding, model.name, len(obs), not_scored)
+    experiment = discriminate_cmd.run_design(args, finding, ctx, model)
+    if experiment and experiment["poses"]:
+        text += f"\n\nexperiment: {experiment['summary']}\nposes written to {experiment['file']}"
+    # the finding first: a report that cannot be written must not lose it
+    if args.json:
+        out = finding_json(finding, len(obs))
+        out["notes"] = out["notes"] + not_scored
+        out["not_scored"] = {c: why for c, why in unscorable.items()}
+        if experiment is not None:
+            out["discriminate"] = experiment
+        print(json.dumps(out, default=jsonable), flush=True)
+    else:
+        print(text, flush=True)
+    if args.write_model:
+        model_out.write_finding(args, model, obs, finding)
+    if args.report:
+        from cellcal.reports.analysis import write_report  # matplotlib loads only when a report is asked for
+
+        try:
+            page = write_report(args.report, model, obs, finding, text)
+        except OSError as exc:
+            raise ReportError(f"--report {args.report}: cannot write the report there: "
+                              f"{exc.strerror or exc}; the finding above stands") from None
+        print_progress(f"report written to {page}")
+    return 0

@@ -1,0 +1,92 @@
+"""``cellcal daemon``: the service.
+
+``cellcal daemon --cell CELL.yaml`` connects the cell's devices, checks them, tells
+systemd it is ready, then serves the operator panel until SIGTERM or SIGINT: a start
+request runs the selected routine (:mod:`cellcal.daemon.service`). After any crash it comes up idle:
+a run found open in the store is recorded as interrupted, and nothing moves by itself.
+"""
+from __future__ import annotations
+
+import logging
+import signal
+import sys
+import threading
+
+
+from cellcal.cli.common import STATE_HELP, open_store
+from cellcal.daemon.cells import load_cell, open_drivers
+from cellcal.daemon.notify import Notifier
+from cellcal.daemon.service import ResultCode, Service
+from cellcal.daemon.store import state_dir
+from cellcal.drivers.interfaces import DeviceError
+from cellcal.reports.run import write_run_report
+
+log = logging.getLogger("cellcal.daemon")
+STOP_WAIT_S = 1.5  # how long a stop waits for the running routine to halt before leaving
+
+
+def cmd_daemon(args) -> int:
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="cellcal: %(message)s", force=True)
+    cell = load_cell(args.cell)
+    store = open_store(args)
+    folder = state_dir(args.state_dir)
+    notifier = Notifier()
+    stopping = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stopping.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        interrupted = store.mark_interrupted(int(ResultCode.INTERRUPTED))
+        for run_id in interrupted:
+            log.warning("run %d: interrupted (the daemon stopped during it); nothing was written back", run_id)
+        store.event("start", cell.path)
+        try:
+            drivers = open_drivers(cell)
+        except DeviceError as exc:
+            log.error("cannot connect the cell's devices: %s", exc)
+            store.event("fault", str(exc))
+            return 1
+        with drivers:
+            try:
+                state = drivers.robot.state()
+            except DeviceError as exc:
+                log.error("the robot does not answer: %s", exc)
+                return 1
+            service = Service(cell, drivers, store, out_dir=folder / "datasets", notifier=notifier,
+                              report=lambda run_id, result, st: write_run_report(folder / "reports", run_id, result),
+                              reconnect=lambda: open_drivers(cell))
+            service._panel("set_lamps", busy=False)
+            service.discard_requests("pending when the service started")
+            if interrupted:
+                service.give_back_frame_of(interrupted[-1])
+            log.info("ready: cell %s, robot %s", cell.name, state.value)
+            notifier.ready(f"idle; robot {state.value}")
+            try:
+                while not stopping.is_set():
+                    service.poll_panel()
+                    notifier.watchdog()
+                    stopping.wait(args.poll_s)
+                notifier.stopping()
+                log.info("stopping")
+                if service.busy():
+                    service.request_abort("the service is stopping")
+                service.wait(STOP_WAIT_S)  # the run's end, and its last words to the panel and the store
+                store.event("stop", None)
+            finally:
+                if service.drivers is not drivers:  # reconnected after a lost robot
+                    service.drivers.close()
+        return 0
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        notifier.close()
+        store.close()
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("daemon", help="the service: run routines from the operator panel, write back tool frames",
+                       description="Connect the cell's devices, tell systemd it is ready (Type=notify), and serve "
+                                   "the operator panel until SIGTERM/SIGINT: a start request runs the selected "
+                                   "routine; a tool frame is written back only when every gate passes.")
+    p.add_argument("--cell", required=True, metavar="CELL.yaml", help="cell file, or a shipped cell's name")
+    p.add_argument("--state-dir", metavar="DIR", help=STATE_HELP)
+    p.add_argument("--poll-s", type=float, default=0.05, help="panel polling interval (default 0.05 s)")
+    p.set_defaults(func=cmd_daemon)

@@ -1,0 +1,95 @@
+"""``cellcal identify``: kinematic calibration from measured target positions."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from cellcal.cli import model_out
+from cellcal.cli.common import UsageError, check_folds, check_positive, print_progress
+from cellcal.config.robot_files import load_robot
+from cellcal.measurements.table import MeasurementTable, check_joint_limits, read_measurements
+from cellcal.reports.identification import identification_json, identification_text
+from cellcal.solvers.identify import LOSSES, REGULARIZE, IdentifyOptions, identify
+
+
+def _split(table: MeasurementTable, validate: MeasurementTable | None, path: str):
+    """Calibration and validation rows: --validate file, else the split column."""
+    if validate is not None:
+        if table.split is not None and np.any(table.split == "val"):
+            raise UsageError(f"{path}: has rows marked split=val and --validate was given too; use one")
+        return table, validate
+    if table.split is None or not np.any(table.split == "val"):
+        return table, None
+    cal = table.rows(table.split == "cal")
+    if len(cal) == 0:
+        raise UsageError(f"{path}: every row is marked split=val; nothing is left to calibrate on")
+    return cal, table.rows(table.split == "val")
+
+
+def run(args) -> int:
+    model = load_robot(args.robot)
+    table = read_measurements(args.data, model.n_joints)
+    validate = read_measurements(args.validate, model.n_joints) if args.validate else None
+    cal, val = _split(table, validate, args.data)
+    if val is not None:
+        unknown = sorted(set(val.target_names) - set(cal.target_names))
+        if unknown:
+            raise UsageError(f"{args.validate or args.data}: target(s) {', '.join(unknown)} do not occur "
+                             "in the calibration rows, so their offsets are unknown")
+    check_folds(args.folds)
+    check_positive("--prior-mm", args.prior_mm)
+    check_joint_limits(cal, model.joint_limits, model.name)
+    if val is not None:
+        check_joint_limits(val, model.joint_limits, model.name)
+    bad = sorted(set(args.fix or ()) - set(model.param_names))
+    if bad:
+        raise UsageError(f"--fix: {', '.join(bad)} not a parameter of {model.name} "
+                         f"(parameters: {', '.join(model.param_names)})")
+    model_out.check_target(args.write_model)
+    n_min = 10
+    if len(cal) < n_min:
+        raise UsageError(f"{args.data}: {len(cal)} calibration rows; identification needs at least {n_min}")
+    options = IdentifyOptions(regularize=args.regularize, loss=args.loss, folds=args.folds,
+                              fixed=tuple(args.fix or ()), prior_mm=args.prior_mm)
+    obs = cal.observations()
+    val_obs = None
+    if val is not None:
+        # validation rows use the calibration's target numbering
+        index = {t: i for i, t in enumerate(cal.target_names)}
+        val_obs = val.observations()
+        val_obs = type(val_obs)(val_obs.q, val_obs.xyz_mm,
+                                np.array([index[val.target_names[t]] for t in val.target]),
+                                cal.target_names)
+    result = identify(model, obs, options, progress=print_progress)
+    if args.json:
+        print(json.dumps(identification_json(result, obs, val_obs)))
+    else:
+        print(identification_text(result, obs, val_obs, model.name))
+    if args.write_model:
+        model_out.write_identified(args, model, result, len(cal), val_obs)
+    return 0
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("identify", help="kinematic calibration from measured target positions",
+                       description="Identify geometric parameters, the instrument -> base transform "
+                                   "and the flange -> target offsets from measured positions.")
+    p.add_argument("--robot", required=True, metavar="ROBOT",
+                   help="robot model file (YAML), or the name of a shipped model such as ur10e")
+    p.add_argument("--data", required=True, metavar="CAL.csv", help="measurement CSV")
+    p.add_argument("--validate", metavar="VAL.csv",
+                   help="measurements to validate on (default: rows of --data marked split=val, if any)")
+    p.add_argument("--regularize", choices=REGULARIZE, default="cv",
+                   help="cv: L2 prior toward nominal, weight by k-fold cross-validation (default); "
+                        "none: least squares over the identifiable parameters")
+    p.add_argument("--loss", choices=LOSSES, default="linear",
+                   help="robust loss against outliers (default: linear, i.e. least squares)")
+    p.add_argument("--folds", type=int, default=5, help="folds of the cross-validation (default 5)")
+    p.add_argument("--fix", nargs="+", metavar="PARAM", help="hold these parameters at nominal (e.g. d1 theta1)")
+    p.add_argument("--prior-mm", type=float, default=1.0,
+                   help="a direction whose estimate would scatter more than this (mm at the target) "
+                        "is held at nominal (default 1.0)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    model_out.add_argument(p)
+    p.set_defaults(func=run)

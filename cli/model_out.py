@@ -1,0 +1,76 @@
+"""``--write-model OUT.yaml`` of ``cellcal identify`` and ``cellcal analyze``: the calibrated
+model file (``config.model_files``) with where its numbers come from."""
+from __future__ import annotations
+
+import datetime
+import hashlib
+from importlib import metadata
+
+from cellcal.config.model_files import write_calibrated
+from cellcal.solvers.calibrated_model import from_fit
+from cellcal.cli.common import UsageError, output_file, print_progress
+
+
+def check_target(path) -> None:
+    """Refuse an output path that cannot be written before any computation."""
+    if path is not None:
+        output_file(path, "--write-model")
+
+
+def provenance(command: str, data_path, rows: int, heldout_mean_mm: float | None, heldout_how: str) -> dict:
+    """The calibration section's record: who wrote it, when, from which data, how good on unseen data."""
+    try:
+        version = metadata.version("cellcal")
+    except metadata.PackageNotFoundError:
+        version = "unknown"
+    digest = hashlib.sha256()
+    with open(data_path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return {
+        "written_by": f"cellcal {version}",
+        "command": command,
+        "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "dataset": {"path": str(data_path), "sha256": digest.hexdigest(), "rows": int(rows)},
+        "heldout": {"mean_mm": None if heldout_mean_mm is None else float(heldout_mean_mm), "how": heldout_how},
+    }
+
+
+def write_model(path, calibrated, source, record: dict, magnitudes=None) -> None:
+    try:
+        out = write_calibrated(path, calibrated, source, record, magnitudes)
+    except OSError as exc:
+        raise UsageError(f"--write-model {path}: cannot write: {exc.strerror or exc}") from None
+    print_progress(f"calibrated model written to {out}")
+
+
+def add_argument(parser, analyze: bool = False) -> None:
+    what = ("the identified geometry, instrument frame, target offsets and the named effect(s) with "
+            "their fitted parameters" if analyze else
+            "the identified geometry, instrument frame and target offsets")
+    parser.add_argument("--write-model", metavar="OUT.yaml",
+                        help=f"write a calibrated robot model file: {what} (every --robot option reads it)")
+
+
+def write_identified(args, model, result, rows: int, val_obs) -> None:
+    """identify's result as a model file; held-out error from --validate, else from the CV curve."""
+    if val_obs is not None:
+        heldout, how = float(result.errors(val_obs).mean()), f"validation rows ({len(val_obs)})"
+    elif result.cv_curve:
+        heldout = dict(result.cv_curve)[result.lam]
+        how = "grouped k-fold cross-validation, linearised at the fit"
+    else:
+        heldout, how = None, "none: no validation rows and no cross-validation (--regularize none)"
+    calibrated = from_fit(model, result.layout.target_names, result.x)
+    write_model(args.write_model, calibrated, args.robot, provenance("identify", args.data, rows, heldout, how))
+
+
+def write_finding(args, model, obs, finding) -> None:
+    """analyze's finding as a model file: geometry with the named effect (both, when a second
+    effect showed), or geometry alone when the finding is none."""
+    scored = finding.both if finding.both is not None else finding.extended
+    calibrated = from_fit(model, obs.target_names, scored.x, scored.terms, scored.theta, obs.q)
+    magnitudes = {scored.cause: scored.magnitude} if len(scored.terms) == 1 else scored.magnitude
+    record = provenance("analyze", args.data, len(obs), scored.heldout_mean_mm,
+                        f"grouped {args.folds}-fold cross-validation ({scored.label})")
+    write_model(args.write_model, calibrated, args.robot, record, magnitudes)

@@ -1,0 +1,145 @@
+"""``cellcal run ROUTINE --cell CELL.yaml [--dry-run] [--json] [--from DATASET]``.
+
+Plans the routine from the cell file, checks every motion against the cell's limits
+(``--dry-run`` stops there), moves and records, writes the dataset, solves and gates.
+``--from DATASET`` re-solves a recorded dataset offline with the same code;
+``--resume DATASET`` continues a campaign a fault stopped (routines that can). On a
+simulated cell the result also carries ``sim_truth``: the error against the hidden truth.
+
+Exit status: 0 the result passed every gate (it may be written back); 1 a device fault,
+a computation that failed, or a result that failed a gate (the JSON still comes, with
+``write_back: false`` and the reasons); 2 bad usage, a bad cell file, a plan that would
+leave the cell's limits, or a dataset that cannot be used.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from cellcal.config.robot_files import load_robot
+from cellcal.drivers import registry as drivers_registry
+from cellcal.routines import registry, runner
+from cellcal.routines.base import PlanRefused, Result, frame_text, gate_line
+from cellcal.routines.records import read_dataset
+from cellcal.solvers.measurement_model import Layout, Observations, predict
+from cellcal.daemon.cells import load_cell, open_drivers
+from cellcal.cli.common import UsageError, print_progress
+
+
+def _score(result: Result, cell) -> None:
+    truth = drivers_registry.simulated_truth(cell, load_robot(cell.robot))
+    if truth is None:
+        return
+    score = truth.report()
+    if result.tool_frame is not None:
+        score.update(truth.score_tool_frame(result.tool_frame))
+    if result.routine == "tracker" and result.dataset and truth.tool is not None:
+        score.update(_score_kinematics(result, truth, load_robot(cell.robot)))
+    if result.routine == "handshake" and result.frame is not None:
+        score.update(truth.score_base_frame(result.frame["pose_m_rad"]))
+        score.update(truth.score_tips(*(np.asarray(result.extra[f"tip_{n}_mm"]) / 1e3 for n in "ab")))
+    result.sim_truth = score
+
+
+def _score_kinematics(result: Result, truth, model) -> dict:
+    """A kinematic calibration against the arm as built and the real tool tip (where the
+    simulated tracker's target sits, measured in the robot base frame), on the validation
+    rows of its dataset: the mean error the identified model and the true one leave on the
+    measured positions, and the identified model's distance from the true positions."""
+    data = read_dataset(result.dataset, result.routine, ("split", "target"))
+    val = np.asarray(data["split"]) == "val"
+    if not val.any():
+        return {}
+    layout = Layout(model, tuple(dict.fromkeys(np.asarray(data["target"])[~val]))[:1])
+    value = {p.name: p.value for p in result.parameters}
+    found = np.array([np.deg2rad(value[n]) if a else value[n] for n, a in zip(layout.names, layout.is_angle)])
+    true = layout.initial(base=np.zeros(6), offsets=[truth.tool.tcp_m * 1e3])
+    true[: layout.n_kin] = truth.arm_params
+    q = data.stack(*[f"q{j}_rad" for j in range(1, model.n_joints + 1)])[val]
+    obs = Observations(q, data.stack("x_mm", "y_mm", "z_mm")[val], np.zeros(len(q), int), layout.target_names)
+    p_found, p_true = predict(layout, found, obs), predict(layout, true, obs)
+    after, floor = (float(np.linalg.norm(p - obs.xyz_mm, axis=1).mean()) for p in (p_found, p_true))
+    error = np.linalg.norm(p_found - p_true, axis=1)
+    return {"validation_mean_mm": after, "floor_mean_mm": floor, "validation_over_floor": after / floor,
+            "model_error_mean_mm": float(error.mean()), "model_error_max_mm": float(error.max())}
+
+
+def _text(result: Result) -> str:
+    lines = [f"{result.routine}: {'PASSED every gate: may be written back' if result.write_back else 'NOT to be written back'}"]
+    if result.tool_frame is not None:
+        lines.append(f"  tool frame  {frame_text(result.tool_frame)}")
+    for p in result.parameters:
+        std = "" if p.std is None else f" +- {p.std:.4f}"
+        lines.append(f"  {p.name:<28} {p.value:12.4f}{std} {p.unit}")
+    lines.append(f"  residual RMS {result.residual_rms_mm:.4f} mm over {len(result.residuals_mm)} measurements "
+                 f"(expected noise {result.expected_noise_mm:.4f} mm); condition {result.condition:.3g}")
+    if result.cycle_time_s is not None:
+        lines.append(f"  cycle time {result.cycle_time_s:.1f} s")
+    for g in result.gates:
+        lines.append(f"  {gate_line(g)}")
+    lines += [f"  note: {n}" for n in result.notes]
+    if result.sim_truth:
+        t = result.sim_truth
+        if "position_error_mm" in t:
+            lines.append(f"  against the simulation's hidden truth: TCP {t['position_error_mm']:.4f} mm, "
+                         f"axis {t['axis_error_deg']:.4f} deg")
+        if "base_position_error_mm" in t:
+            lines.append(f"  against the simulation's hidden truth: robot b's base {t['base_position_error_mm']:.4f} mm, "
+                         f"{t['base_rotation_error_deg']:.5f} deg; tips {t.get('tip_a_error_mm', float('nan')):.4f} "
+                         f"and {t.get('tip_b_error_mm', float('nan')):.4f} mm")
+    if result.dataset:
+        lines.append(f"  dataset: {result.dataset}")
+    return "\n".join(lines)
+
+
+def cmd_run(args) -> int:
+    try:
+        cell = load_cell(args.cell)
+        if args.routine not in registry.available():
+            raise UsageError(f"no routine named {args.routine!r} (routines: {', '.join(registry.available())})")
+        if args.from_dataset and args.resume:
+            raise UsageError("--from re-solves a dataset, --resume measures the rest of one: give one of them")
+        if args.from_dataset:
+            result = runner.solve_file(args.routine, cell, args.from_dataset)
+        else:
+            prepared = runner.prepare(args.routine, cell, resume=args.resume)
+            if args.dry_run:
+                summary = {"routine": args.routine, "cell": cell.path, "moves": len(prepared.plan),
+                           "within_limits": True,
+                           "plan": [{"kind": m.kind, "label": m.label} for m in prepared.plan]}
+                if args.json:
+                    print(json.dumps(summary))
+                else:
+                    print(f"{args.routine}: {len(prepared.plan)} moves planned; every one is within the "
+                          f"limits of {cell.path} (nothing moved)")
+                return 0
+            with open_drivers(cell) as drivers:
+                dataset = runner.measure(prepared, drivers, args.out, print_progress)
+            result = runner.solve(args.routine, cell, dataset)
+    except PlanRefused as exc:
+        raise UsageError(f"{args.cell}: plan refused, nothing moved: {exc}") from None
+    _score(result, cell)
+    if args.json:
+        print(result.json_text())
+    else:
+        print(_text(result))
+    return 0 if result.write_back else 1
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("run", help="run a calibration routine on a cell",
+                       description="Plan the routine from the cell file, check every motion against the "
+                                   "cell's limits, move and record, write the dataset, solve, and check the "
+                                   "result's quality gates. Nothing is written to the controller here.")
+    p.add_argument("routine", metavar="ROUTINE", help="one of: " + ", ".join(registry.ROUTINES))
+    p.add_argument("--cell", default="sim", metavar="CELL.yaml",
+                   help="cell file, or the name of a shipped cell (default: sim, the simulated cell)")
+    p.add_argument("--dry-run", action="store_true", help="plan and check every motion; move nothing")
+    p.add_argument("--from", dest="from_dataset", metavar="DATASET",
+                   help="re-solve a recorded dataset instead of measuring")
+    p.add_argument("--resume", metavar="DATASET",
+                   help="continue the incomplete dataset a fault left: measure only what it lacks")
+    p.add_argument("--out", default="out/runs", metavar="DIR", help="where datasets are written (default: out/runs)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.set_defaults(func=cmd_run)

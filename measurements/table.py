@@ -1,0 +1,412 @@
+"""The measurement CSV that ``cellcal identify`` and ``cellcal analyze`` read.
+
+One header line, then one row per measurement in the order measured; comma
+separated, ``.`` as decimal point, UTF-8. Lines whose first character is ``#``
+are comments and blank lines are skipped; line numbers in messages are physical
+lines of the file. Each record is one physical line.
+
+Required: ``q1_deg`` .. ``qN_deg`` or ``q1_rad`` .. ``qN_rad`` (one unit for all
+joints, N = the robot model's joint count) and ``x_mm``, ``y_mm``, ``z_mm``.
+Optional: ``target``, ``qw``/``qx``/``qy``/``qz`` (all four or none), ``t_s``,
+``temp_c``, ``payload_kg``, ``split`` (``cal`` or ``val``). Other columns are
+kept as text. A file that cannot be used raises :class:`DatasetError` with one
+message naming the file, the line and the column; nothing is partly loaded.
+"""
+from __future__ import annotations
+
+import csv
+import os
+import re
+import stat
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from cellcal.solvers.measurement_model import Observations
+
+XYZ = ("x_mm", "y_mm", "z_mm")
+QUAT = ("qw", "qx", "qy", "qz")
+SCALARS = ("t_s", "temp_c", "payload_kg")
+SPLITS = ("cal", "val")
+DEFAULT_TARGET = "tcp"
+KNOWN = XYZ + QUAT + SCALARS + ("target", "split")
+
+MAX_POSITION_MM = 1e5  # 100 m: beyond any tracker's range
+MAX_JOINT = {"rad": 4 * np.pi, "deg": 720.0}  # two turns either way
+
+_JOINT = re.compile(r"q(\d+)_(deg|rad)")
+# Stricter than float(): no "1_000", no non-ASCII digits, no nan/inf.
+_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
+
+
+class DatasetError(ValueError):
+    """A measurement file that cannot be used; the message names file, line and column."""
+
+
+@dataclass(frozen=True)
+class MeasurementTable:
+    """The rows of one measurement file, in measurement order."""
+
+    path: str
+    q_rad: np.ndarray  # (N, n_joints)
+    xyz_mm: np.ndarray  # (N, 3), instrument frame
+    target: np.ndarray  # (N,) int index into target_names
+    target_names: tuple[str, ...]  # order of first appearance
+    line: np.ndarray  # (N,) 1-based physical line of each row
+    quat: np.ndarray | None  # (N, 4) qw, qx, qy, qz, unit norm
+    t_s: np.ndarray | None
+    temp_c: np.ndarray | None
+    payload_kg: np.ndarray | None
+    split: np.ndarray | None  # (N,) 'cal' or 'val'
+    extra: dict[str, tuple[str, ...]]  # unknown columns, as text
+    joint_unit: str  # 'deg' or 'rad', as in the file
+
+    def __len__(self) -> int:
+        return len(self.q_rad)
+
+    def rows(self, mask_or_indices) -> "MeasurementTable":
+        """The subset of rows picked by a boolean mask or indices; target_names is kept whole."""
+        idx = np.asarray(mask_or_indices)
+        idx = np.flatnonzero(idx) if idx.dtype == bool else idx.astype(int).reshape(-1)
+        picked = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, np.ndarray):
+                value = value[idx]
+            elif f.name == "extra":
+                value = {k: tuple(v[i] for i in idx) for k, v in value.items()}
+            picked[f.name] = value
+        return MeasurementTable(**picked)
+
+    def observations(self) -> Observations:
+        return Observations(q=self.q_rad, xyz_mm=self.xyz_mm, target=self.target, target_names=self.target_names)
+
+
+def read_measurements(path, n_joints: int) -> MeasurementTable:
+    """Read and validate a measurement file for a robot model with ``n_joints`` joints.
+
+    Lean on large files: the text is split into lines once, and the values are parsed a
+    block of rows at a time into one float array per column (no Python object per cell).
+    Every problem is still reported as the first one in the order of the checks (a column's
+    values are checked in column order, each column over all rows), naming line and column.
+    """
+    if int(n_joints) < 1:
+        raise ValueError(f"n_joints must be >= 1, got {n_joints}")
+    name = os.fspath(path)
+    lines, records, quoted = _records(name)
+    if not len(records):
+        raise DatasetError(f"{name}: empty file: no header line (only comments or blank lines)")
+    header = [h.strip() for h in _fields(lines, records[0], quoted)]
+    where = f"{name}:{records[0] + 1}"
+    cols, joints, unit = _check_header(where, header, int(n_joints))
+    rows = records[1:]
+    if not len(rows):
+        raise DatasetError(f"{where}: header but no measurement rows")
+    for i in rows:
+        count = len(quoted[i]) if i in quoted else lines[i].count(",") + 1
+        if count != len(header):
+            raise DatasetError(f"{name}:{i + 1}: row has {count} fields, header has {len(header)}")
+    lines_1 = rows + 1  # physical line of each row, 1-based
+
+    numeric = [*joints, *XYZ, *(c for c in SCALARS if c in cols), *(QUAT if "qw" in cols else ())]
+    text_cols = [c for c in cols if c not in numeric and c not in joints]
+    values = {c: np.empty(len(rows)) for c in numeric}
+    texts: dict[str, list[str]] = {c: [] for c in text_cols}
+    first_bad: dict[str, tuple[int, str]] = {}  # column -> (row, message) of its first unreadable value
+    for start in range(0, len(rows), _BLOCK_ROWS):
+        block = rows[start: start + _BLOCK_ROWS]
+        split = [_fields(lines, i, quoted) for i in block]
+        for c in numeric:
+            if c in first_bad:
+                continue
+            cells = [f[cols[c]] for f in split]
+            parsed, bad = _parse_block(cells)
+            if bad is not None:
+                text = cells[bad]
+                first_bad[c] = (start + bad, f"{name}:{block[bad] + 1}: column {c!r}: {text!r} is "
+                                             f"{_what_is_wrong(text)}")
+            else:
+                values[c][start: start + len(block)] = parsed
+        for c in text_cols:
+            texts[c].extend(f[cols[c]] for f in split)
+
+    def column(c, limit=None, unit_=None, why=None):
+        if c in first_bad:
+            raise DatasetError(first_bad[c][1])
+        if limit is not None:
+            over = np.flatnonzero(np.abs(values[c]) > limit)
+            if over.size:
+                text = _fields(lines, rows[over[0]], quoted)[cols[c]].strip()
+                raise DatasetError(f"{name}:{lines_1[over[0]]}: column {c!r}: {text} {unit_} is {why} "
+                                   f"(|value| must be at most {limit:g})")
+        return values[c]
+
+    q = np.column_stack([column(c, MAX_JOINT[unit], unit, "no joint turns that far") for c in joints])
+    xyz = np.column_stack([column(c, MAX_POSITION_MM, "mm",
+                                  "not a position a measuring instrument gives (over 100 m away)") for c in XYZ])
+    scalars = {c: column(c) if c in cols else None for c in SCALARS}
+
+    quat = None
+    if "qw" in cols:
+        quat = np.column_stack([column(c) for c in QUAT])
+        norm = np.linalg.norm(quat, axis=1)
+        bad = np.flatnonzero(norm < 1e-9)
+        if bad.size:
+            raise DatasetError(f"{name}:{lines_1[bad[0]]}: columns 'qw','qx','qy','qz': quaternion has zero norm")
+        quat = quat / norm[:, None]
+
+    target_names, target = (DEFAULT_TARGET,), np.zeros(len(rows), dtype=int)
+    if "target" in cols:
+        ids = [v.strip() for v in texts.pop("target")]
+        empty = next((k for k, v in enumerate(ids) if not v), None)
+        if empty is not None:
+            raise DatasetError(f"{name}:{lines_1[empty]}: column 'target': empty target id")
+        target_names = tuple(dict.fromkeys(ids))
+        index = {t: i for i, t in enumerate(target_names)}
+        target = np.fromiter((index[v] for v in ids), dtype=int, count=len(ids))
+
+    split_col = None
+    if "split" in cols:
+        given = [v.strip() for v in texts.pop("split")]
+        wrong = next((k for k, v in enumerate(given) if v not in SPLITS), None)
+        if wrong is not None:
+            raise DatasetError(f"{name}:{lines_1[wrong]}: column 'split': {given[wrong]!r} is not 'cal' or 'val'")
+        split_col = np.array(given, dtype=str)
+
+    extra = {c: tuple(texts[c]) for c in text_cols if c in texts}
+    return MeasurementTable(
+        path=name, q_rad=np.deg2rad(q) if unit == "deg" else q, xyz_mm=xyz, target=target,
+        target_names=target_names, line=lines_1.astype(int), quat=quat, split=split_col, extra=extra,
+        joint_unit=unit, **scalars,
+    )
+
+
+_BLOCK_ROWS = 8192
+# Characters of the numbers the format takes (with separators and surrounding blanks): a block
+# made only of these parses with float() exactly as _NUMBER would judge it, cell by cell.
+_ONLY_NUMBER_CHARS = re.compile(r"[^0-9eE+\-.,\s]")
+
+
+def _parse_block(cells: list[str]):
+    """Floats of one column's cells in a block, and the index of the first unreadable one (or None)."""
+    joined = ",".join(cells)
+    if not _ONLY_NUMBER_CHARS.search(joined) and joined.count(",") == len(cells) - 1:
+        try:
+            out = np.fromiter(map(float, cells), dtype=float, count=len(cells))
+        except ValueError:
+            out = None
+        if out is not None:
+            finite = np.isfinite(out)
+            return out, None if finite.all() else int(np.flatnonzero(~finite)[0])
+    for k, text in enumerate(cells):  # the slow way: find the first bad cell
+        s = text.strip()
+        if not _NUMBER.fullmatch(s) or not np.isfinite(float(s)):
+            return None, k
+    return np.fromiter(map(float, cells), dtype=float, count=len(cells)), None
+
+
+def _what_is_wrong(text: str) -> str:
+    try:
+        return "not finite" if not np.isfinite(float(text.strip())) else "not a number"
+    except ValueError:
+        return "not a number"
+
+
+def _fields(lines, i, quoted) -> list[str]:
+    return quoted[i] if i in quoted else lines[i].split(",")
+
+
+def _records(name: str):
+    """The file's lines (line ending stripped), the 0-based indices of its non-comment,
+    non-blank lines, and the fields of those lines that need a CSV parser (quotes)."""
+    try:
+        with open(name, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise DatasetError(f"{name}: not a regular file (a device, a pipe or a folder cannot be a "
+                                   "measurement file)")
+            raw = f.read()
+    except OSError as exc:
+        raise DatasetError(f"{name}: cannot read file: {exc.strerror or exc}") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        lineno = raw[: exc.start].count(b"\n") + 1
+        raise DatasetError(f"{name}:{lineno}: not UTF-8 text (byte 0x{raw[exc.start]:02x})") from None
+    del raw
+    if "\r" in text and "\n" not in text:
+        raise DatasetError(f"{name}: lines end in CR alone (old Mac line endings); save it with LF or "
+                           "CRLF line endings")
+    lines = text.split("\n")
+    del text
+    records = []
+    quoted: dict[int, list[str]] = {}
+    for i, line in enumerate(lines):
+        if line.endswith("\r"):
+            line = lines[i] = line.rstrip("\r")
+        if not line.strip() or line.startswith("#"):
+            continue
+        records.append(i)
+        if '"' in line or "\r" in line or "\0" in line:
+            try:
+                quoted[i] = next(csv.reader([line], strict=True))
+            except csv.Error as exc:
+                raise DatasetError(f"{name}:{i + 1}: malformed CSV: {exc}") from None
+    return lines, np.array(records, dtype=int), quoted
+
+
+def _check_header(where: str, header: list[str], n_joints: int):
+    """Column positions, the joint column names q1..qN in order, and the joint unit."""
+    cols: dict[str, int] = {}
+    for i, h in enumerate(header):
+        if not h:
+            raise DatasetError(f"{where}: column {i + 1} of the header has no name")
+        if h in cols:
+            raise DatasetError(f"{where}: column {h!r}: duplicate header name (columns {cols[h] + 1} and {i + 1})")
+        cols[h] = i
+
+    found = [(int(m[1]), m[2], h) for h in header if (m := _JOINT.fullmatch(h))]
+    unit = found[0][1] if found else "rad"
+    for _, u, h in found:
+        if u != unit:
+            raise DatasetError(f"{where}: column {h!r}: mixed joint units: {found[0][2]!r} is in {unit}, "
+                               f"{h!r} in {u}; a file uses one unit for all joints")
+    joint_range = f"q1_{unit}" + (f" .. q{n_joints}_{unit}" if n_joints > 1 else "")
+    required = f"{joint_range} (or all _{'rad' if unit == 'deg' else 'deg'}), " + ", ".join(XYZ)
+    for k, u, h in found:
+        if k < 1 or h != f"q{k}_{u}":
+            raise DatasetError(f"{where}: column {h!r}: joint columns are numbered q1, q2, .. without leading zeros")
+    in_file = max((k for k, _, _ in found), default=0)
+    if in_file > n_joints:
+        h = next(h for k, _, h in found if k > n_joints)
+        raise DatasetError(f"{where}: column {h!r}: the file has joint columns up to q{in_file}, "
+                           f"the robot model has {n_joints} joints")
+    joints = tuple(f"q{k}_{unit}" for k in range(1, n_joints + 1))
+    for c in joints + XYZ:
+        if c not in cols:
+            plural = "" if len(found) == 1 else "s"
+            counts = f" (the file has {len(found)} joint column{plural}, the robot model {n_joints} joints)" \
+                if c in joints else ""
+            raise DatasetError(f"{where}: missing required column {c!r}{counts}; "
+                               f"a {n_joints}-joint robot needs {required}")
+    present = [c for c in QUAT if c in cols]
+    if 0 < len(present) < 4:
+        missing = next(c for c in QUAT if c not in cols)
+        raise DatasetError(f"{where}: column {missing!r} missing: partial quaternion "
+                           f"(has {', '.join(present)}); give all of qw, qx, qy, qz or none")
+    return cols, joints, unit
+
+
+def check_joint_limits(table: MeasurementTable, joint_limits, model_name: str) -> None:
+    """Refuse joint values outside the robot model's limits, naming the column and rows
+    (degrees under a ``_rad`` header end up here)."""
+    if joint_limits is None:
+        return
+    unit = table.joint_unit
+    scale = np.rad2deg(1.0) if unit == "deg" else 1.0
+    margin = np.deg2rad(1.0)  # a controller reports a joint a hair past its software limit
+    for j, (lo, hi) in enumerate(np.asarray(joint_limits)):
+        outside = np.flatnonzero((table.q_rad[:, j] < lo - margin) | (table.q_rad[:, j] > hi + margin))
+        if outside.size:
+            lines = ", ".join(str(n) for n in table.line[outside[:5]]) + (" ..." if outside.size > 5 else "")
+            hint = " (degrees under a _rad header?)" if unit == "rad" and np.abs(table.q_rad).max() > 2 * np.pi \
+                else ""
+            raise DatasetError(
+                f"{table.path}: column 'q{j + 1}_{unit}': {outside.size} of {len(table)} rows are outside "
+                f"{model_name}'s joint {j + 1} limits {lo * scale:g}..{hi * scale:g} {unit}{hint}; "
+                f"lines {lines}")
+
+
+def write_measurements(path, *, q_rad, xyz_mm, target_names=None, target=None, t_s=None, temp_c=None,
+                       payload_kg=None, split=None, quat=None, extra=None, comment: str | None = None,
+                       joint_unit: str = "rad") -> None:
+    """Write measurements in the format :func:`read_measurements` reads; floats round-trip exactly."""
+    q = np.atleast_2d(np.asarray(q_rad, dtype=float))
+    n = len(q)
+    if joint_unit not in ("deg", "rad"):
+        raise ValueError(f"joint_unit must be 'deg' or 'rad', got {joint_unit!r}")
+    columns: dict[str, list[str]] = {}
+
+    def numeric(names, values, width):
+        a = np.asarray(values, dtype=float).reshape(n, width)
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{', '.join(names)}: values must be finite")
+        for j, c in enumerate(names):
+            columns[c] = [repr(float(v)) for v in a[:, j]]
+
+    q_out = np.rad2deg(q) if joint_unit == "deg" else q
+    numeric([f"q{k}_{joint_unit}" for k in range(1, q.shape[1] + 1)], q_out, q.shape[1])
+    numeric(XYZ, xyz_mm, 3)
+    if target is not None:
+        names = tuple(target_names) if target_names is not None else None
+        if not names or any(not str(t).strip() for t in names):
+            raise ValueError("target needs target_names, each a non-empty id")
+        columns["target"] = [str(names[i]).strip() for i in np.asarray(target, dtype=int).reshape(n)]
+    if quat is not None:
+        quat = np.asarray(quat, dtype=float).reshape(n, 4)
+        if np.any(np.linalg.norm(quat, axis=1) < 1e-9):
+            raise ValueError("quat: zero-norm quaternion")
+        numeric(QUAT, quat, 4)
+    for c, values in (("t_s", t_s), ("temp_c", temp_c), ("payload_kg", payload_kg)):
+        if values is not None:
+            numeric([c], values, 1)
+    if split is not None:
+        columns["split"] = [str(s) for s in np.asarray(split).reshape(n)]
+        if not set(columns["split"]) <= set(SPLITS):
+            raise ValueError("split values must be 'cal' or 'val'")
+    for c, values in (extra or {}).items():
+        if c in columns or c in KNOWN or _JOINT.fullmatch(c):
+            raise ValueError(f"extra column {c!r} clashes with a column of the format")
+        columns[c] = [str(v) for v in values]
+        if len(columns[c]) != n:
+            raise ValueError(f"extra column {c!r} has {len(columns[c])} values for {n} rows")
+
+    for c in ("target", *(extra or {})):
+        if any("\n" in v or "\r" in v for v in columns.get(c, ())):
+            raise ValueError(f"column {c!r}: values must not contain line breaks (one record per line)")
+    with open(os.fspath(path), "w", encoding="utf-8", newline="") as f:
+        for text in (comment.splitlines() if comment else ()):
+            f.write(f"# {text}\n")
+        out = csv.writer(f, lineterminator="\n")
+        out.writerow(columns)
+        out.writerows(zip(*columns.values()))
+
+
+def write_table(path, table: MeasurementTable, comment: str | None = None) -> None:
+    """Write a MeasurementTable; the target column is left out for a single default target."""
+    single = table.target_names == (DEFAULT_TARGET,)
+    write_measurements(
+        path, q_rad=table.q_rad, xyz_mm=table.xyz_mm, target_names=table.target_names,
+        target=None if single else table.target, t_s=table.t_s, temp_c=table.temp_c,
+        payload_kg=table.payload_kg, split=table.split, quat=table.quat, extra=table.extra,
+        comment=comment, joint_unit=table.joint_unit,
+    )
+
+
+def joint_velocities(table: MeasurementTable) -> np.ndarray | None:
+    """Joint velocities at each sample from optional ``dq1_rad_s`` ... ``dqN_rad_s`` (or
+    ``_deg_s``) columns, as trigger data carries them; None when the file has none.
+
+    All joints or none, one unit; bad values are refused like every other column.
+    """
+    n = table.q_rad.shape[1]
+    for unit, factor in (("rad_s", 1.0), ("deg_s", np.pi / 180.0)):
+        names = [f"dq{j}_{unit}" for j in range(1, n + 1)]
+        present = [c for c in names if c in table.extra]
+        if not present:
+            continue
+        if len(present) != n:
+            missing = next(c for c in names if c not in table.extra)
+            raise DatasetError(f"{table.path}: column {missing!r} missing: joint velocities need "
+                               f"all of {names[0]} .. {names[-1]}")
+        out = np.empty((len(table), n))
+        for k, c in enumerate(names):
+            texts = table.extra[c]
+            for start in range(0, len(texts), _BLOCK_ROWS):
+                cells = list(texts[start: start + _BLOCK_ROWS])
+                parsed, bad = _parse_block(cells)
+                if bad is not None:
+                    raise DatasetError(f"{table.path}:{table.line[start + bad]}: column {c!r}: {cells[bad]!r} is "
+                                       f"{_what_is_wrong(cells[bad])}")
+                out[start: start + len(cells), k] = parsed
+        return out * factor
+    return None

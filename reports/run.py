@@ -1,0 +1,112 @@
+"""A run's report a person can read: the measurements drawn against the fitted geometry (the
+routine's :class:`~cellcal.routines.drawing.Drawing`), the frame before and after, the gates,
+the residual of every measurement, and the routine's own numbers; one HTML page with its plots.
+"""
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from cellcal.routines.base import FRAME_KEYS, Result, tool_frame_json  # noqa: E402
+from cellcal.routines.drawing import Drawing  # noqa: E402
+
+STYLES = {"measured": dict(ls="none", marker=".", ms=5), "fitted": dict(ls="-", lw=1.2, color="0.25")}
+
+
+def _frame_row(label: str, pose) -> str:
+    if pose is None:
+        return f"<tr><th>{label}</th><td colspan=6>none</td></tr>"
+    f = tool_frame_json(pose)
+    cells = "".join(f"<td>{f[k]:.4f}</td>" for k in FRAME_KEYS)
+    return f"<tr><th>{label}</th>{cells}</tr>"
+
+
+def _draw(drawing: Drawing, path: Path) -> None:
+    """The drawing's panels side by side; the cell file's geometry dashed (a cross for one point)."""
+    n = len(drawing.panels)
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n + 0.6, 4.4), squeeze=False)
+    for ax, panel in zip(axes[0], drawing.panels):
+        for layer in panel.layers:
+            xy = np.asarray(layer.xy, dtype=float).reshape(-1, 2)
+            style = STYLES.get(layer.kind) or (dict(ls="none", marker="x", ms=9, color="tab:red") if len(xy) == 1
+                                               else dict(ls="--", lw=1, color="tab:red"))
+            if layer.paired and ax.lines:
+                style = {**style, "color": ax.lines[-1].get_color()}
+            ax.plot(xy[:, 0], xy[:, 1], label=layer.label, **style)
+        if panel.equal_axes:
+            ax.set_aspect("equal", adjustable="datalim")
+        ax.set_title(panel.title, fontsize=10)
+        ax.set_xlabel(panel.xlabel)
+        ax.set_ylabel(panel.ylabel)
+        ax.legend(fontsize=7)
+    fig.subplots_adjust(left=0.7 / fig.get_figwidth(), right=0.98, bottom=0.12, top=0.92, wspace=0.3)  # as above
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def write_run_report(folder: str | Path, run_id: int, result: Result) -> Path:
+    out = Path(folder) / f"run-{run_id}"
+    out.mkdir(parents=True, exist_ok=True)
+    residuals = np.asarray(result.residuals_mm, dtype=float)
+    per = np.linalg.norm(residuals.reshape(len(residuals), -1), axis=1) if residuals.size else residuals
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.6))
+    ax1.plot(np.arange(1, len(per) + 1), per, ".", ms=4)
+    ax1.axhline(result.expected_noise_mm, color="tab:red", lw=1, label="expected noise")
+    ax1.set_xlabel("measurement, in the order taken")
+    ax1.set_ylabel("residual (mm)")
+    ax1.legend()
+    ax2.hist(per, bins=30)
+    ax2.set_xlabel("residual (mm)")
+    fig.suptitle(f"run {run_id}: {result.routine}, residual RMS {result.residual_rms_mm:.4f} mm")
+    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.14, top=0.88, wspace=0.25)  # no layout pass: cheaper
+    fig.savefig(out / "residuals.png", dpi=100)
+    plt.close(fig)
+
+    drawing = ""
+    if result.drawing is not None:
+        _draw(result.drawing, out / "drawing.png")
+        caption = html.escape(result.drawing.caption + " Panels: "
+                              + "; ".join(panel.title for panel in result.drawing.panels) + ".")
+        drawing = (f"<h2>Measurements against the fitted geometry</h2><figure><img src='drawing.png' "
+                   f"alt='{caption}'><figcaption>{caption}</figcaption></figure>")
+    before = result.extra.get("tool_frame_before")
+    frame = result.frame or {}
+    base_row = _frame_row(f"{frame['to']} in the {frame['from']} frame, found", frame["pose_m_rad"]) \
+        if {"to", "from", "pose_m_rad"} <= set(frame) else ""
+    gates = "".join(f"<tr><td>{'pass' if g.passed else '<b>FAIL</b>'}</td><td>{html.escape(g.name)}</td>"
+                    f"<td>{html.escape(g.why)}</td></tr>" for g in result.gates)
+    params = "".join(f"<tr><td>{html.escape(p.name)}</td><td>{p.value:.5g}</td>"
+                     f"<td>{'' if p.std is None else f'{p.std:.3g}'}</td><td>{html.escape(p.unit)}</td></tr>"
+                     for p in result.parameters)
+    verdict = ("passed every gate: to be written back" if result.write_back else
+               "NOT to be written back: " + "; ".join(result.reasons()))
+    page = out / "report.html"
+    page.write_text(
+        "<!doctype html><meta charset='utf-8'><title>cellcal run</title>"
+        "<body style='font-family:sans-serif;max-width:60em'>"
+        f"<h1>Run {run_id}: {html.escape(result.routine)}</h1><p><b>{html.escape(verdict)}</b></p>" + drawing +
+        "<h2>Tool frame</h2><table border=1 cellpadding=4><tr><th></th><th>x mm</th><th>y mm</th><th>z mm</th>"
+        "<th>rx deg</th><th>ry deg</th><th>rz deg</th></tr>"
+        + _frame_row("before", before) + _frame_row("found", result.tool_frame) + base_row + "</table>"
+        f"<h2>Gates</h2><table border=1 cellpadding=4>{gates}</table>"
+        f"<h2>Parameters</h2><table border=1 cellpadding=4>{params}</table>"
+        "<h2>Residuals</h2><img src='residuals.png' alt='residual of every measurement'>"
+        + "".join(f"<p>{html.escape(n)}</p>" for n in result.notes)
+        + f"<h2>Everything</h2><pre>{html.escape(json.dumps(result.as_json(), indent=1, default=_plain))}</pre>"
+        f"<p>dataset: {html.escape(str(result.dataset))}</p></body>\n", encoding="utf-8")
+    return page
+
+
+def _plain(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return value.item()
+    return str(value)

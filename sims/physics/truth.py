@@ -1,0 +1,352 @@
+"""What a simulated cell really has: the one hidden truth every simulated device obeys.
+
+The cell file says what the cell is *meant* to be (the tool as drawn, where the beams,
+the stylus and the pivot were installed); its ``sim_truth`` section says how far
+reality is from that, or states reality outright, and a seed draws the rest. From it:
+
+* the arm as built (its geometry off the drawing; the controller still computes with
+  the drawing, so its reported TCP is where it *believes* the tool is);
+* the mounted tool as it really is: its tip (the TCP a perfect calibration finds), its
+  axis (runout tilt), its radius and length, as a capsule that blocks beams and touches
+  things with its whole body, not just a point;
+* the fixtures where they really are, the sensors' real latency and jitter, and the
+  arm's repeatability (each motion ends a little off, drawn afresh per motion);
+* in a two-robot cell, robot b as it really is (:class:`SecondArm`): its arm, its real
+  needle tip, and where its base really is in robot a's base frame (the handshake's
+  answer), drawn from its own stream of the seed so robot a's truth is the same as in a
+  one-robot cell.
+
+The in-process cell (:mod:`.sim_world`) and the fake UR controller behind the network
+fakes (:mod:`.fake_ur`) are both built from one :class:`CellTruth`, so the same routine
+run in both cells is scored against the same truth. Routines and solvers never read
+it; tests and the run's report (``sim_truth`` in the JSON) do.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cellcal.config.cells import Cell, SimTruthSpec
+from cellcal.config.robot_files import load_robot
+from cellcal.drivers.interfaces import Edge, TriggerEvent
+from cellcal.solvers import se3
+from cellcal.solvers.robot_model import KinematicModel
+from cellcal.sims.physics.scene import ContactPlane, ContactSphere, LightBeam
+
+
+@dataclass(frozen=True)
+class ToolBody:
+    """The real tool: a capsule of `radius_m` whose tip is the TCP, reaching `length_m` back."""
+
+    tcp_m: np.ndarray  # the tip, flange frame
+    axis: np.ndarray  # unit, flange frame, from the flange toward the tip
+    radius_m: float
+    length_m: float
+
+    def segment(self, rotation: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The capsule's core segment in the frame the flange pose is given in: from the
+        centre of the tip's rounding back along the axis."""
+        tip = position + rotation @ self.tcp_m
+        axis = rotation @ self.axis
+        front = tip - axis * self.radius_m
+        return front, front - axis * max(self.length_m - self.radius_m, 0.0)
+
+    @property
+    def tcp_pose(self) -> np.ndarray:
+        """The tool frame a perfect calibration finds: origin at the tip, z along the axis
+        (the rotation about the axis is a convention: the smallest turn from flange z)."""
+        return np.concatenate([self.tcp_m, se3.rotvec_from_z(self.axis)])
+
+
+@dataclass(frozen=True)
+class SecondArm:
+    """Robot b of a two-robot cell as it really is."""
+
+    arm_params: np.ndarray  # as built, in its model's parameter order
+    tool: ToolBody | None
+    base: np.ndarray  # 4x4: robot b's base frame -> the cell frame (robot a's base), really
+
+
+@dataclass(frozen=True)
+class CellTruth:
+    arm_params: np.ndarray  # the arm as built, in the model's parameter order (mm, rad)
+    tool: ToolBody | None  # None: a point probe at whatever TCP the controller is set to
+    beams: tuple[LightBeam, ...] = ()
+    stylus: ContactSphere | None = None
+    pivot_m: np.ndarray | None = None
+    contacts: tuple = ()  # further surfaces (ContactPlane, ContactSphere)
+    repeatability_mm: float = 0.0
+    trigger_latency_s: float = 0.0
+    trigger_jitter_s: float = 0.0
+    seed: int = 0
+    drawn: dict = field(default_factory=dict)  # how far each part is from the cell file, for reports
+    second: SecondArm | None = None  # robot b of a two-robot cell
+
+    def for_second(self) -> "CellTruth":
+        """The truth robot b's own world obeys: its arm and tool, no fixtures, the same
+        repeatability (its base frame is its own, as its controller's is)."""
+        b = self.second
+        return CellTruth(b.arm_params, b.tool, repeatability_mm=self.repeatability_mm, seed=self.seed)
+
+    def score_base_frame(self, base_pose) -> dict:
+        """How far a found pose of robot b's base in the cell frame [x, y, z, rx, ry, rz]
+        (m, rad) is from the real one: its origin's distance and the rotation between them."""
+        if self.second is None:
+            return {}
+        pose = np.asarray(base_pose, dtype=float)
+        turn = se3.rotvec_to_matrix(pose[3:]).T @ self.second.base[:3, :3]
+        angle = float(np.degrees(np.linalg.norm(se3.matrix_to_rotvec(turn))))
+        true = np.concatenate([self.second.base[:3, 3], se3.matrix_to_rotvec(self.second.base[:3, :3])])
+        return {"base_position_error_mm": float(np.linalg.norm(pose[:3] - true[:3]) * 1e3),
+                "base_rotation_error_deg": angle, "true_base_frame": true.tolist()}
+
+    def score_tips(self, tip_a_m, tip_b_m) -> dict:
+        """How far found needle tips (flange frames, m) are from the real ones."""
+        out = {}
+        for key, tool, found in (("a", self.tool, tip_a_m), ("b", self.second and self.second.tool, tip_b_m)):
+            if tool is not None and found is not None:
+                out[f"tip_{key}_error_mm"] = float(np.linalg.norm(np.asarray(found, float) - tool.tcp_m) * 1e3)
+        return out
+
+    def score_tool_frame(self, tool_frame) -> dict:
+        """How far a found tool frame [x, y, z, rx, ry, rz] (m, rad) is from the real tool:
+        the TCP position and the direction of its z axis (the rotation about the tool axis is
+        a convention, not a measurement)."""
+        if self.tool is None:
+            return {}
+        frame = np.asarray(tool_frame, dtype=float)
+        z = se3.rotvec_to_matrix(frame[3:])[:, 2]
+        angle = float(np.degrees(np.arccos(np.clip(z @ self.tool.axis, -1.0, 1.0))))
+        return {"position_error_mm": float(np.linalg.norm(frame[:3] - self.tool.tcp_m) * 1e3),
+                "axis_error_deg": angle, "true_tool_frame": self.tool.tcp_pose.tolist()}
+
+    def report(self) -> dict:
+        """The truth in the units people read, for a simulated run's report."""
+        out = {"seed": self.seed, "repeatability_mm": self.repeatability_mm,
+               "trigger_latency_ms": self.trigger_latency_s * 1e3, "trigger_jitter_ms": self.trigger_jitter_s * 1e3}
+        if self.tool is not None:
+            out["tool"] = {"tcp_mm": (self.tool.tcp_m * 1e3).tolist(), "axis": self.tool.axis.tolist(),
+                           "radius_mm": self.tool.radius_m * 1e3}
+        out.update(self.drawn)
+        return out
+
+
+def _random_unit(rng: np.random.Generator) -> np.ndarray:
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+def _tilted(axis: np.ndarray, angle_rad: float, rng: np.random.Generator) -> np.ndarray:
+    """`axis` tilted by `angle_rad` towards a random perpendicular direction."""
+    perpendicular = np.cross(axis, _random_unit(rng))
+    perpendicular /= np.linalg.norm(perpendicular)
+    return np.cos(angle_rad) * axis + np.sin(angle_rad) * perpendicular
+
+
+def truth_of_cell(cell: Cell, model: KinematicModel) -> CellTruth:
+    """The truth of a simulated cell: the file's ``sim_truth`` (defaults where absent),
+    with what it does not state drawn from its seed (the same seed gives the same cell)."""
+    spec = cell.sim_truth or SimTruthSpec()
+    rng = np.random.default_rng(spec.seed)
+    params = np.asarray(model.nominal, dtype=float).copy()
+    errors = np.where(model.param_is_angle, np.deg2rad(spec.arm_angle_error_deg), spec.arm_length_error_mm)
+    params += rng.uniform(-1.0, 1.0, len(params)) * errors
+    drawn: dict = {}
+    tool = None
+    if cell.tool is not None:
+        tcp = spec.tool_tcp_m if spec.tool_tcp_m is not None else \
+            cell.tool.tcp_m + _random_unit(rng) * spec.tool_tcp_error_mm / 1e3
+        axis = spec.tool_axis if spec.tool_axis is not None else \
+            _tilted(cell.tool.axis, np.deg2rad(spec.tool_tilt_deg), rng)
+        tool = ToolBody(np.asarray(tcp, float), np.asarray(axis, float) / np.linalg.norm(axis),
+                        cell.tool.radius_m, cell.tool.length_m)
+        drawn["tool_tcp_off_drawing_mm"] = float(np.linalg.norm(tool.tcp_m - cell.tool.tcp_m) * 1e3)
+        drawn["tool_axis_off_drawing_deg"] = float(np.rad2deg(np.arccos(np.clip(tool.axis @ cell.tool.axis, -1, 1))))
+
+    def placed(point: np.ndarray) -> np.ndarray:
+        return np.asarray(point, float) + _random_unit(rng) * spec.fixture_error_mm / 1e3
+
+    beams = tuple(LightBeam(placed(b.point_m), b.direction, b.radius_m, b.channel, b.level_when_blocked)
+                  for b in cell.beams)
+    stylus = None
+    if cell.stylus is not None:
+        stylus = ContactSphere(placed(cell.stylus["centre_m"]), cell.stylus["radius_m"])
+    pivot = placed(cell.pivot_m) if cell.pivot_m is not None else None
+    second = _second_arm(cell, spec, drawn) if "b" in cell.robots else None
+    return CellTruth(params, tool, beams, stylus, pivot, (), spec.repeatability_mm, spec.trigger_latency_s,
+                     spec.trigger_jitter_s, spec.seed, drawn, second)
+
+
+def _real_tool(drawn_tool, spec: SimTruthSpec, rng: np.random.Generator) -> ToolBody | None:
+    if drawn_tool is None:
+        return None
+    tcp = drawn_tool.tcp_m + _random_unit(rng) * spec.tool_tcp_error_mm / 1e3
+    axis = _tilted(drawn_tool.axis, np.deg2rad(spec.tool_tilt_deg), rng)
+    return ToolBody(tcp, axis, drawn_tool.radius_m, drawn_tool.length_m)
+
+
+def _second_arm(cell: Cell, spec: SimTruthSpec, drawn: dict) -> SecondArm:
+    """Robot b as built, its real tool, and its real base: drawn from the seed's second
+    stream, so adding robot b changes nothing of robot a's truth."""
+    b = cell.robots["b"]
+    rng = np.random.default_rng([spec.seed, 2])
+    model = load_robot(b.robot)
+    params = np.asarray(model.nominal, dtype=float).copy()
+    errors = np.where(model.param_is_angle, np.deg2rad(spec.arm_angle_error_deg), spec.arm_length_error_mm)
+    params += rng.uniform(-1.0, 1.0, len(params)) * errors
+    tool = _real_tool(b.tool, spec, rng)
+    turn = se3.rotvec_to_matrix(_random_unit(rng) * np.deg2rad(spec.base_error_deg))
+    base = b.base_matrix.copy()
+    base[:3, :3] = turn @ base[:3, :3]
+    base[:3, 3] += _random_unit(rng) * spec.base_error_mm / 1e3
+    drawn["base_b_off_drawing_mm"] = float(np.linalg.norm(base[:3, 3] - b.base_pose[:3]) * 1e3)
+    drawn["base_b_off_drawing_deg"] = float(spec.base_error_deg)
+    if tool is not None:
+        drawn["tool_b_tcp_off_drawing_mm"] = float(np.linalg.norm(tool.tcp_m - b.tool.tcp_m) * 1e3)
+    return SecondArm(params, tool, base)
+
+
+# -- geometry of a capsule against lines, points and planes ------------------------------------
+
+def segment_line_distance(a: np.ndarray, b: np.ndarray, point: np.ndarray, direction: np.ndarray) -> float:
+    """Shortest distance between the segment a-b and the line through `point` along unit `direction`."""
+    u = (a - point) - ((a - point) @ direction) * direction
+    w = (b - point) - ((b - point) @ direction) * direction
+    v = w - u
+    vv = float(v @ v)
+    t = 0.0 if vv < 1e-30 else float(np.clip(-(u @ v) / vv, 0.0, 1.0))
+    return float(np.linalg.norm(u + t * v))
+
+
+def segment_point_distance(a: np.ndarray, b: np.ndarray, point: np.ndarray) -> float:
+    ab = b - a
+    ll = float(ab @ ab)
+    t = 0.0 if ll < 1e-30 else float(np.clip((point - a) @ ab / ll, 0.0, 1.0))
+    return float(np.linalg.norm(a + t * ab - point))
+
+
+def beam_blocked(beam: LightBeam, segment, radius_m: float) -> bool:
+    d = beam.direction / np.linalg.norm(beam.direction)
+    return segment_line_distance(segment[0], segment[1], beam.point_m, d) < beam.radius_m + radius_m
+
+
+def touching(surface, segment, radius_m: float) -> bool:
+    """Whether the capsule (segment, radius) touches or pierces a contact surface."""
+    if isinstance(surface, ContactSphere):
+        return segment_point_distance(segment[0], segment[1], surface.centre_m) <= surface.radius_m + radius_m
+    if isinstance(surface, ContactPlane):
+        return min(surface.distance_m(segment[0]), surface.distance_m(segment[1])) <= radius_m
+    return surface.distance_m(segment[0]) <= radius_m
+
+
+def switching_fraction(blocked_at, steps: int = 24) -> float:
+    """Fraction s in [0, 1] of a step at which `blocked_at(s)` first differs from its value
+    at 0 (bisection; the body moves on a straight line within one 2 ms cycle)."""
+    start, lo, hi = blocked_at(0.0), 0.0, 1.0
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        if blocked_at(mid) == start:
+            lo = mid
+        else:
+            hi = mid
+    return hi
+
+
+# -- the physics both simulated cells run (SimWorld in process, the fake UR controller) ---------
+
+def repeat_offset_m(truth: CellTruth, rng: np.random.Generator) -> np.ndarray:
+    """How far a new motion really ends from where the controller puts it: the arm's
+    repeatability, drawn afresh for each motion (base frame, m)."""
+    sigma = truth.repeatability_mm / 1e3 / np.sqrt(3.0)
+    return rng.normal(0.0, sigma, 3) if sigma > 0 else np.zeros(3)
+
+
+def real_tool_body(truth: CellTruth, physics, controller, q, tcp_offset, offset_m) -> tuple[np.ndarray, np.ndarray]:
+    """The real tool's core segment (base frame, m) at joints q: the real tool on the arm as
+    built (`physics`, an ArmKinematics of ``truth.arm_params``), off by the motion's
+    repeatability `offset_m`. Without a tool in the truth, a point at the controller's TCP
+    (`controller`: its kinematics; `tcp_offset`: its tool frame)."""
+    if truth.tool is None:
+        p = controller.tcp_frame(q, tcp_offset)[1] + offset_m
+        return p, p
+    rotation, position = physics.flange(q)
+    front, back = truth.tool.segment(rotation, position)
+    return front + offset_m, back + offset_m
+
+
+def real_tool_tip(truth: CellTruth, physics, q, body) -> np.ndarray:
+    """Where the real tool tip is, given its body at joints q (what a tracker target at the tip measures)."""
+    front, back = body
+    if truth.tool is None:
+        return front.copy()
+    axis = front - back
+    n = np.linalg.norm(axis)
+    direction = axis / n if n > 0 else physics.flange(q)[0] @ truth.tool.axis
+    return front + direction * truth.tool.radius_m
+
+
+def beam_edges(truth: CellTruth, beams, blocked: dict, body_old, body_new, t_old_s: float, cycle_s: float,
+               rng: np.random.Generator) -> list[TriggerEvent]:
+    """The sensor edges of one controller cycle in which the real tool moved from `body_old`
+    to `body_new` (segments). A beam switches where the tool's straight step crosses it
+    (bisection), not at the cycle that first shows the new level; its time adds the
+    sensor's latency and a jitter drawn uniformly from [-jitter, +jitter]. `blocked`
+    (id(beam) -> bool, the beams' current state) is updated."""
+    radius = 0.0 if truth.tool is None else truth.tool.radius_m
+    jitter = truth.trigger_jitter_s
+    edges = []
+    for beam in beams:
+        now = beam_blocked(beam, body_new, radius)
+        if now == blocked[id(beam)]:
+            continue
+        blocked[id(beam)] = now
+
+        def blocked_at(s, beam=beam):
+            mixed = (body_old[0] + s * (body_new[0] - body_old[0]), body_old[1] + s * (body_new[1] - body_old[1]))
+            return beam_blocked(beam, mixed, radius)
+
+        t_edge = t_old_s + switching_fraction(blocked_at) * cycle_s
+        t_edge += truth.trigger_latency_s + (rng.uniform(-jitter, jitter) if jitter > 0 else 0.0)
+        edges.append(TriggerEvent(t_edge, beam.channel, Edge.BLOCKED if now else Edge.CLEARED, True))
+    return edges
+
+
+CUP_RIM_RADIUS_M = 0.008  # robot a's centring cup: a tip whose axis line passes within this is guided in
+CUP_FACE_RADIUS_M = 0.015  # ... and one that lands within this, beside it, stays there
+
+
+def meeting_touch(tip_m, partner_tip_m, partner_axis) -> str | None:
+    """Whether a tip at `tip_m` has reached the other robot's tip (the plane through it
+    across its unit axis): 'seat' within its centring cup's rim, 'face' beside it on the
+    cup's face, None when not there."""
+    d = np.asarray(tip_m, dtype=float) - partner_tip_m
+    depth = float(d @ partner_axis)
+    lateral = float(np.linalg.norm(d - depth * partner_axis))
+    if depth > 0.0 or lateral > CUP_FACE_RADIUS_M:
+        return None
+    return "seat" if lateral <= CUP_RIM_RADIUS_M else "face"
+
+
+def tool_axis_m(body) -> np.ndarray:
+    """The unit axis (toward the tip) of a tool body (front, back)."""
+    axis = body[0] - body[1]
+    return axis / np.linalg.norm(axis)
+
+
+def meeting_rest_q(truth: CellTruth, physics, q, meet_m, offset_m) -> np.ndarray:
+    """The joints at which the real tool, its orientation held as at joints q, rests with its
+    real tip at `meet_m` (where the other robot's tip is), the arm off by `offset_m`.
+    Raises MotionFault when the arm cannot get there."""
+    rotation, position = physics.flange(q)
+    tip = position + rotation @ truth.tool.tcp_m
+    return physics.ik(rotation, position + np.asarray(meet_m) - offset_m - tip, q, np.zeros(6))
+
+
+def pivot_rest_q(truth: CellTruth, physics, q, seat_m, offset_m) -> np.ndarray:
+    """The joints at which the real tool, its orientation held as at joints q, rests with the
+    centre of its tip's rounding at `seat_m` (a socket's seat), the arm off by `offset_m`
+    (that rest's repeatability draw). Raises MotionFault when the arm cannot get there."""
+    rotation, position = physics.flange(q)
+    centre = truth.tool.segment(rotation, position)[0]
+    return physics.ik(rotation, position + np.asarray(seat_m) - offset_m - centre, q, np.zeros(6))
