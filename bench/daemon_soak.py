@@ -1,6 +1,6 @@
 """Soak: the daemon through N complete button-started runs on the networked simulated cell.
 
-The suite's leak test (tests/test_daemon_e2e.py) makes 100 runs of which most are refused
+The suite's leak test (tests/e2e/test_daemon_e2e.py) makes 100 runs of which most are refused
 or aborted, to stay within the suite's time; this runs N *complete* runs of the same short
 tcp-laser (each to its verdict) through ``cellcal daemon`` and the Modbus panel, and counts
 what the daemon process holds (file descriptors, sockets, threads, child processes) after

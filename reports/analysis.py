@@ -12,15 +12,12 @@ import html
 import os
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")  # files only; the service has no screen
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from cellcal.solvers.analyze import Finding  # noqa: E402
-from cellcal.solvers.measurement_model import Layout, Observations, jacobian  # noqa: E402
-from cellcal.solvers.se3 import rotvec_to_matrix  # noqa: E402
+from cellcal.reports.page import figure_html, plt, write_page
+from cellcal.solvers.analyze import Finding
+from cellcal.solvers.measurement_model import Layout, Observations, jacobian
+from cellcal.solvers.se3 import rotvec_to_matrix
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -151,10 +148,5 @@ def write_report(folder, model, obs: Observations, f: Finding, text: str) -> Pat
     md += [f"![{title}]({name})" for name, title in images]
     (out / "report.md").write_text("\n".join(md) + "\n", encoding="utf-8")
     body = [f"<h1>cellcal analyze</h1><pre>{html.escape(text)}</pre>"]
-    body += [f'<figure><img src="{name}" alt="{html.escape(title)}"><figcaption>{html.escape(title)}'
-             f"</figcaption></figure>" for name, title in images]
-    page = out / "report.html"
-    page.write_text("<!doctype html><meta charset='utf-8'><title>cellcal analyze</title>"
-                    "<body style='font-family:sans-serif;max-width:60em'>" + "".join(body) + "</body>\n",
-                    encoding="utf-8")
-    return page
+    body += [figure_html(name, title) for name, title in images]
+    return write_page(out / "report.html", "cellcal analyze", "".join(body))

@@ -5,8 +5,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib.pyplot as plt
 import numpy as np
+
+from cellcal.reports.page import plt
 
 from cellcal.solvers.analyze import Finding
 from cellcal.solvers.effects.cyclic_joint_error import PeriodicJointError

@@ -9,11 +9,9 @@ from __future__ import annotations
 import html
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")  # files only
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+from cellcal.reports.page import figure_html, plt, write_page
 
 FILES = ("iso9283_ap_rp.png", "iso9283_scatter.png", "iso9283.md", "iso9283.html")
 
@@ -65,10 +63,6 @@ def write_report(folder, cases, text: str) -> Path:
                 (FILES[1], "Attained positions about the command position (+), RP circle about each barycentre"))
     (out / FILES[2]).write_text("# ISO 9283 pose characteristics\n\n```\n" + text + "\n```\n\n"
                                 + "\n".join(f"![{c}]({f})" for f, c in captions) + "\n", encoding="utf-8")
-    page = out / FILES[3]
-    figures = "".join(f"<figure><img src='{f}' alt='{html.escape(c)}'><figcaption>{html.escape(c)}</figcaption>"
-                      "</figure>" for f, c in captions)
-    page.write_text("<!doctype html><meta charset='utf-8'><title>ISO 9283</title><body style='font-family:"
-                    f"sans-serif;max-width:70em'><h1>ISO 9283 pose characteristics</h1><pre>{html.escape(text)}</pre>"
-                    + figures + "</body>\n", encoding="utf-8")
-    return page
+    figures = "".join(figure_html(f, c) for f, c in captions)
+    return write_page(out / FILES[3], "ISO 9283", f"<h1>ISO 9283 pose characteristics</h1><pre>{html.escape(text)}</pre>"
+                      + figures, width_em=70)

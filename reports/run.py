@@ -8,14 +8,11 @@ import html
 import json
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from cellcal.routines.base import FRAME_KEYS, Result, tool_frame_json  # noqa: E402
-from cellcal.routines.drawing import Drawing  # noqa: E402
+from cellcal.reports.page import plt, write_page
+from cellcal.routines.base import FRAME_KEYS, Result, tool_frame_json
+from cellcal.routines.drawing import Drawing
 
 STYLES = {"measured": dict(ls="none", marker=".", ms=5), "fitted": dict(ls="-", lw=1.2, color="0.25")}
 
@@ -87,10 +84,8 @@ def write_run_report(folder: str | Path, run_id: int, result: Result) -> Path:
                      for p in result.parameters)
     verdict = ("passed every gate: to be written back" if result.write_back else
                "NOT to be written back: " + "; ".join(result.reasons()))
-    page = out / "report.html"
-    page.write_text(
-        "<!doctype html><meta charset='utf-8'><title>cellcal run</title>"
-        "<body style='font-family:sans-serif;max-width:60em'>"
+    return write_page(
+        out / "report.html", "cellcal run",
         f"<h1>Run {run_id}: {html.escape(result.routine)}</h1><p><b>{html.escape(verdict)}</b></p>" + drawing +
         "<h2>Tool frame</h2><table border=1 cellpadding=4><tr><th></th><th>x mm</th><th>y mm</th><th>z mm</th>"
         "<th>rx deg</th><th>ry deg</th><th>rz deg</th></tr>"
@@ -100,8 +95,7 @@ def write_run_report(folder: str | Path, run_id: int, result: Result) -> Path:
         "<h2>Residuals</h2><img src='residuals.png' alt='residual of every measurement'>"
         + "".join(f"<p>{html.escape(n)}</p>" for n in result.notes)
         + f"<h2>Everything</h2><pre>{html.escape(json.dumps(result.as_json(), indent=1, default=_plain))}</pre>"
-        f"<p>dataset: {html.escape(str(result.dataset))}</p></body>\n", encoding="utf-8")
-    return page
+        f"<p>dataset: {html.escape(str(result.dataset))}</p>")
 
 
 def _plain(value):
