@@ -1,16 +1,21 @@
-# The two commands of the README. Each creates .venv and installs cellcal with its
-# dev extras from PyPI on first use (and again when pyproject.toml changes).
+# The two commands of the README. Each creates .venv and installs cellcal with its dev
+# extras on first use, at the exact versions of requirements.lock (and again when
+# pyproject.toml or the lock file changes). `make lock` moves the lock on purpose.
 PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+LOCK := requirements.lock
+# -qq: errors only. This machine's pip configuration names package indexes that do not all
+# exist, and pip warns about each one on every call; a failing install still says why.
+PIP := $(BIN)/python -m pip -qq
 
-.PHONY: demo demo-identify test test-fast bench clean
+.PHONY: demo demo-identify test test-fast bench wheel lock clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml $(LOCK)
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(PIP) install -c $(LOCK) --upgrade pip
+	$(PIP) install -c $(LOCK) -e '.[dev,ur]'
 	@touch $(STAMP)
 
 # the whole product on the simulated cell: fakes, daemon, start button, tcp-laser, write-back
@@ -32,5 +37,26 @@ test-fast: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python bench/identify_bench.py
 
+# dist/cellcal-VERSION-py3-none-any.whl, for the cell PC (README: Installing on the cell PC).
+# Built with the lock file's setuptools; build/ goes first, as setuptools would otherwise
+# pack modules an earlier build left there.
+wheel: $(STAMP)
+	rm -rf build
+	$(PIP) wheel --no-deps --no-build-isolation --check-build-dependencies -w dist .
+	@rm -rf build
+	@ls -t dist/cellcal-*-py3-none-any.whl | head -n 1
+
+# Regenerate $(LOCK) on purpose: the newest releases pyproject.toml allows, installed into
+# a fresh venv without constraints, frozen. Then `make test`, and commit both.
+lock:
+	@set -e; tmp=$$(mktemp -d); trap 'rm -rf "$$tmp"' EXIT; \
+	$(PYTHON) -m venv "$$tmp/venv"; \
+	"$$tmp/venv/bin/python" -m pip -qq install --upgrade pip; \
+	"$$tmp/venv/bin/python" -m pip -qq install -e '.[dev,ur]'; \
+	{ sed -n '/^#/!q;p' $(LOCK) 2>/dev/null || true; } > "$$tmp/lock"; \
+	"$$tmp/venv/bin/python" -m pip freeze --all --exclude-editable >> "$$tmp/lock"; \
+	mv "$$tmp/lock" $(LOCK); \
+	echo "$(LOCK): $$(grep -cv '^#' $(LOCK)) pinned; run make test, then commit it"
+
 clean:
-	rm -rf $(VENV) out .pytest_cache
+	rm -rf $(VENV) out .pytest_cache build

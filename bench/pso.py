@@ -1,4 +1,5 @@
-"""Particle-swarm baseline for kinematic identification (seed 000, Tables 2 and 3).
+"""Particle-swarm baseline for kinematic identification (Chang et al., "A Stylus-Based
+Calibration Method for Robotic Belt Grinding Tools", Appl. Sci. 2025, Tables 2 and 3).
 
 The swarm searches the same unknown vector as ``cellcal.solvers.identify``
 (kinematic parameters, instrument -> base transform, target offsets) and scores
@@ -45,7 +46,7 @@ _FRAMES_PER_CALL = 8192
 
 @dataclass(frozen=True)
 class PSOConfig:
-    """Seed 000 Table 3 settings and Table 2 ranges (mm, deg)."""
+    """Table 3 settings and Table 2 ranges of Chang et al. (2025) (mm, deg)."""
 
     particles: int = 200
     inertia: float = 0.8
@@ -147,7 +148,7 @@ class _Encoding:
 def run_pso(layout: Layout, obs: Observations, cfg: PSOConfig = PSOConfig(),
             x_start: np.ndarray | None = None, kin_free: np.ndarray | None = None,
             progress=None) -> PSOResult:
-    """Global-best PSO as in seed 000's Algorithm 1; timing covers the start and the mask."""
+    """Global-best PSO as in Algorithm 1 of Chang et al. (2025); timing covers the start and the mask."""
     t0, c0 = time.perf_counter(), time.process_time()
     say = progress or (lambda msg: None)
     if x_start is None:

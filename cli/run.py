@@ -132,7 +132,7 @@ def add_parser(sub) -> None:
                        description="Plan the routine from the cell file, check every motion against the "
                                    "cell's limits, move and record, write the dataset, solve, and check the "
                                    "result's quality gates. Nothing is written to the controller here.")
-    p.add_argument("routine", metavar="ROUTINE", help="one of: " + ", ".join(registry.ROUTINES))
+    p.add_argument("routine", metavar="ROUTINE", help="one of: " + ", ".join(registry.available()))
     p.add_argument("--cell", default="sim", metavar="CELL.yaml",
                    help="cell file, or the name of a shipped cell (default: sim, the simulated cell)")
     p.add_argument("--dry-run", action="store_true", help="plan and check every motion; move nothing")

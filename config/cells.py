@@ -26,11 +26,14 @@ Sections (all lengths in metres, base frame unless said otherwise)::
     sim_truth:  what a simulated cell really has (see :class:`SimTruthSpec`); real cells
                 have none
     ROUTINE:    one section per routine (``tcp_laser``, ``tcp_stylus``, ...), read by the
-                routine itself (``cellcal.routines``), kept here as written
+                routine itself (``cellcal.routines``), kept here as written. Which sections
+                are routines' is the routines' to say: the caller passes their names to
+                :func:`read_cell` (``cellcal.daemon.cells.load_cell`` asks the routine registry)
 """
 from __future__ import annotations
 
 import copy
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,11 +44,11 @@ from cellcal.config.reader import ConfigError, Section, read_yaml, resolve, ship
 from cellcal.config.robot_files import ModelError, load_robot
 
 DEVICE_KINDS = ("robot", "trigger", "tracker", "panel")
-_SECTIONS = {"cell", "drivers", "robots", "workspace", "limits", "tool", "beams", "stylus", "pivot", "sim_truth"}
+# the cell file's own sections; every other one is a routine's
+CELL_SECTIONS = frozenset({"cell", "drivers", "robots", "workspace", "limits", "tool", "beams", "stylus", "pivot",
+                           "sim_truth"})
 _REQUIRED = ("cell", "workspace", "limits")
 ROBOT_NAMES = ("a", "b")  # the robots of a two-robot cell; a's base is the cell frame
-# sections the routines own; their names are the routines' (``tcp-laser`` -> ``tcp_laser``)
-ROUTINE_SECTIONS = ("tcp_laser", "tcp_stylus", "tcp_npoint", "tcf", "handshake", "tracker")
 
 
 class CellFileError(ConfigError):
@@ -255,11 +258,15 @@ def _read_robots(top: Section, path: Path) -> dict[str, RobotSpec]:
     return robots
 
 
-def read_cell(name_or_path: str | Path) -> Cell:
+def read_cell(name_or_path: str | Path, routine_sections: Iterable[str] | None = None) -> Cell:
     """Read and check a cell file's structure; raises CellFileError naming file, section and key.
 
-    Which drivers exist and which options they take is the driver registry's to say, and
-    each routine reads its own section (``cellcal.daemon.cells.load_cell`` checks both).
+    `routine_sections` are the sections the routines own (the routine registry's
+    ``sections()``): any other section not the cell file's own is refused as unknown.
+    None keeps every other section as a routine's, unchecked, for a reader that runs no
+    routine (the simulations). Which drivers exist and which options they take is the
+    driver registry's to say, and each routine reads its own section
+    (``cellcal.daemon.cells.load_cell`` checks both).
     """
     path = resolve_cell(name_or_path)
     where = str(path)
@@ -268,10 +275,12 @@ def read_cell(name_or_path: str | Path) -> Cell:
     for section in _REQUIRED:
         if section not in doc:
             top.fail(None, f"section [{section}] is missing")
-    known = _SECTIONS | set(ROUTINE_SECTIONS)
-    for section in doc:
-        if section not in known:
-            top.fail(section, f"unknown section (sections: {', '.join(sorted(known))})")
+    if routine_sections is not None:
+        routine_sections = tuple(routine_sections)
+        known = CELL_SECTIONS | set(routine_sections)
+        for section in doc:
+            if section not in known:
+                top.fail(section, f"unknown section (sections: {', '.join(sorted(known))})")
 
     two = "robots" in doc
     s = top.section("cell")
@@ -334,8 +343,8 @@ def read_cell(name_or_path: str | Path) -> Cell:
         pv.done()
     truth = _read_sim_truth(top.section("sim_truth")) if "sim_truth" in doc else None
     routines = {}
-    for section in ROUTINE_SECTIONS:
-        if section in doc:
+    for section in doc if routine_sections is None else routine_sections:
+        if section in doc and section not in CELL_SECTIONS:
             routines[section] = top.section(section).mapping
     a = robots["a"]
     return Cell(where, name, a.robot, a.home_q_rad, drivers, low, high, limits, tool, beams, stylus,

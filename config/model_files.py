@@ -1,4 +1,4 @@
-"""Calibrated robot model files: a robot file (``spec/robot-model.md``) that carries a calibration.
+"""Calibrated robot model files: a robot file (``docs/robot-models.md``) that carries a calibration.
 
 The file is the robot model file it was calibrated from, with the identified values
 in place of the nominal ones (``joints`` rows, or a tree's ``frames`` and movable

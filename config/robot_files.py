@@ -1,4 +1,4 @@
-"""Robot model files (``spec/robot-model.md``): read, validate, compile to a model.
+"""Robot model files (``docs/robot-models.md``): read, validate, compile to a model.
 
 Serial arms give ``joints`` (DH or MDH rows); trees give ``branches`` (see
 :func:`tree_from_mapping`). Every problem is one :class:`ModelError` naming the file,

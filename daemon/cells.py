@@ -26,7 +26,7 @@ def _placed(exc: DriverConfigError, cell: Cell, kind: str) -> CellFileError:
 def load_cell(name_or_path: str | Path) -> Cell:
     """Load and check a cell file, drivers, their options and the routines' sections
     included; raises CellFileError naming file, section and key."""
-    cell = read_cell(name_or_path)
+    cell = read_cell(name_or_path, routines.sections())
     for kind, spec in cell.drivers.items():
         try:
             registry.check(kind, spec.name, spec.options)

@@ -44,14 +44,12 @@ from cellcal.daemon.write_back import TOLERANCE, write_back
 
 log = logging.getLogger("cellcal.daemon")
 
-# routine selector register values (spec/panel.md); 6 extends the map for tcf
-PANEL_ROUTINES = {1: "tcp-laser", 2: "tcp-stylus", 3: "tcp-npoint", 4: "handshake", 5: "tracker", 6: "tcf"}
 RECONNECT_AFTER_S = 2.0  # a robot unusable this long is reconnected (a busy moment is not a lost link)
 RECONNECT_EVERY_S = 5.0  # and tried again this often while it stays lost
 
 
 class ResultCode(enum.IntEnum):
-    """The panel's result register: why the last run ended as it did (spec/panel.md)."""
+    """The panel's result register: why the last run ended as it did (docs/panel.md)."""
 
     OK = 0
     NOT_READY = 10
@@ -85,6 +83,12 @@ RESULT_MEANINGS = {
 }
 
 
+def panel_routines() -> dict[int, str]:
+    """The routine selector register's values (docs/panel.md) -> routine names: each routine
+    class declares its own ``selector`` (:func:`cellcal.routines.registry.panel_selectors`)."""
+    return registry.panel_selectors()
+
+
 @dataclass
 class RunOutcome:
     run_id: int
@@ -102,7 +106,7 @@ class Service:
         self.cell, self.drivers, self.store = cell, drivers, store
         self.out_dir = Path(out_dir)
         self.notifier = notifier or Notifier({})
-        self.routines = dict(PANEL_ROUTINES if routines is None else routines)
+        self.routines = dict(panel_routines() if routines is None else routines)
         self.report = report  # callable(run_id, result, store) -> path, or None
         self.reconnect = reconnect  # callable() -> a fresh set of the cell's drivers, or None
         self._reconnect_at: float | None = None  # when the robot is to be reconnected (it is unusable)

@@ -1,12 +1,14 @@
 """What every routine is: plan -> check the whole plan -> move and record -> dataset on
 disk -> solve (a pure function in ``solvers``) -> gates -> result.
 
-A routine is one module with one :class:`Routine` subclass that owns one section of the
-cell file (Klipper style: it reads and bounds its own options in :meth:`Routine.read_options`,
-at cell load). It gets its devices through the driver interfaces only (the cell file
-picks the backends) and moves the arm only through :class:`~.guard.GuardedRobot`, so
-every command passes the cell's limits. Results of every routine have the same shape
-(:class:`Result`), so the daemon and the store can treat them alike.
+A routine is one module with one :class:`Routine` subclass, the one place that declares
+its name, its panel selector number and the section of the cell file it owns (Klipper
+style: it reads and bounds its own options in :meth:`Routine.read_options`, at cell load);
+:mod:`.registry` finds it, and everything else asks the registry. It gets its devices
+through the driver interfaces only (the cell file picks the backends) and moves the arm
+only through :class:`~.guard.GuardedRobot`, so every command passes the cell's limits.
+Results of every routine have the same shape (:class:`Result`), and so have the designs
+they judge before moving (:class:`Design`), so the daemon and the store can treat them alike.
 """
 from __future__ import annotations
 
@@ -234,12 +236,32 @@ def drawn_tool(robot, tool_pose):
             pass
 
 
+@dataclass(frozen=True)
+class Design:
+    """What a routine's plan can give, judged before anything moves at the arm's stated
+    repeatability (:meth:`Routine.design`): the same shape for every routine.
+
+    ``expected_error`` is the 1-sigma error the plan should leave on what the routine
+    measures, in ``unit``; ``condition`` the design's condition number; ``details`` the
+    routine's own further numbers, units in the keys.
+    """
+
+    condition: float
+    expected_error: float
+    unit: str
+    details: dict = field(default_factory=dict)
+
+
 class Routine(abc.ABC):
-    """One measuring routine. Subclasses set ``name`` (``tcp-laser``) and ``section``
-    (``tcp_laser``), and implement the four steps."""
+    """One measuring routine. Subclasses declare ``name`` (``tcp-laser``: ``cellcal run``'s
+    and the store's), ``section`` (``tcp_laser``: theirs in the cell file) and ``selector``
+    (the operator panel's routine selector value, or None where the panel cannot select
+    it), and implement the four steps. :mod:`.registry` refuses two routines that claim one
+    name, section or selector."""
 
     name: str = ""
     section: str = ""
+    selector: int | None = None
     needs: tuple[str, ...] = ("robot",)  # device kinds the cell must have
 
     def __init__(self, cell: Cell, options):
@@ -266,6 +288,11 @@ class Routine(abc.ABC):
     def solve(cls, dataset, cell: Cell, options) -> Result:
         """The result of a recorded dataset: a pure solver call, residuals, gates."""
 
+    def design(self) -> Design | None:
+        """What the plan can give, judged before anything moves; None for a routine that
+        judges no design before it moves."""
+        return None
+
 
 class StepRoutine(Routine):
     """A routine whose plan is a list of steps, each a move and what that move records
@@ -278,9 +305,13 @@ class StepRoutine(Routine):
         """Every move with what it records, from the cell file alone."""
 
     @abc.abstractmethod
-    def check_design(self):
-        """The design the plan gives (expected errors, conditioning); raises PlanRefused
-        if it cannot meet the routine's targets."""
+    def design(self) -> Design:
+        """What the planned steps can give at the stated repeatability."""
+
+    @abc.abstractmethod
+    def check_design(self) -> Design:
+        """The design the plan gives (:meth:`design`); raises PlanRefused if it cannot meet
+        the routine's targets."""
 
     def plan(self) -> list[Move]:
         self.check_design()

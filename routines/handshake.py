@@ -56,7 +56,7 @@ from cellcal.config.robot_files import load_robot
 from cellcal.solvers import handshake as hs
 from cellcal.solvers import se3
 from cellcal.solvers.inverse import inverse, tcp_frames
-from cellcal.routines.base import Devices, Move, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
+from cellcal.routines.base import Design, Devices, Move, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
 from cellcal.routines.handshake_result import handshake_result
 from cellcal.routines.records import Dataset
 from cellcal.routines.tcp_npoint import axis_sigma_mm
@@ -118,6 +118,7 @@ def _tilted(axis: np.ndarray, tilt_rad: float, azimuth_rad: float) -> np.ndarray
 class Handshake(StepRoutine):
     name = "handshake"
     section = "handshake"
+    selector = 4
     needs = ("robot",)
 
     @classmethod
@@ -240,9 +241,10 @@ class Handshake(StepRoutine):
                 (Move.linear(f"robot b backs off {m.number}", poses["standoff"], speed, accel, robot="b",
                              meeting=m.point_m), None)]
 
-    def design(self) -> hs.Design:
+    def design(self) -> Design:
         """The planned meetings judged at the stated repeatability, on the drawn tips and the
-        base as installed (what the plan aims at)."""
+        base as installed (what the plan aims at): robot b's base position's expected error,
+        mm, and its rotation's (``details["rotation_deg"]``)."""
         cell = self.cell
         base = cell.robots["b"].base_matrix
         frames = {"a": ([], []), "b": ([], [])}
@@ -255,10 +257,11 @@ class Handshake(StepRoutine):
                 frames[name][0].append(flange)
                 frames[name][1].append((tip - flange @ tool.tcp_m) * 1e3)
         sigma = np.sqrt(2.0) * axis_sigma_mm(self.options.repeatability_mm)  # both arms' repeatability
-        return hs.design(*(np.array(v) for v in (*frames["a"], *frames["b"])), cell.robots["a"].tool.tcp_m * 1e3,
-                         cell.robots["b"].tool.tcp_m * 1e3, sigma)
+        found = hs.design(*(np.array(v) for v in (*frames["a"], *frames["b"])), cell.robots["a"].tool.tcp_m * 1e3,
+                          cell.robots["b"].tool.tcp_m * 1e3, sigma)
+        return Design(found.condition, found.position_mm, "mm", {"rotation_deg": found.rotation_deg})
 
-    def check_design(self) -> hs.Design:
+    def check_design(self) -> Design:
         """The plan judged before anything moves: PlanRefused for points on one plane or too
         few (the solver's reason), or an expected frame error above the targets."""
         o = self.options
@@ -267,10 +270,11 @@ class Handshake(StepRoutine):
         except hs.HandshakeRefused as exc:
             raise PlanRefused(f"{self.cell.path} [handshake]: {exc}") from None
         design = self.design()
-        if design.position_mm > o.target_mm or design.rotation_deg > o.target_deg:
+        rotation_deg = design.details["rotation_deg"]
+        if design.expected_error > o.target_mm or rotation_deg > o.target_deg:
             raise PlanRefused(
                 f"{self.cell.path} [handshake]: these {o.points} meetings would leave robot b's base "
-                f"{design.position_mm:.4f} mm and {design.rotation_deg:.5f} deg off (1 sigma) at "
+                f"{design.expected_error:.4f} mm and {rotation_deg:.5f} deg off (1 sigma) at "
                 f"{o.repeatability_mm:g} mm repeatability, above target_mm {o.target_mm:g} / target_deg "
                 f"{o.target_deg:g} (condition {design.condition:.3g}, points' conditioning {points.condition:.3g}); "
                 "plan more points, a larger half_extent_m or more tilt_deg")
@@ -285,7 +289,7 @@ class Handshake(StepRoutine):
         points = hs.point_set([m.point_m * 1e3 for m in self.meetings()])
         progress(f"handshake: {o.points} meetings over {np.round(2 * o.half_extent_m * 1e3).tolist()} mm round "
                  f"{np.round(o.centre_m, 3).tolist()} m, points' conditioning {points.condition:.3g}; expected "
-                 f"base error {design.position_mm:.4f} mm, {design.rotation_deg:.5f} deg (1 sigma) at "
+                 f"base error {design.expected_error:.4f} mm, {design.details['rotation_deg']:.5f} deg (1 sigma) at "
                  f"{o.repeatability_mm:g} mm repeatability, condition {design.condition:.3g}")
         robot_b = robot.peer("b")
         with drawn_tool(robot, self.cell.robots["a"].tool.tcp_pose), \

@@ -1,43 +1,138 @@
 """The routines by name, as ``cellcal run ROUTINE`` and the operator panel select them.
 
-Each entry is "module:class" imported on first use, like the driver registry. A cell
-file section named after a routine (``tcp-laser`` -> ``tcp_laser``) is that routine's,
-and is read by it when the cell is loaded (:func:`check_sections`).
+Each routine class declares itself (:class:`~.base.Routine`): its ``name`` (``tcp-laser``),
+the ``section`` of the cell file it owns (``tcp_laser``) and its panel ``selector`` number
+(None when the panel cannot select it). The registry finds the classes in the modules of
+:data:`ROUTINE_MODULES`, imported the first time it is asked (so importing the registry,
+and ``cellcal --help``, imports no routine), and refuses two that claim one name, section
+or selector. Everything else asks it: the cell file's routine sections (:func:`sections`,
+read at cell load by :func:`check_sections`), the panel's selector values
+(:func:`panel_selectors`), ``cellcal run``'s list (:func:`available`).
 """
 from __future__ import annotations
 
 import importlib
+import inspect
+import threading
 
-from cellcal.config.cells import Cell, CellFileError
+from cellcal.config.cells import CELL_SECTIONS, Cell, CellFileError
 from cellcal.routines.base import Routine
 
-ROUTINES: dict[str, str] = {
-    "tcp-laser": "cellcal.routines.tcp_laser:TcpLaser",
-    "tcp-stylus": "cellcal.routines.tcp_stylus:TcpStylus",
-    "tcp-npoint": "cellcal.routines.tcp_npoint:TcpNpoint",
-    "tcf": "cellcal.routines.tcf:Tcf",
-    "tracker": "cellcal.routines.tracker:TrackerCampaign",
-    "handshake": "cellcal.routines.handshake:Handshake",
-}
+# where the routines are; each module's Routine subclasses are found in it (in this order)
+ROUTINE_MODULES: tuple[str, ...] = (
+    "cellcal.routines.tcp_laser",
+    "cellcal.routines.tcp_stylus",
+    "cellcal.routines.tcp_npoint",
+    "cellcal.routines.tcf",
+    "cellcal.routines.tracker",
+    "cellcal.routines.handshake",
+)
+SELECTOR_RANGE = (1, 65535)  # a holding register; 0 selects nothing
+
+_found: dict[str, type[Routine]] | None = None  # name -> class, in the order found
+_lock = threading.RLock()
+
+
+class RoutineDeclarationError(ValueError):
+    """A routine class that declares no name or section, a selector the panel cannot send,
+    or a name, section or selector another routine has already."""
+
+
+def _described(cls: type) -> str:
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
+def _check(cls: type[Routine], known: dict[str, type[Routine]]) -> None:
+    """Refuse `cls` when its declaration is incomplete or clashes with one of `known`."""
+    where = _described(cls)
+    if not isinstance(cls.name, str) or not cls.name:
+        raise RoutineDeclarationError(f"routine class {where} declares no name")
+    if not isinstance(cls.section, str) or not cls.section.isidentifier():
+        raise RoutineDeclarationError(f"routine {cls.name!r} ({where}) declares no cell file section "
+                                      f"(section = {cls.section!r})")
+    if cls.section in CELL_SECTIONS:
+        raise RoutineDeclarationError(f"routine {cls.name!r} ({where}) claims section [{cls.section}], one of the "
+                                      "cell file's own")
+    low, high = SELECTOR_RANGE
+    if cls.selector is not None and (isinstance(cls.selector, bool) or not isinstance(cls.selector, int)
+                                     or not low <= cls.selector <= high):
+        raise RoutineDeclarationError(f"routine {cls.name!r} ({where}) declares panel selector {cls.selector!r}: "
+                                      f"a number in {low}..{high}, or None")
+    for other in known.values():
+        if other is cls:
+            continue
+        for what, mine, theirs in (("name", cls.name, other.name), ("section", cls.section, other.section),
+                                   ("panel selector", cls.selector, other.selector)):
+            if mine is not None and mine == theirs:
+                raise RoutineDeclarationError(
+                    f"routine {cls.name!r} ({where}) claims {what} {mine!r}, which routine {other.name!r} "
+                    f"({_described(other)}) has already")
+
+
+def _in_module(module) -> list[type[Routine]]:
+    """The concrete Routine subclasses a module defines (not those it imports)."""
+    return [obj for obj in vars(module).values()
+            if isinstance(obj, type) and issubclass(obj, Routine) and obj.__module__ == module.__name__
+            and not inspect.isabstract(obj)]
+
+
+def _routines() -> dict[str, type[Routine]]:
+    """Every routine by name, the modules of ROUTINE_MODULES imported on the first call."""
+    global _found
+    with _lock:
+        if _found is None:
+            found: dict[str, type[Routine]] = {}
+            for module_name in ROUTINE_MODULES:
+                try:
+                    module = importlib.import_module(module_name)
+                except ModuleNotFoundError:  # a routine that is not installed
+                    continue
+                for cls in _in_module(module):
+                    _check(cls, found)
+                    found[cls.name] = cls
+            _found = found
+        return _found
+
+
+def register(cls: type[Routine]) -> type[Routine]:
+    """Add a routine class defined elsewhere (a plug-in, a test); RoutineDeclarationError
+    when it clashes with a routine already known. Returns the class (usable as a decorator)."""
+    if not (isinstance(cls, type) and issubclass(cls, Routine)) or inspect.isabstract(cls):
+        raise RoutineDeclarationError(f"{cls!r} is not a concrete Routine subclass")
+    with _lock:
+        known = _routines()
+        _check(cls, known)
+        known[cls.name] = cls
+    return cls
+
+
+def unregister(name: str) -> None:
+    """Forget a routine added with :func:`register` (KeyError when none is of that name)."""
+    with _lock:
+        del _routines()[name]
 
 
 def available() -> list[str]:
-    """Routines whose module is installed."""
-    out = []
-    for name, target in ROUTINES.items():
-        try:
-            importlib.import_module(target.partition(":")[0])
-        except ModuleNotFoundError:
-            continue
-        out.append(name)
-    return out
+    """The routines' names, in the order found."""
+    return list(_routines())
 
 
 def routine_class(name: str) -> type[Routine]:
-    if name not in ROUTINES:
-        raise KeyError(f"no routine named {name!r} (routines: {', '.join(available())})")
-    module, _, attr = ROUTINES[name].partition(":")
-    return getattr(importlib.import_module(module), attr)
+    routines = _routines()
+    if name not in routines:
+        raise KeyError(f"no routine named {name!r} (routines: {', '.join(routines)})")
+    return routines[name]
+
+
+def sections() -> tuple[str, ...]:
+    """The cell file sections the routines own, for :func:`cellcal.config.cells.read_cell`."""
+    return tuple(cls.section for cls in _routines().values())
+
+
+def panel_selectors() -> dict[int, str]:
+    """The operator panel's routine selector values -> routine names, in selector order."""
+    return {cls.selector: name for name, cls in sorted(_routines().items(), key=lambda item: item[1].selector or 0)
+            if cls.selector is not None}
 
 
 def read_options(name: str, cell: Cell):
@@ -48,9 +143,8 @@ def read_options(name: str, cell: Cell):
 
 def check_sections(cell: Cell) -> None:
     """Read every routine section the cell file has, so a bad option fails at load."""
+    by_section = {cls.section: name for name, cls in _routines().items()}
     for section in cell.routines:
-        name = section.replace("_", "-")
-        if name in ROUTINES and name in available():
-            read_options(name, cell)
-        elif name not in ROUTINES:
+        if section not in by_section:
             raise CellFileError("a routine section of no known routine", source=cell.path, section=section)
+        read_options(by_section[section], cell)

@@ -42,7 +42,8 @@ from cellcal.solvers import pivot as pv
 from cellcal.solvers import se3
 from cellcal.solvers.inverse import inverse
 from cellcal.routines import gates
-from cellcal.routines.base import Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
+from cellcal.routines.base import (Design, Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError,
+                                   StepRoutine, drawn_tool)
 from cellcal.routines.drawing import axis_crossings
 from cellcal.routines.records import Dataset
 from cellcal.routines.tcp_npoint import JOINT_SPEED_RAD_S, LIFT_MM, axis_sigma_mm, down_orientation, flange_frames
@@ -67,6 +68,7 @@ class TcfOptions:
 class Tcf(StepRoutine):
     name = "tcf"
     section = "tcf"
+    selector = 6  # the panel's selector map: docs/panel.md
     needs = ("robot",)
 
     @classmethod
@@ -108,32 +110,35 @@ class Tcf(StepRoutine):
         return [{"turn": j + 1, "height_mm": h, "side": k, "dir_x": -s[0], "dir_y": -s[1], "dir_z": -s[2]}
                 for j in range(o.turns) for h in (o.near_mm, far) for k, s in enumerate(SIDES)]
 
-    def design(self, far_mm: float | None = None) -> pv.Design:
+    def design(self, far_mm: float | None = None) -> Design:
+        """The planned touches (the far height `far_mm`, default the option's) judged at the
+        stated repeatability: the tool axis' expected error, deg."""
         touches = self.touches(far_mm)
         tool = self.cell.tool.tcp_pose
         rotations = {j + 1: r @ se3.rotvec_to_matrix(tool[3:]).T for j, r in enumerate(self.turns())}
         pairs = [t for t in touches if t["side"] < 2]
         line = [2 * (t["turn"] - 1) + t["side"] for t in pairs]
-        return pv.axis_design(line, [rotations[t["turn"]] for t in pairs], [SIDES[t["side"]] for t in pairs],
-                              [t["height_mm"] for t in pairs], self.cell.tool.axis,
-                              axis_sigma_mm(self.options.repeatability_mm) / np.sqrt(2.0))
+        found = pv.axis_design(line, [rotations[t["turn"]] for t in pairs], [SIDES[t["side"]] for t in pairs],
+                               [t["height_mm"] for t in pairs], self.cell.tool.axis,
+                               axis_sigma_mm(self.options.repeatability_mm) / np.sqrt(2.0))
+        return Design(found.condition, float(np.rad2deg(found.expected_error)), "deg",
+                      {"tilt_std_deg": np.rad2deg(found.std).tolist()})
 
-    def check_design(self) -> pv.Design:
+    def check_design(self) -> Design:
         """PlanRefused when the heights are too close for the target at the stated repeatability."""
         o = self.options
         design = self.design()
-        target = np.deg2rad(o.target_deg)
-        if design.expected_error <= target:
+        if design.expected_error <= o.target_deg:
             return design
         top = self.cell.tool.length_m * 1e3 - 5.0
-        need = pv.smallest_setting(lambda f: self.design(f).expected_error, target, o.far_mm, top)
+        need = pv.smallest_setting(lambda f: self.design(f).expected_error, o.target_deg, o.far_mm, top)
         what = (f"at least {need - o.near_mm:.1f} mm apart is needed" if need is not None else
                 f"not even {top - o.near_mm:.1f} mm apart (the tool's length) reaches it: plan more turns or a "
                 "looser target_deg")
         raise PlanRefused(f"{self.cell.path} [tcf]: the heights {o.near_mm:g} and {o.far_mm:g} mm are "
                           f"{o.far_mm - o.near_mm:g} mm apart; {what} for {o.target_deg:g} deg at "
                           f"{o.repeatability_mm:g} mm repeatability (this design: "
-                          f"{np.rad2deg(design.expected_error):.3f} deg expected); move far_mm or near_mm")
+                          f"{design.expected_error:.3f} deg expected); move far_mm or near_mm")
 
     def steps(self) -> list[tuple[Move, dict | None]]:
         cell, o = self.cell, self.options
@@ -189,7 +194,7 @@ class Tcf(StepRoutine):
         design = self.check_design()
         progress(f"tcf: {o.turns} turns of the tool, the shank touched at {o.near_mm:g} and {o.far_mm:g} mm behind "
                  f"the tip from four sides: condition {design.condition:.3g}, expected axis error "
-                 f"{np.rad2deg(design.expected_error):.4f} deg (1 sigma) at {o.repeatability_mm:g} mm repeatability")
+                 f"{design.expected_error:.4f} deg (1 sigma) at {o.repeatability_mm:g} mm repeatability")
 
         def missed(move):
             return (f"the contact search went {move.travel_m * 1e3:g} mm without touching the stylus: is [stylus] "

@@ -56,7 +56,7 @@ MAX_STD = {"mm": 0.1, "rad": np.deg2rad(0.1), "ms": 1.0}  # a parameter this unc
 
 
 @dataclass(frozen=True)
-class LaserOptions:
+class TcpLaserOptions:
     speed_mm_s: float
     heights_mm: tuple[float, ...]
     tilted_height_mm: float
@@ -83,11 +83,12 @@ class Step:
 class TcpLaser(Routine):
     name = "tcp-laser"
     section = "tcp_laser"
+    selector = 1
     needs = ("robot", "trigger")
     text_columns = ("kind", "edge")
 
     @classmethod
-    def read_options(cls, section: Section, cell: Cell) -> LaserOptions:
+    def read_options(cls, section: Section, cell: Cell) -> TcpLaserOptions:
         if cell.tool is None:
             section.fail(None, "tcp-laser needs the tool as drawn in [tool]")
         if len(cell.beams) != 2:
@@ -106,7 +107,7 @@ class TcpLaser(Routine):
         spins = section.sequence("spins_deg", [180.0, 0.0], nonempty=True)
         if not all(isinstance(s, (int, float)) and not isinstance(s, bool) and -180 <= s <= 180 for s in spins):
             section.fail("spins_deg", f"{spins!r}: turns in -180..180 deg")
-        options = LaserOptions(
+        options = TcpLaserOptions(
             speed, tuple(float(h) for h in heights), section.number("tilted_height_mm", min(heights), low=low, high=high),
             section.number("tilt_deg", 45.0, low=0.0, high=45.0), section.integer("tilts", 4, low=1, high=8),
             tuple(float(s) for s in spins), section.number("search_mm", 3.0, above=0.0, high=20.0),
@@ -121,7 +122,7 @@ class TcpLaser(Routine):
 
     # -- plan ------------------------------------------------------------------------
 
-    def design(self) -> list[tuple[Move, Step]]:
+    def steps(self) -> list[tuple[Move, Step]]:
         """Every motion and what it is for, from the cell file alone."""
         cell, o = self.cell, self.options
         tool = cell.tool
@@ -194,14 +195,14 @@ class TcpLaser(Routine):
         return out
 
     def plan(self) -> list[Move]:
-        return [move for move, _ in self.design()]
+        return [move for move, _ in self.steps()]
 
     # -- measure ---------------------------------------------------------------------
 
     def measure(self, devices: Devices, robot, plan: list[Move], progress) -> Dataset:
-        design = self.design()
-        steps = [step for _, step in design]
-        if [m.label for m in plan] != [m.label for m, _ in design]:
+        planned = self.steps()
+        steps = [step for _, step in planned]
+        if [m.label for m in plan] != [m.label for m, _ in planned]:
             raise RoutineError("the plan given is not this routine's plan for this cell file")
         if devices.trigger is None:
             raise RoutineError(f"{self.cell.path}: tcp-laser needs a trigger in [drivers]")
@@ -249,7 +250,7 @@ class TcpLaser(Routine):
         return [(i, e) for e in seen]
 
     def _dataset(self, rows, samples, t0) -> Dataset:
-        steps = [step for _, step in self.design()]
+        steps = [step for _, step in self.steps()]
         t = np.array([s.t_s for s in samples])
         tcp = np.array([s.tcp_pose for s in samples])
         q = np.array([s.q_rad for s in samples])
@@ -288,7 +289,7 @@ class TcpLaser(Routine):
     # -- solve -----------------------------------------------------------------------
 
     @classmethod
-    def solve(cls, dataset, cell: Cell, options: LaserOptions) -> Result:
+    def solve(cls, dataset, cell: Cell, options: TcpLaserOptions) -> Result:
         meta = dataset.meta
         need = ("planned_tool", "tool_radius_m", "tool_length_m", "beams")
         missing = [k for k in need if k not in meta]
@@ -326,7 +327,7 @@ class TcpLaser(Routine):
         return result
 
 
-def _result(name, fit: laser.LaserFit, geometry, beams, cell: Cell, options: LaserOptions, meta) -> Result:
+def _result(name, fit: laser.LaserFit, geometry, beams, cell: Cell, options: TcpLaserOptions, meta) -> Result:
     frame = fit.tool_frame
     e1, e2 = laser.axis_pair(geometry.axis)
     tilt = [float(np.degrees(np.arctan2(fit.axis @ e, fit.axis @ geometry.axis))) for e in (e1, e2)]

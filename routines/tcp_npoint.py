@@ -49,7 +49,8 @@ from cellcal.solvers import se3
 from cellcal.solvers.inverse import inverse, tcp_frames
 from cellcal.solvers.robot_model import KinematicModel
 from cellcal.routines import gates
-from cellcal.routines.base import Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
+from cellcal.routines.base import (Design, Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError,
+                                   StepRoutine, drawn_tool)
 from cellcal.routines.drawing import seats_about_pivot
 from cellcal.routines.records import Dataset
 
@@ -60,7 +61,7 @@ MAX_STD_MM = 1.0  # a TCP coordinate this uncertain from the design is not deter
 
 
 @dataclass(frozen=True)
-class NpointOptions:
+class TcpNpointOptions:
     orientations: int
     spread_deg: float
     turn_deg: float
@@ -112,16 +113,17 @@ def unit_option(section: Section, key: str) -> np.ndarray | None:
 class TcpNpoint(StepRoutine):
     name = "tcp-npoint"
     section = "tcp_npoint"
+    selector = 3
     needs = ("robot",)
 
     @classmethod
-    def read_options(cls, section: Section, cell: Cell) -> NpointOptions:
+    def read_options(cls, section: Section, cell: Cell) -> TcpNpointOptions:
         if cell.tool is None:
             section.fail(None, "tcp-npoint needs the tool as drawn in [tool]")
         if cell.pivot_m is None:
             section.fail(None, "tcp-npoint needs the pivot in [pivot] (point_m)")
         travel_mm = cell.limits["contact_travel_m"] * 1e3
-        options = NpointOptions(
+        options = TcpNpointOptions(
             section.integer("orientations", 8, low=4, high=24),
             section.number("spread_deg", 30.0, above=0.0, high=MAX_SPREAD_DEG),
             section.number("turn_deg", 60.0, low=0.0, high=90.0),
@@ -152,11 +154,14 @@ class TcpNpoint(StepRoutine):
             out.append((rotation, {"seat": k + 1, "tilt_deg": tilt_deg, "azimuth_deg": azimuth, "turn_deg": turn}))
         return out
 
-    def design(self, spread_deg: float | None = None) -> pv.Design:
+    def design(self, spread_deg: float | None = None) -> Design:
+        """The planned seats (tilted `spread_deg`, default the option's) judged at the stated
+        repeatability: the TCP's expected error, mm."""
         rotations = flange_rotations([r for r, _ in self.seats(spread_deg)], self.cell.tool.tcp_pose)
-        return pv.pivot_design(rotations, axis_sigma_mm(self.options.repeatability_mm))
+        found = pv.pivot_design(rotations, axis_sigma_mm(self.options.repeatability_mm))
+        return Design(found.condition, found.expected_error, "mm", {"tcp_std_mm": found.std.tolist()})
 
-    def check_design(self) -> pv.Design:
+    def check_design(self) -> Design:
         """The planned orientations judged before anything moves; PlanRefused when they
         cannot reach the target at the stated repeatability, saying what spread would."""
         o = self.options
@@ -239,7 +244,7 @@ class TcpNpoint(StepRoutine):
     # -- solve -----------------------------------------------------------------------
 
     @classmethod
-    def solve(cls, dataset, cell: Cell, options: NpointOptions) -> Result:
+    def solve(cls, dataset, cell: Cell, options: TcpNpointOptions) -> Result:
         meta = dataset.meta
         missing = [k for k in ("tool_radius_m", "planned_tool") if k not in meta]
         if missing:
@@ -263,7 +268,7 @@ class TcpNpoint(StepRoutine):
         return result
 
 
-def _result(name, dataset, cell: Cell, options: NpointOptions, fit: pv.PivotFit, design: pv.Design) -> Result:
+def _result(name, dataset, cell: Cell, options: TcpNpointOptions, fit: pv.PivotFit, design: pv.Design) -> Result:
     meta = dataset.meta
     planned = np.asarray(meta["planned_tool"], dtype=float)
     drawn_axis = se3.rotvec_to_matrix(planned[3:])[:, 2]

@@ -4,7 +4,7 @@ Every contact is a guarded search, a back-off and a slow second touch whose join
 recorded: the controller notices a contact at its next 2 ms cycle, so the touch overshoots
 by at most ``touch_speed_m_s`` x 2 ms (4 um at 2 mm/s; the solver takes off the mean half).
 
-1. Coarse, as the seed's section 2.2: end-face touches at four orientations (four-point TCP
+1. Coarse, as Chang et al.'s section 2.2: end-face touches at four orientations (four-point TCP
    and stylus); side touches at two heights from three sides, the tool held in one
    orientation (the axis direction from axial moves).
 2. Side contacts from ``stations`` orientations tilted up to ``tilt_deg``, each station on
@@ -45,7 +45,7 @@ COLUMNS = ("probe", "group", "height_mm", "roll_deg", *(f"q{i}_rad" for i in ran
 
 
 @dataclass(frozen=True)
-class Options:
+class TcpStylusOptions:
     side_contacts: int
     face_touches: int
     stations: int
@@ -82,6 +82,7 @@ class Probe:
 class TcpStylus(Routine):
     name = "tcp-stylus"
     section = "tcp_stylus"
+    selector = 2
     needs = ("robot",)
     text_columns = ("kind",)
 
@@ -90,7 +91,7 @@ class TcpStylus(Routine):
         self.model = load_robot(cell.robot)
 
     @classmethod
-    def read_options(cls, section: Section, cell: Cell) -> Options:
+    def read_options(cls, section: Section, cell: Cell) -> TcpStylusOptions:
         if cell.tool is None or cell.stylus is None:
             section.fail(None, "tcp-stylus needs the cell file's [tool] and [stylus]")
         travel_mm = cell.limits["contact_travel_m"] * 1e3 - SEARCH_MARGIN_MM
@@ -102,7 +103,7 @@ class TcpStylus(Routine):
                                        f"({length_mm - radius_mm:g} mm)")
         if travel_mm <= 0:
             section.fail(None, f"the cell's contact_travel_m leaves no room for a {SEARCH_MARGIN_MM:g} mm search")
-        opts = Options(
+        opts = TcpStylusOptions(
             side_contacts=section.integer("side_contacts", 182, low=16, high=2000),
             face_touches=section.integer("face_touches", 8, low=0, high=100),
             stations=section.integer("stations", 8, low=4, high=40),
@@ -350,7 +351,7 @@ class TcpStylus(Routine):
     # -- solving -------------------------------------------------------------------------
 
     @classmethod
-    def solve(cls, dataset, cell: Cell, options: Options) -> Result:
+    def solve(cls, dataset, cell: Cell, options: TcpStylusOptions) -> Result:
         meta, where = dataset.meta, dataset.path or "dataset"
         missing = [k for k in (*COLUMNS, "kind") if k not in dataset.columns] + [
             k for k in ("cycle_s", "tool_drawn", "tool_axis_drawn", "tool_radius_m", "stylus_radius_m", "stylus_file_m")
@@ -391,7 +392,7 @@ class TcpStylus(Routine):
                               "coarse_end_face": int(np.sum(~use)), "left_out": left_out},
                  "tcp_along_axis": "end-face touches" if n_face else "convention: nearest the drawn tip",
                  "rank": seen.rank, "fitted": list(fit.names)}
-        if start is not None:  # how far the seed's coarse stage was from the fine result
+        if start is not None:  # how far Chang et al.'s coarse stage was from the fine result
             extra["coarse_off_fine_mm"] = float(np.linalg.norm(start.tip_mm - tip))
             cos = min(1.0, float(start.line.direction @ fit.line.direction))
             extra["coarse_off_fine_deg"] = float(np.degrees(np.arccos(cos)))

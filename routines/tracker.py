@@ -2,11 +2,14 @@
 
 The arm moves through poses chosen for identification and the cell's laser tracker
 measures a target on its tool at each. The measurements go to disk as the measurement
-CSV that ``cellcal identify`` reads (spec/measurements.md; the dataset header rides
+CSV that ``cellcal identify`` reads (docs/measurements.md; the dataset header rides
 along as ``#`` lines, rows marked ``split`` = ``cal``/``val``), then the arm's geometry,
 the instrument -> base frame and the target offset are identified on the ``cal`` rows
-and checked on the ``val`` rows (seeds 003 and 004: a tracker over the volume the arm
-works in, an L2 prior toward nominal weighted by cross-validation).
+and checked on the ``val`` rows (as in Cao et al., "A Novel Kinematic Calibration Method for
+Industrial Robots Based on the Improved Grey Wolf Optimization Algorithm", and Liu et al.,
+"L2-Regularization-Based Kinematic Parameter Identification for Industrial Robots in Limited
+Measurement Space", both Actuators 2025: a tracker over the volume the arm works in, an L2
+prior toward nominal weighted by cross-validation).
 
 Plan, from the cell file alone: random configurations on the nominal model, kept where
 the whole arm is inside the workspace box, the target is in the instrument's view cone
@@ -74,6 +77,7 @@ class Stop:
 class TrackerCampaign(Routine):
     name = "tracker"
     section = "tracker"
+    selector = 5
     needs = ("robot", "tracker")
     text_columns = ("split", "target")
 

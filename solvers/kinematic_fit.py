@@ -170,8 +170,10 @@ def f_scale_of(residuals: np.ndarray) -> float:
 def register(layout: Layout, x: np.ndarray, obs: Observations) -> Fit:
     """Fit only base and target offsets to obs, kinematics held as in x.
 
-    How a kinematic result is scored on data from another instrument set-up (seed
-    004 validates with a laser tracker after a calibration with an R-test): the
+    How a kinematic result is scored on data from another instrument set-up (Liu et al.,
+    "L2-Regularization-Based Kinematic Parameter Identification for Industrial Robots in
+    Limited Measurement Space", Actuators 2025, validate with a laser tracker after a
+    calibration with an R-test): the
     frames are registered anew, the geometry is what is being judged.
     """
     start = initial_base_and_targets(layout, obs, x)

@@ -1,6 +1,6 @@
 """Robot models: nominal geometry compiled to parameterised kinematic chains.
 
-Model files (``spec/robot-model.md``) are read and compiled by
+Model files (``docs/robot-models.md``) are read and compiled by
 ``cellcal.config.robot_files``; this module holds the compiled model and what the
 solvers derive from it. Internal units: mm and rad.
 

@@ -71,7 +71,7 @@ class Line:
         return self.point_mm + ((point_mm - self.point_mm) @ self.direction)[..., None] * self.direction
 
 
-# -- coarse: the seed's four-point TCP and the axis from axial moves --------------------------------
+# -- coarse: Chang et al.'s four-point TCP and the axis from axial moves -----------------------------
 
 def four_point(rotation: np.ndarray, position_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """The flange point that touched one fixed point from every pose, and that fixed point.
@@ -90,7 +90,7 @@ def four_point(rotation: np.ndarray, position_mm: np.ndarray) -> tuple[np.ndarra
 def axis_from_axial_moves(rotation: np.ndarray, position_mm: np.ndarray, groups: np.ndarray,
                           toward: np.ndarray) -> np.ndarray:
     """The axis direction (flange frame) from side contacts made at one orientation and
-    several heights along the axis (the seed's TCF from axial moves).
+    several heights along the axis (Chang et al.'s TCF from axial moves).
 
     Within a group the flange only translates, and every contact meets the same generatrix,
     so R^T p moves along the axis: its principal direction is u. Groups are combined weighted

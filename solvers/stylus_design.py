@@ -9,8 +9,9 @@ Identifiability (:func:`determined`, :func:`null_directions`): the rank of the c
 model's Jacobian, read off its singular values; a direction the contacts do not see is
 named and no value along it is reported. :func:`contact_jacobian` extends the model with
 the arm's kinematic parameters (analytic, through :func:`.chain.point_jacobians`) to check
-the seed's claim that contacts on one stylus identify 20 DH errors, 6 tool and 3 stylus
-parameters: a small change of the parameters moves the flange, and the distance from the
+the claim of Chang et al. ("A Stylus-Based Calibration Method for Robotic Belt Grinding
+Tools", Appl. Sci. 2025) that contacts on one stylus identify 20 DH errors, 6 tool and 3
+stylus parameters: a small change of the parameters moves the flange, and the distance from the
 stylus to the axis changes by minus the unit normal (axis toward stylus) dotted with how
 far the axis point nearest the stylus moved.
 """

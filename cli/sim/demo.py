@@ -27,7 +27,7 @@ from cellcal.drivers.modbus.panel import PanelMap
 from cellcal.routines.base import FRAME_KEYS, gate_line, tool_frame_json
 from cellcal.daemon.cells import load_cell
 from cellcal.cli.common import UsageError, print_progress
-from cellcal.daemon.service import PANEL_ROUTINES, RESULT_MEANINGS, ResultCode
+from cellcal.daemon.service import RESULT_MEANINGS, ResultCode, panel_routines
 
 RUN_TIMEOUT_S = 180.0
 READY_TIMEOUT_S = 60.0
@@ -82,9 +82,10 @@ def start_daemon(cell_path, state_dir, notify_path, *, stderr, on_start=lambda p
 
 def cmd_demo(args) -> int:
     cell = load_cell(args.cell)
-    number = next((k for k, v in PANEL_ROUTINES.items() if v == args.routine), None)
+    selectors = panel_routines()
+    number = next((k for k, v in selectors.items() if v == args.routine), None)
     if number is None:
-        raise UsageError(f"--routine {args.routine}: not on the panel's selector ({', '.join(PANEL_ROUTINES.values())})")
+        raise UsageError(f"--routine {args.routine}: not on the panel's selector ({', '.join(selectors.values())})")
     panel = cell.drivers.get("panel")
     if panel is None or panel.name != "modbus":
         raise UsageError(f"{cell.path}: the demo presses start through a Modbus panel; this cell has none")

@@ -1,4 +1,4 @@
-"""The operator panel on a Modbus TCP device (spec/panel.md), through pymodbus.
+"""The operator panel on a Modbus TCP device (docs/panel.md), through pymodbus.
 
 The panel is a small PLC or IO module: the daemon is the Modbus client, polls the
 start/abort coils and the routine selector, and drives the lamps, the result code
@@ -139,7 +139,7 @@ def _span(address: int, count: int) -> str:
 
 @dataclass(frozen=True)
 class PanelMap:
-    """Addresses of the panel's coils and holding registers (defaults: spec/panel.md)."""
+    """Addresses of the panel's coils and holding registers (defaults: docs/panel.md)."""
 
     start_request_coil: int = 0
     abort_request_coil: int = 1

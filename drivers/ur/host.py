@@ -29,6 +29,10 @@ import socket
 import threading
 from multiprocessing.connection import Connection
 
+# ur_rtde is the `ur` extra of the package, not a dependency of every install
+UR_RTDE_MODULES = ("rtde_control", "rtde_io")
+UR_RTDE_MISSING = "the UR driver needs ur_rtde: pip install 'cellcal[ur]'"
+
 
 class Host:
     def __init__(self, conn: Connection, config: dict):
@@ -41,7 +45,10 @@ class Host:
             self.conn.send(message)
 
     def connect(self) -> None:
-        import rtde_control
+        try:
+            import rtde_control
+        except ModuleNotFoundError as exc:  # the parent checks first; this is the backstop
+            raise RuntimeError(f"{UR_RTDE_MISSING} ({exc})") from None
 
         self.interfaces["control"] = rtde_control.RTDEControlInterface(self.config["host"],
                                                                        self.config["frequency_hz"])

@@ -25,6 +25,7 @@ Register in the driver registry::
 """
 from __future__ import annotations
 
+import importlib.util
 import logging
 import math
 import socket
@@ -37,6 +38,7 @@ from scipy.spatial.transform import Rotation
 from cellcal.config.reader import Section
 from cellcal.drivers.interfaces import ContactResult, DeviceError, DeviceTimeout, Robot, RobotSample, RobotState, StoredToolFrame
 from cellcal.drivers.registry import DriverConfigError
+from cellcal.drivers.ur.host import UR_RTDE_MISSING, UR_RTDE_MODULES
 from cellcal.drivers.ur.process import DASHBOARD_PORT, UrRtdeProcess
 from cellcal.drivers.ur.registers import FIRST_REGISTER, FIRST_REGISTER_RANGE, ToolFrameRegisters
 from cellcal.drivers.ur.state import ROBOT_VARIABLES, UrStateStream
@@ -80,6 +82,13 @@ def _rotation_angle(rotvec_a, rotvec_b) -> float:
 
 class UrRtdeRobot(Robot):
     @staticmethod
+    def check_installed() -> None:
+        """Refuse to start without ur_rtde (the package's `ur` extra), saying what to install,
+        before anything is opened (also run by `cellcal service install` on the cell file)."""
+        if any(importlib.util.find_spec(m) is None for m in UR_RTDE_MODULES):
+            raise DriverConfigError(UR_RTDE_MISSING, key="driver")
+
+    @staticmethod
     def check_options(**options) -> None:
         """Refuse an option out of range, naming it (also run by the registry at cell load)."""
         o = Section.of_options(DriverConfigError, **options)
@@ -108,6 +117,7 @@ class UrRtdeRobot(Robot):
             motion_timeout_margin_s=motion_timeout_margin_s, reach_tolerance_rad=reach_tolerance_rad,
             reach_tolerance_m=reach_tolerance_m, contact_accel_m_s2=contact_accel_m_s2,
             stop_decel_rad_s2=stop_decel_rad_s2, tool_frame_register=tool_frame_register)
+        self.check_installed()
         self.command_timeout_s, self.connect_timeout_s = command_timeout_s, connect_timeout_s
         self.motion_timeout_factor, self.motion_timeout_margin_s = motion_timeout_factor, motion_timeout_margin_s
         self.reach_tolerance_rad, self.reach_tolerance_m = reach_tolerance_rad, reach_tolerance_m

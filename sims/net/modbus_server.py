@@ -35,7 +35,7 @@ SERVER_CALL_TIMEOUT_S = 5.0
 
 
 class ModbusCellServer:
-    """Panel map (spec/panel.md, or an overridden map) and trigger ring on one unit.
+    """Panel map (docs/panel.md, or an overridden map) and trigger ring on one unit.
 
     Use as a context manager, or call :meth:`start` and :meth:`stop`. ``port=0``
     binds an ephemeral port; :attr:`port` tells which.

@@ -28,8 +28,10 @@ class ArmTruth:
 class TrackerNoise:
     """Laser tracker noise: standard deviation per axis = a + b * distance.
 
-    AT960 (seed 003): 15 um + 6 um/m, taken here as one standard deviation per axis,
-    which is on the pessimistic side of the maker's MPE figure.
+    AT960, as Cao et al. state it ("A Novel Kinematic Calibration Method for Industrial
+    Robots Based on the Improved Grey Wolf Optimization Algorithm", Actuators 2025):
+    15 um + 6 um/m, taken here as one standard deviation per axis, which is on the
+    pessimistic side of the maker's MPE figure.
     """
 
     constant_mm: float = 0.015

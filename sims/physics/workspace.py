@@ -44,8 +44,10 @@ def constrained_volume(model: KinematicModel, n: int, rng: np.random.Generator, 
     """n configurations that put a point ``offset_mm`` on the flange inside a cube
     of side ``cube_mm`` around ``centre_mm`` (base frame), with the tool axis
     within ``max_tilt_deg`` of straight down and every arm configuration (elbow,
-    shoulder, wrist branch) the joint limits allow: seed 004's limited measurement
-    space, where orientation and branch are all the variety there is."""
+    shoulder, wrist branch) the joint limits allow: the limited measurement space of
+    Liu et al. ("L2-Regularization-Based Kinematic Parameter Identification for Industrial
+    Robots in Limited Measurement Space", Actuators 2025), where orientation and branch
+    are all the variety there is."""
     chain = model.chains[model.default_chain]
     offset = np.asarray(offset_mm, dtype=float)
     centre = np.asarray(centre_mm, dtype=float)

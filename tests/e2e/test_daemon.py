@@ -21,12 +21,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellcal.config.cells import shipped_cells
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.reports.run import write_run_report
 from cellcal.daemon.service import RESULT_MEANINGS, ResultCode, Service
 from cellcal.daemon.store import SCHEMA_VERSION, Store
 from cellcal.routines import registry
+from cell_edits import edited_cell  # tests/cell_edits.py
 from report_check import assert_page_draws, layer
 
 ROUTINE = "tcp-laser"
@@ -220,10 +220,7 @@ def test_a_start_when_the_robot_is_not_ready_is_refused_and_nothing_moves(cell, 
 @needs_routine
 def test_a_result_failing_a_gate_is_never_written(tmp_path):
     """The real tool 15 mm off its drawing: the plausibility gate fails, the frame stays."""
-    text = shipped_cells()["sim"].read_text().replace("  tool_tcp_error_mm: 1.0", "  tool_tcp_error_mm: 15.0")
-    path = tmp_path / "far.yaml"
-    path.write_text(text)
-    cell = load_cell(path)
+    cell = load_cell(edited_cell(tmp_path, "sim", {"sim_truth": {"tool_tcp_error_mm": 15.0}}, name="far.yaml"))
     with open_drivers(cell) as drivers:
         service = service_on(cell, drivers, tmp_path)
         before = drivers.robot.tcp()
@@ -293,7 +290,7 @@ def test_the_daemon_speaks_the_notify_protocol_and_stops_on_sigterm(tmp_path):
 def test_the_unit_file_verifies(tmp_path):
     unit = (ROOT / "config" / "cellcal.service").read_text()
     exe = Path(sys.executable).parent / "cellcal"
-    unit = unit.replace("/opt/cellcal/.venv/bin/cellcal", str(exe))
+    unit = unit.replace("/opt/cellcal/bin/cellcal", str(exe))
     (tmp_path / "cellcal.service").write_text(unit)
     proc = subprocess.run(["systemd-analyze", "verify", str(tmp_path / "cellcal.service")],
                           capture_output=True, text=True, timeout=60)
