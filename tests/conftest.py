@@ -1,5 +1,16 @@
+"""Fixtures every kind of test shares (tests/unit, tests/protocol, tests/e2e).
+
+The helpers beside this file are plain modules (tests/ is on sys.path through this
+conftest): hidden_cases (generated data with a hidden effect), report_check (a report's
+drawings), naming_stubs (made-up scores for the naming rule), routine_checks (a robot that
+records its commands, and a check of each against the cell's limits), cell_edits (a cell
+file changed through its YAML), loopback (addresses of a test's own), daemon_harness
+(``cellcal daemon`` on the networked simulated cell). The benches in bench/ use some of them.
+"""
 import pytest
 from threadpoolctl import threadpool_limits
+
+import loopback as _loopback
 
 
 @pytest.fixture(autouse=True, scope="session")
@@ -7,3 +18,59 @@ def single_threaded_blas():
     """As the command line runs: small dense problems are slower with BLAS threads."""
     with threadpool_limits(limits=1, user_api="blas"):
         yield
+
+
+@pytest.fixture
+def loopback():
+    """``host = loopback()``: a loopback address no other test holds (in this run, its other
+    xdist worker or another run on the machine), for fakes on fixed ports; each call gives
+    another. All are given back when the test ends."""
+    hosts = []
+
+    def allocate() -> str:
+        hosts.append(_loopback.allocate())
+        return hosts[-1]
+
+    yield allocate
+    for host in hosts:
+        _loopback.release(host)
+
+
+@pytest.fixture
+def loopback_host(loopback) -> str:
+    """One loopback address of the test's own (see ``loopback``)."""
+    return loopback()
+
+
+@pytest.fixture
+def start_sim_net(loopback):
+    """``cell, sim = start_sim_net(cell)``: the fakes of a networked cell (a loaded cell or a
+    shipped cell's name; default sim-net) on a loopback address of their own, in process
+    (SimCell: the fake UR controller in its own process, the Modbus IO module and the
+    tracker server in threads); the cell returned points there. Stopped when the test ends."""
+    from cellcal.daemon.cells import load_cell
+    from cellcal.sims.net.cell import SimCell
+
+    running = []
+
+    def start(cell="sim-net"):
+        cell = (load_cell(cell) if isinstance(cell, str) else cell).on_host(loopback())
+        running.append(SimCell(cell).start())
+        return cell, running[-1]
+
+    yield start
+    for sim in reversed(running):
+        sim.stop()
+
+
+@pytest.fixture(scope="module")
+def sim_net():
+    """The shipped sim-net cell's fakes on a loopback address of their own, running for the
+    whole test module: ``cell, sim = sim_net`` (the cell pointing at them)."""
+    from cellcal.daemon.cells import load_cell
+    from cellcal.sims.net.cell import SimCell
+
+    with _loopback.held() as host:
+        cell = load_cell("sim-net").on_host(host)
+        with SimCell(cell) as sim:
+            yield cell, sim

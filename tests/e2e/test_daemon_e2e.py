@@ -6,7 +6,9 @@ address of their own. The operator is played on the IO module: select a routine,
 start. Each driver fault runs the service in process (``Service`` with the cell's real
 drivers: ur_rtde, pymodbus, the tracker socket) so the test can drive its main loop's
 panel poll; what needs a process of its own (SIGTERM, SIGKILL, the count of its sockets,
-threads and file descriptors) runs ``cellcal daemon``.
+threads and file descriptors) runs ``cellcal daemon`` (tests/daemon_harness.py has the
+fakes, the short cell and the daemon process; tests/e2e/conftest.py's cellcal_daemon stops
+every daemon a test started).
 
 The cell is sim-net with short routine sections (tcp-laser with one turn and one tilt,
 a small tracker campaign), so a run reaches its first motion, and its fault, quickly.
@@ -16,114 +18,24 @@ left behind by a fault would show.
 """
 from __future__ import annotations
 
-import json
 import logging
-import os
 import signal
-import socket
-import subprocess
-import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from cellcal.daemon.cells import load_cell, open_drivers, shipped_cells
-from cellcal.cli.sim.demo import start_daemon
-from cellcal.daemon.service import PANEL_ROUTINES, ResultCode, Service
+from cellcal.daemon.cells import open_drivers
+from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
-from cellcal.sims.fake_ur.controller import DASHBOARD_PORT
 from cellcal.sims.fake_ur.process import ControlClient
-from cellcal.sims.net.cell import SimCell
+from daemon_harness import (RUN_TIMEOUT_S, SELECT, Net, one_run, press_start, resources,  # tests/daemon_harness.py
+                            settled, until_the_run_ends)
 
 pytestmark = pytest.mark.slow
 
-HOST = f"127.10.{os.getpid() % 250 + 1}.1"
-SELECT = {name: number for number, name in PANEL_ROUTINES.items()}
-SHORT_SECTIONS = """
-tcp_laser:
-  speed_mm_s: 250
-  heights_mm: [12, 40]
-  spins_deg: [0]
-  tilts: 1
-
-tracker:
-  target: smr1
-  instrument_m: [-2.5, 0.0, 1.0]
-  poses: 10
-  validation_poses: 0
-  candidates: 60
-  settle_s: 0
-  measure_s: 0
-  retries: 0
-"""
-RUN_TIMEOUT_S = 60.0
 INJECT_AFTER_MOTION_S = 0.15  # a fault of the controller once the arm has moved this long
-
-
-def short_cell_text() -> str:
-    """sim-net on this module's loopback address, its tcp-laser and tracker sections short."""
-    text = shipped_cells()["sim-net"].read_text().replace("127.0.0.1", HOST)
-    for device, option in (("panel", "timeout_s: 0.3"), ("tracker", "measure_timeout_s: 1.0")):
-        line = next(t for t in text.splitlines() if t.startswith(f"  {device}:"))
-        text = text.replace(line, line.replace("}", f", {option}}}"))
-    kept, skipping = [], False
-    for line in text.splitlines():
-        if line and not line[0].isspace() and not line.startswith("#"):
-            skipping = line.rstrip(":") in ("tcp_laser", "tracker")
-        if not skipping:
-            kept.append(line)
-    return "\n".join(kept) + SHORT_SECTIONS
-
-
-class Net:
-    """The running fakes and what a case needs to reach them."""
-
-    def __init__(self, folder: Path):
-        self.path = folder / "sim-net-short.yaml"
-        self.path.write_text(short_cell_text())
-        self.cell = load_cell(self.path)
-        self.sim = SimCell(self.cell).start()
-        self.control = ControlClient(HOST)
-        self.panel = self.sim.modbus
-        self.previous = self.cell.tool.tcp_pose + np.array([0.0004, 0.0, -0.0004, 0.0, 0.0, 0.0])
-
-    def state(self) -> dict:
-        return self.control.request(cmd="state")
-
-    def dashboard(self, command: str) -> str:
-        with socket.create_connection((HOST, DASHBOARD_PORT), timeout=5) as sock:
-            reader = sock.makefile("r")
-            reader.readline()
-            sock.sendall((command + "\n").encode())
-            return reader.readline().strip()
-
-    def at_rest(self, hold_s: float = 0.3) -> tuple[dict, dict]:
-        """Two looks at the controller `hold_s` apart, once the arm has come to rest."""
-        deadline = time.monotonic() + 10.0
-        while self.state()["moving"] and time.monotonic() < deadline:
-            time.sleep(0.02)
-        first = self.state()
-        time.sleep(hold_s)
-        return first, self.state()
-
-    def reset(self) -> None:
-        """The controller healthy, the arm at home with the previous frame, no fault pending."""
-        self.panel.clear_faults()
-        if self.sim.tracker is not None:
-            self.sim.tracker.silent = False
-        self.control.request(cmd="fault", kind="resume")
-        self.dashboard("restart safety")
-        self.at_rest(0.0)
-        self.control.request(cmd="set_q", q=list(self.cell.home_q_rad))
-        with open_drivers(self.cell) as drivers:
-            drivers.robot.set_tcp(self.previous)
-
-    def close(self) -> None:
-        self.control.close()
-        self.sim.stop()
 
 
 @pytest.fixture(scope="module")
@@ -141,10 +53,10 @@ def cell_net(net):
     return net
 
 
-def when_moving(action, delay_s: float = 0.1) -> threading.Thread:
+def when_moving(net: Net, action, delay_s: float = 0.1) -> threading.Thread:
     """Run `action` once the fake arm has moved `delay_s` (a fault of a device other than the arm)."""
     def watch():
-        control = ControlClient(HOST)
+        control = ControlClient(net.host)
         try:
             deadline = time.monotonic() + RUN_TIMEOUT_S
             while not control.request(cmd="state")["moving"] and time.monotonic() < deadline:
@@ -156,15 +68,6 @@ def when_moving(action, delay_s: float = 0.1) -> threading.Thread:
     thread = threading.Thread(target=watch, daemon=True)
     thread.start()
     return thread
-
-
-def until_the_run_ends(net: Net, counter: int, meanwhile=lambda: None) -> None:
-    """Wait for the panel's run counter to move past `counter`, calling `meanwhile` between looks."""
-    deadline = time.monotonic() + RUN_TIMEOUT_S
-    while net.panel.run_counter() == counter:
-        assert time.monotonic() < deadline, "the run did not end"
-        meanwhile()
-        time.sleep(0.01)
 
 
 def press_and_serve(service: Service, net: Net, routine: str):
@@ -182,7 +85,7 @@ def controller_fault(kind: str):
 
 def io_module_fault(**change):
     def inject(net):
-        return when_moving(lambda: [setattr(net.panel, k, v) for k, v in change.items()])
+        return when_moving(net, lambda: [setattr(net.panel, k, v) for k, v in change.items()])
     return inject
 
 
@@ -251,49 +154,9 @@ def test_a_driver_fault_ends_the_run_in_fault_with_its_code_and_the_old_frame(ce
 
 # -- the service as a process ------------------------------------------------------------
 
-class Daemon:
-    """``cellcal daemon`` on the module's cell, its log in a file; started once systemd's READY arrives."""
-
-    def __init__(self, net: Net, folder: Path):
-        self.state_dir, self.log_path = folder / "state", folder / "daemon.log"
-        with open(self.log_path, "a") as log:
-            try:
-                self.proc = start_daemon(net.path, self.state_dir, folder / "notify.sock", stderr=log,
-                                         extra=("--poll-s", "0.02"))
-            except RuntimeError as exc:
-                raise AssertionError(f"{exc}:\n{self.log()}") from None
-
-    def log(self) -> str:
-        return self.log_path.read_text()
-
-    def cli(self, *args: str) -> dict:
-        out = subprocess.run([sys.executable, "-m", "cellcal.cli.main", *args, "--state-dir", str(self.state_dir),
-                              "--json"], capture_output=True, text=True, check=True)
-        return json.loads(out.stdout)
-
-    def stop(self) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(10.0)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-        return self.proc.wait()
-
-
-def press_start(net: Net, routine: str) -> None:
-    """The operator starts `routine`; returns once the arm moves."""
-    net.panel.select_routine(SELECT[routine])
-    net.panel.press_start()
-    deadline = time.monotonic() + RUN_TIMEOUT_S
-    while not net.state()["moving"]:
-        assert time.monotonic() < deadline, "the arm never moved"
-        time.sleep(0.01)
-
-
-def test_sigterm_mid_routine_stops_the_arm_writes_nothing_and_exits_0_within_2_s(cell_net, tmp_path):
+def test_sigterm_mid_routine_stops_the_arm_writes_nothing_and_exits_0_within_2_s(cell_net, cellcal_daemon):
     net = cell_net
-    daemon = Daemon(net, tmp_path)
+    daemon = cellcal_daemon(net)
     try:
         press_start(net, "tcp-laser")
         time.sleep(0.2)
@@ -313,9 +176,9 @@ def test_sigterm_mid_routine_stops_the_arm_writes_nothing_and_exits_0_within_2_s
 
 
 def test_after_kill_9_mid_run_the_daemon_comes_up_idle_nothing_moves_and_the_run_shows_interrupted(cell_net,
-                                                                                                   tmp_path):
+                                                                                                   cellcal_daemon):
     net = cell_net
-    daemon = Daemon(net, tmp_path)
+    daemon = cellcal_daemon(net)
     press_start(net, "tcp-laser")
     time.sleep(0.2)
     daemon.proc.kill()
@@ -323,7 +186,7 @@ def test_after_kill_9_mid_run_the_daemon_comes_up_idle_nothing_moves_and_the_run
     net.at_rest(0.0)  # the controller ends the motion it was given
     left = net.state()["tcp_offset"]
     np.testing.assert_allclose(left, net.cell.tool.tcp_pose, rtol=0, atol=1e-12)  # the drawing the run set
-    again = Daemon(net, tmp_path)
+    again = cellcal_daemon(net)  # on the same state folder
     try:
         looks = []
         for _ in range(10):  # a second of the arm after the restart
@@ -380,41 +243,9 @@ def test_a_panel_that_drops_and_comes_back_never_starts_a_run_from_an_unconfirme
         service.store.close()
 
 
-def resources(pid: int) -> dict[str, int]:
-    """What a process holds: file descriptors, sockets among them, threads, child processes."""
-    fds = [os.readlink(f"/proc/{pid}/fd/{fd}") for fd in os.listdir(f"/proc/{pid}/fd")]
-    children = sum(len(Path(f"/proc/{pid}/task/{task}/children").read_text().split())
-                   for task in os.listdir(f"/proc/{pid}/task"))
-    return {"fds": len(fds), "sockets": sum(fd.startswith("socket:") for fd in fds),
-            "threads": len(os.listdir(f"/proc/{pid}/task")), "children": children}
-
-
-def settled(pid: int, like: dict[str, int], timeout_s: float = 5.0) -> dict[str, int]:
-    """The process's resources once they equal `like`, or as they are after `timeout_s`
-    (a run's worker thread ends just after the run counter moves)."""
-    deadline = time.monotonic() + timeout_s
-    while (now := resources(pid)) != like and time.monotonic() < deadline:
-        time.sleep(0.05)
-    return now
-
-
-def one_run(net: Net, ending: str) -> None:
-    """One button-started run: "refused" (a selector no routine has), "aborted" (the abort
-    button once the arm moves) or "complete" (the short tcp-laser to its verdict)."""
-    counter = net.panel.run_counter()
-    if ending == "refused":
-        net.panel.select_routine(99)
-        net.panel.press_start()
-    else:
-        press_start(net, "tcp-laser")
-        if ending == "aborted":
-            net.panel.press_abort()
-    until_the_run_ends(net, counter)
-
-
-def test_a_hundred_button_started_runs_leak_no_socket_thread_or_file_descriptor(cell_net, tmp_path):
+def test_a_hundred_button_started_runs_leak_no_socket_thread_or_file_descriptor(cell_net, cellcal_daemon):
     net = cell_net
-    daemon = Daemon(net, tmp_path)
+    daemon = cellcal_daemon(net)
     try:
         for ending in ("complete", "aborted", "refused"):  # what a first run of each kind opens for good
             one_run(net, ending)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -12,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from cellcal.config.cells import CellFileError, shipped_cells
+from cellcal.config.cells import CellFileError
 from cellcal.config.robot_files import load_robot
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.cli.main import main as cli_main
@@ -29,7 +28,8 @@ from cellcal.solvers import handshake as hs
 from cellcal.solvers import se3
 from cellcal.solvers.inverse import tcp_poses
 from report_check import assert_report_draws, layer
-from test_routine_framework import RecordingRobot, within_limits
+from cell_edits import edited_cell  # tests/cell_edits.py
+from routine_checks import RecordingRobot, within_limits  # tests/routine_checks.py
 
 TARGET_MM, TARGET_DEG = 0.1, 0.01  # with 12 points at 0.02 mm repeatability
 
@@ -157,10 +157,9 @@ def test_a_coplanar_or_too_small_point_set_is_refused_saying_why(dual, tmp_path)
     routine = Handshake(flat_cell, read_options("handshake", flat_cell))
     with pytest.raises(PlanRefused, match=r"\[handshake\]: the 12 meeting points lie on one plane .* 0\.000 mm RMS"):
         routine.plan()
-    text = shipped_cells()["sim-dual"].read_text().replace("  points: 12", "  points: 3")
-    (tmp_path / "few.yaml").write_text(text)
+    few = edited_cell(tmp_path, "sim-dual", {"handshake": {"points": 3}}, name="few.yaml")
     with pytest.raises(CellFileError, match=r"\[handshake\.points\]: 3 is out of range \(must be in 4\.\.23\)"):
-        load_cell(tmp_path / "few.yaml")
+        load_cell(few)
 
 
 def test_guard_keeps_the_tools_apart_except_where_the_tips_meet(dual):
@@ -197,26 +196,20 @@ def test_guard_keeps_the_tools_apart_except_where_the_tips_meet(dual):
     assert list(MotionGuard(one, load_robot(one.robot)).arms) == ["a"]
 
 
+def robot_b_renamed_c(doc):
+    doc["robots"]["c"] = doc["robots"].pop("b")
+
+
 @pytest.mark.parametrize("change, where", [
-    (lambda t: t.replace("  b:\n    robot: ur10e", "  c:\n    robot: ur10e"), r"\[robots\]: a two-robot cell names"),
-    (lambda t: t.replace("cell:\n  name: sim-dual", "cell:\n  name: sim-dual\n  robot: ur10e"),
-     r"\[cell\.robot\]: a two-robot cell gives each robot's model"),
-    (lambda t: t.replace("    driver: {driver: sim}\n    tool: {tcp_m: [0.0, 0.0, 0.150], axis: [0.0, 0.0, 1.0], "
-                         "radius_m: 0.0015, length_m: 0.100}\n    # where",
-                         "    driver: {driver: sim, speed: 3}\n    tool: {tcp_m: [0.0, 0.0, 0.150], axis: [0.0, 0.0, "
-                         "1.0], radius_m: 0.0015, length_m: 0.100}\n    # where"),
-     r"\[robots\.b\.driver\.speed\]: unknown option"),
-    (lambda t: t.replace("    driver: {driver: sim}\n    # a needle", "    driver: {driver: sim}\n    base_m: [0, 0, 1]\n"
-                                                                       "    # a needle"),
-     r"\[robots\.a\.base_m\]: robot a's base is the cell frame"),
+    (robot_b_renamed_c, r"\[robots\]: a two-robot cell names"),
+    ({"cell": {"robot": "ur10e"}}, r"\[cell\.robot\]: a two-robot cell gives each robot's model"),
+    ({"robots": {"b": {"driver": {"speed": 3}}}}, r"\[robots\.b\.driver\.speed\]: unknown option"),
+    ({"robots": {"a": {"base_m": [0, 0, 1]}}}, r"\[robots\.a\.base_m\]: robot a's base is the cell frame"),
 ])
 def test_two_robot_cell_files_are_checked_naming_section_and_key(tmp_path, change, where):
-    text = shipped_cells()["sim-dual"].read_text()
-    changed = change(text)
-    assert changed != text
-    (tmp_path / "c.yaml").write_text(changed)
+    path = edited_cell(tmp_path, "sim-dual", change, name="c.yaml")
     with pytest.raises(CellFileError, match=where):
-        load_cell(tmp_path / "c.yaml")
+        load_cell(path)
 
 
 def test_one_robot_cells_keep_their_robot_and_robot_b_leaves_robot_a_truth_as_it_was(dual):
@@ -234,17 +227,16 @@ def test_one_robot_cells_keep_their_robot_and_robot_b_leaves_robot_a_truth_as_it
 
 
 @pytest.mark.slow
-def test_handshake_through_sim_net_against_the_truth(tmp_path, capsys):
+def test_handshake_through_sim_net_against_the_truth(tmp_path, capsys, loopback):
     """The handshake end to end through two fake UR controllers, each on its own loopback
     address (``cellcal sim-cell``, then ``cellcal run``), robot a's needle tip relayed to
     robot b's controller; five meetings to keep the run short (about 50 s of real motion).
     Measured once: 0.074 mm and 0.0041 deg from the truth, tips 0.09 mm (with 3 spare
     equations the standard deviations come from the stated repeatability: 0.093 mm and
     0.0048 deg); the bounds are the 12-meeting targets, the tips' twice theirs."""
-    hosts = [f"127.10.{os.getpid() % 250 + 1}.{n}" for n in (1, 2)]
-    text = shipped_cells()["sim-dual-net"].read_text().replace("127.0.0.1", hosts[0]).replace("127.0.0.2", hosts[1])
-    path = tmp_path / "dual-net.yaml"
-    path.write_text(text.replace("  points: 12", "  points: 5"))
+    hosts = [loopback(), loopback()]
+    path = edited_cell(tmp_path, "sim-dual-net", {"robots": {"b": {"driver": {"host": hosts[1]}}},
+                                                  "handshake": {"points": 5}}, name="dual-net.yaml", host=hosts[0])
     proc = subprocess.Popen([sys.executable, "-m", "cellcal.cli.main", "sim-cell", "--cell", str(path)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

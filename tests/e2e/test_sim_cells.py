@@ -9,9 +9,7 @@ controller's own digital inputs see the same sensor once per 2 ms cycle.
 """
 from __future__ import annotations
 
-import itertools
 import json
-import os
 import signal
 import socket
 import subprocess
@@ -29,11 +27,10 @@ from cellcal.drivers.interfaces import DeviceError, Edge, RobotState
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.arm_motion import ArmKinematics
 from cellcal.sims.fake_ur.process import ControlClient
-from cellcal.sims.net.cell import SimCell
 from cellcal.sims.physics.truth import real_tool_body, real_tool_tip, segment_line_distance, truth_of_cell
+from cell_edits import DELETE, edited_cell, replaced  # tests/cell_edits.py
 
 SPEEDS_M_S = (0.02, 0.04, 0.1)
-_HOSTS = (f"127.9.{os.getpid() % 250 + 1}.{n}" for n in itertools.cycle(range(1, 255)))
 
 
 # -- helpers ---------------------------------------------------------------------------
@@ -51,11 +48,10 @@ def write_cell(tmp_path: Path, text: str, name: str = "cell.yaml") -> Path:
 def net_cell_file(tmp_path: Path, host: str, trigger: str = "modbus") -> Path:
     """The shipped sim-net cell moved to another loopback address; with ``trigger="ur_digital_input"``
     the light barrier is read from the robot controller's digital inputs 0 and 1 instead."""
-    text = shipped_text("sim-net").replace("127.0.0.1", host)
+    changes = None
     if trigger == "ur_digital_input":
-        line = next(t for t in text.splitlines() if t.startswith("  trigger:"))
-        text = text.replace(line, f"  trigger: {{driver: ur_digital_input, host: {host}, channels: [0, 1]}}")
-    return write_cell(tmp_path, text, f"sim-net-{trigger}.yaml")
+        changes = {"drivers": {"trigger": replaced({"driver": "ur_digital_input", "host": host, "channels": [0, 1]})}}
+    return edited_cell(tmp_path, "sim-net", changes, name=f"sim-net-{trigger}.yaml", host=host)
 
 
 def sweep_tool_across_beams(robot, trigger, cell, speed: float, timeout_s: float = 5.0):
@@ -96,35 +92,29 @@ def test_shipped_cells_load():
     assert "sim" not in {spec.name for spec in load_cell("sim-net").drivers.values()}
 
 
-@pytest.mark.parametrize("old, new, section, key, what", [
-    ("  tcp_speed_m_s: 0.25", "  tcp_speed_m_s: 0.25\n  tcp_sped_m_s: 0.3", "limits", "tcp_sped_m_s",
-     "unknown key"),
-    ("  min_m: [-1.2, -1.0, 0.05]", "  min_m: low", "workspace", "min_m", "not a list of 3 numbers"),
-    ("radius_m: 0.0002, channel: 1}", "radius_m: -0.001, channel: 1}", "beams[1]", "radius_m", "out of range"),
-    ("  radius_m: 0.003", "  radius_m: 0.003\n  radius: 0.003", "tool", "radius", "unknown key"),
-    ("  trigger: {driver: sim}", "  trigger: {driver: laser}", "drivers.trigger", "driver",
-     "no trigger driver named 'laser'"),
-    ("  trigger_jitter_s: 0.0005", "  trigger_jitter_s: yes", "sim_truth", "trigger_jitter_s", "is not a number"),
+@pytest.mark.parametrize("changes, section, key, what", [
+    ({"limits": {"tcp_sped_m_s": 0.3}}, "limits", "tcp_sped_m_s", "unknown key"),
+    ({"workspace": {"min_m": "low"}}, "workspace", "min_m", "not a list of 3 numbers"),
+    ({"beams": {1: {"radius_m": -0.001}}}, "beams[1]", "radius_m", "out of range"),
+    ({"tool": {"radius": 0.003}}, "tool", "radius", "unknown key"),
+    ({"drivers": {"trigger": {"driver": "laser"}}}, "drivers.trigger", "driver", "no trigger driver named 'laser'"),
+    ({"sim_truth": {"trigger_jitter_s": True}}, "sim_truth", "trigger_jitter_s", "is not a number"),  # `yes`
 ])
-def test_load_cell_names_file_section_and_key(tmp_path, old, new, section, key, what):
-    text = shipped_text("sim")
-    assert old in text
-    path = write_cell(tmp_path, text.replace(old, new))
+def test_load_cell_names_file_section_and_key(tmp_path, changes, section, key, what):
+    path = edited_cell(tmp_path, "sim", changes)
     with pytest.raises(CellFileError) as info:
         load_cell(path)
     message = str(info.value)
     assert message.startswith(str(path)) and f"[{section}.{key}]" in message and what in message, message
 
 
-@pytest.mark.parametrize("old, new, key, what", [
-    ("port: 5030}", "prot: 5030}", "prot", "unknown option (options of the socket tracker driver: "),
-    ("port: 5030}", "port: 70000}", "port", "70000 is out of range (must be in 1..65535)"),
-    ("port: 5030}", "port: 5030, connect_timeout_s: 0}", "connect_timeout_s", "out of range"),
+@pytest.mark.parametrize("tracker, key, what", [
+    ({"port": DELETE, "prot": 5030}, "prot", "unknown option (options of the socket tracker driver: "),
+    ({"port": 70000}, "port", "70000 is out of range (must be in 1..65535)"),
+    ({"connect_timeout_s": 0}, "connect_timeout_s", "out of range"),
 ])
-def test_load_cell_checks_driver_options_naming_file_section_and_key(tmp_path, old, new, key, what):
-    text = shipped_text("sim-net")
-    line = next(t for t in text.splitlines() if t.startswith("  tracker:"))
-    path = write_cell(tmp_path, text.replace(line, line.replace(old, new)))
+def test_load_cell_checks_driver_options_naming_file_section_and_key(tmp_path, tracker, key, what):
+    path = edited_cell(tmp_path, "sim-net", {"drivers": {"tracker": tracker}})
     with pytest.raises(CellFileError) as info:
         load_cell(path)
     message = str(info.value)
@@ -132,9 +122,12 @@ def test_load_cell_checks_driver_options_naming_file_section_and_key(tmp_path, o
 
 
 def test_load_cell_refuses_a_missing_section_and_a_repeated_key(tmp_path):
-    text = shipped_text("sim")
+    def rename_limits(doc):
+        doc["limits_old"] = doc.pop("limits")
+
     with pytest.raises(CellFileError, match=r"section \[limits\] is missing"):
-        load_cell(write_cell(tmp_path, text.replace("limits:", "limits_old:"), "a.yaml"))
+        load_cell(edited_cell(tmp_path, "sim", rename_limits, name="a.yaml"))
+    text = shipped_text("sim")  # a repeated key is in a file's text, not in a YAML document: edited as text
     with pytest.raises(CellFileError, match="given twice"):
         load_cell(write_cell(tmp_path, text.replace("  seed: 7", "  seed: 7\n  seed: 8"), "b.yaml"))
 
@@ -277,14 +270,6 @@ def sweeps_with_delays(drivers, cell, body_at, truth, speeds=SPEEDS_M_S) -> list
     return out
 
 
-@pytest.fixture(scope="module")
-def net_cell():
-    """The sim-net fakes on a loopback address of their own, shared by the tests below."""
-    cell = load_cell("sim-net").on_host(next(_HOSTS))
-    with SimCell(cell) as sim:
-        yield cell, sim
-
-
 def net_tool_body(sim, truth):
     """The fake controller's real tool body, from the truth and its current motion's repeatability offset."""
     model = load_robot("ur10e")
@@ -297,7 +282,7 @@ def net_tool_body(sim, truth):
     return body_at
 
 
-def test_sim_net_sweep_matches_the_in_process_cell(net_cell):
+def test_sim_net_sweep_matches_the_in_process_cell(sim_net):
     """The same sweeps of the real tool across the real beams in both cells, scored against the
     one truth both are built from (the same cell sections, the same seed): every edge, less the
     sensor's true latency, is where the real tool crossed the real beam, to within the jitter
@@ -305,7 +290,7 @@ def test_sim_net_sweep_matches_the_in_process_cell(net_cell):
     switching time, so the controller's 2 ms cycle does not enter; the jitter draws differ
     between the cells, so their edge positions agree to within two jitters of travel plus the
     difference of the two sweeps' repeatability offsets (sqrt(2) for the beams' 45 deg to the sweep)."""
-    net, sim = net_cell
+    net, sim = sim_net
     local_cell = load_cell("sim")
     with open_drivers(local_cell) as drivers:
         truth = drivers.world.truth
@@ -328,8 +313,8 @@ def test_sim_net_sweep_matches_the_in_process_cell(net_cell):
     assert spread > jitter / 2
 
 
-def test_sim_net_tracker_measures_the_real_tool_tip(net_cell):
-    net, sim = net_cell
+def test_sim_net_tracker_measures_the_real_tool_tip(sim_net):
+    net, sim = sim_net
     truth = truth_of_cell(net, load_robot(net.robot))
     with open_drivers(net) as drivers:
         drivers.robot.set_tcp(net.tool.tcp_pose)  # the controller's TCP: the tool's drawing
@@ -342,11 +327,11 @@ def test_sim_net_tracker_measures_the_real_tool_tip(net_cell):
         assert np.linalg.norm(measured.position_m - drivers.robot.actual_tcp_pose()[:3]) > 0.5e-3
 
 
-def test_robot_digital_input_sees_the_sensor_latency_and_the_2_ms_cycle(net_cell, tmp_path):
+def test_robot_digital_input_sees_the_sensor_latency_and_the_2_ms_cycle(sim_net, tmp_path):
     """The same sensor on the controller's digital inputs: sampled once per 2 ms cycle, so each
     edge comes at the first cycle after the sensor switched, late by the sensor's latency +-
     jitter and up to one more cycle; along the sweep, within speed * (latency + 2 ms + jitter)."""
-    net, sim = net_cell
+    net, sim = sim_net
     variant = load_cell(net_cell_file(tmp_path, net.drivers["robot"].options["host"], "ur_digital_input"))
     truth = truth_of_cell(variant, load_robot(variant.robot))
     latency, jitter, cycle = truth.trigger_latency_s, truth.trigger_jitter_s, 0.002
@@ -362,8 +347,8 @@ def test_robot_digital_input_sees_the_sensor_latency_and_the_2_ms_cycle(net_cell
     assert max(d for row in rows for d in row[2]) > latency + jitter
 
 
-def test_sim_cell_command_prints_one_line_and_stops_on_sigterm(tmp_path):
-    host = next(_HOSTS)
+def test_sim_cell_command_prints_one_line_and_stops_on_sigterm(tmp_path, loopback_host):
+    host = loopback_host
     proc = subprocess.Popen([sys.executable, "-m", "cellcal.cli.main", "sim-cell",
                              "--cell", str(net_cell_file(tmp_path, host))],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -385,11 +370,11 @@ def test_sim_cell_command_prints_one_line_and_stops_on_sigterm(tmp_path):
             proc.wait()
 
 
-def test_sim_cell_command_exit_codes(tmp_path, capsys):
-    bad = write_cell(tmp_path, shipped_text("sim-net").replace("limits:", "limits:\n  tcp_speed_m_sx: 1"))
+def test_sim_cell_command_exit_codes(tmp_path, capsys, loopback_host):
+    bad = edited_cell(tmp_path, "sim-net", {"limits": {"tcp_speed_m_sx": 1}})
     assert cli_main(["sim-cell", "--cell", str(bad)]) == 2
     assert "[limits.tcp_speed_m_sx]: unknown key" in capsys.readouterr().err
-    host = next(_HOSTS)
+    host = loopback_host
     with socket.socket() as occupant:
         occupant.bind((host, 5020))
         occupant.listen()
@@ -402,7 +387,8 @@ def test_sim_cell_command_exit_codes(tmp_path, capsys):
     ("modbus", 0.03, 0.03, (-0.3, 0.3)),  # the routine's targets; the latency as it is
     ("ur_digital_input", 0.04, 0.03, (0.5, 1.5)),  # measured up to 0.025 mm, 0.019 deg; 1 ms later
 ])
-def test_tcp_laser_through_sim_net_against_the_truth(tmp_path, capsys, transport, tcp_mm, axis_deg, late_ms):
+def test_tcp_laser_through_sim_net_against_the_truth(tmp_path, capsys, loopback_host, transport, tcp_mm, axis_deg,
+                                                     late_ms):
     """tcp-laser end to end through the network fakes (``cellcal sim-cell``, then ``cellcal run``),
     scored by the run against the truth the fake controller obeys (checked to be the same).
     Nine runs per transport (seeds 1-7, two more at 7): on the Modbus ring, stamped when the
@@ -412,7 +398,7 @@ def test_tcp_laser_through_sim_net_against_the_truth(tmp_path, capsys, transport
     (0.58 ms rms, 0.023 mm at 40 mm/s) into the residual (0.022-0.025 mm RMS against
     0.016-0.019) and the result: the TCP within 0.003-0.025 mm, the axis within 0.002-0.019 deg,
     as good on average but with a wider spread. Its tolerances are the worst seen plus half again."""
-    host = next(_HOSTS)
+    host = loopback_host
     path = net_cell_file(tmp_path, host, transport)
     proc = subprocess.Popen([sys.executable, "-m", "cellcal.cli.main", "sim-cell", "--cell", str(path)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

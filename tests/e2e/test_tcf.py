@@ -11,7 +11,6 @@ import re
 import numpy as np
 import pytest
 
-from cellcal.config.cells import shipped_cells
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.cli.main import main
 from cellcal.routines import runner
@@ -19,6 +18,7 @@ from cellcal.routines.base import PlanRefused, RoutineError
 from cellcal.routines.records import read_dataset
 from cellcal.solvers import pivot as pv
 from cellcal.solvers import se3
+from cell_edits import edited_cell  # tests/cell_edits.py
 from report_check import assert_report_draws, layer
 
 SIGMA_MM = 0.03 / np.sqrt(3.0)  # per axis, for the sim cell's 0.03 mm repeatability
@@ -58,13 +58,8 @@ def run(argv, capsys):
     return code, out.out, out.err
 
 
-def variant(tmp_path, replace=(), name="c.yaml"):
-    text = shipped_cells()["sim"].read_text()
-    for old, new in replace:
-        assert old in text
-        text = text.replace(old, new)
-    (tmp_path / name).write_text(text)
-    return load_cell(tmp_path / name)
+def variant(tmp_path, changes=None, name="c.yaml"):
+    return load_cell(edited_cell(tmp_path, "sim", changes, name=name))
 
 
 # -- the maths ---------------------------------------------------------------------------------------
@@ -108,7 +103,7 @@ def test_turning_the_tool_keeps_a_slant_of_the_base_out_of_the_axis_and_shows_it
 # -- the design check -------------------------------------------------------------------------------
 
 def test_heights_too_close_are_refused_before_anything_moves_saying_how_far_apart(tmp_path, capsys):
-    cell = variant(tmp_path, [("  far_mm: 85\n", "  far_mm: 20\n")])
+    cell = variant(tmp_path, {"tcf": {"far_mm": 20}})
     with pytest.raises(PlanRefused) as err:
         runner.prepare("tcf", cell)
     message = str(err.value)
@@ -170,7 +165,7 @@ def test_a_stylus_the_search_never_reaches_is_one_error_and_nothing_moves_after(
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2, 3, 4, 5])
 def test_tcf_is_within_three_sigma_for_other_cells_and_noise(tmp_path, seed):
-    cell = variant(tmp_path, [("seed: 7", f"seed: {seed}")])
+    cell = variant(tmp_path, {"sim_truth": {"seed": seed}})
     prepared = runner.prepare("tcf", cell)
     with open_drivers(cell) as drivers:
         drivers.world.rng = np.random.default_rng(100 + seed)
@@ -189,9 +184,7 @@ def test_tcf_axis_then_npoint_gives_the_tcp_without_the_runout_error(tmp_path):
     with open_drivers(cell) as drivers:
         axis = runner.solve("tcf", cell, runner.measure(runner.prepare("tcf", cell), drivers, tmp_path,
                                                        lambda m: None)).extra["axis"]
-    text = shipped_cells()["sim"].read_text().replace("  outlier_k: 4\n", f"  outlier_k: 4\n  tool_axis: {axis}\n")
-    (tmp_path / "chained.yaml").write_text(text)
-    chained = load_cell(tmp_path / "chained.yaml")
+    chained = variant(tmp_path, {"tcp_npoint": {"tool_axis": axis}}, name="chained.yaml")
     with open_drivers(chained) as drivers:
         dataset = runner.measure(runner.prepare("tcp-npoint", chained), drivers, tmp_path, lambda m: None)
         truth = drivers.world.truth

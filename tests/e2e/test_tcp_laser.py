@@ -8,35 +8,27 @@ import json
 import numpy as np
 import pytest
 
-from cellcal.config.cells import CellFileError, shipped_cells
+from cellcal.config.cells import CellFileError
 from cellcal.cli import run as run_cmd
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.cli.main import main
 from cellcal.routines import runner
 from cellcal.routines.records import Dataset
+from cell_edits import edited_cell  # tests/cell_edits.py
 
 POSITION_MM = 0.03  # the targets at 40 mm/s, against the hidden truth
 AXIS_DEG = 0.03
 CYCLE_S = 30.0
 
 
-def variant(tmp_path, *, replace=(), name="c.yaml"):
-    text = shipped_cells()["sim"].read_text()
-    for old, new in replace:
-        assert old in text, old
-        text = text.replace(old, new)
-    path = tmp_path / name
-    path.write_text(text)
-    return path
+def variant(tmp_path, changes=None, *, name="c.yaml"):
+    return edited_cell(tmp_path, "sim", changes, name=name)
 
 
 def truth_cell(tmp_path, seed, latency_s, repeatability_mm=0.03, jitter_s=0.0005):
     """The sim cell with another hidden truth: seed, latency, noise."""
-    block = ("  seed: 7\n", "  repeatability_mm: 0.03\n  trigger_latency_s: 0.0025\n  trigger_jitter_s: 0.0005\n")
-    return load_cell(variant(tmp_path, replace=[
-        (block[0], f"  seed: {seed}\n"),
-        (block[1], f"  repeatability_mm: {repeatability_mm}\n  trigger_latency_s: {latency_s}\n"
-                   f"  trigger_jitter_s: {jitter_s}\n")]))
+    return load_cell(variant(tmp_path, {"sim_truth": {"seed": seed, "repeatability_mm": repeatability_mm,
+                                                      "trigger_latency_s": latency_s, "trigger_jitter_s": jitter_s}}))
 
 
 def measured(cell, tmp_path, noise_seed=None):
@@ -153,7 +145,7 @@ def test_dry_run_plans_and_checks_but_moves_nothing(tmp_path, capsys, monkeypatc
 
 def test_a_barrier_not_where_the_cell_file_says_is_one_clear_error_and_no_dataset(tmp_path, capsys):
     """The beams really 40 mm from where [beams] says: the first measuring motion sees nothing."""
-    path = variant(tmp_path, replace=[("  fixture_error_mm: 0.5\n", "  fixture_error_mm: 40\n")])
+    path = variant(tmp_path, {"sim_truth": {"fixture_error_mm": 40}})
     out_dir = tmp_path / "runs"
     code, out, err = run(["run", "tcp-laser", "--cell", str(path), "--json", "--out", str(out_dir)], capsys)
     assert code == 1
@@ -163,13 +155,13 @@ def test_a_barrier_not_where_the_cell_file_says_is_one_clear_error_and_no_datase
     assert not out_dir.exists() or list(out_dir.iterdir()) == []
 
 
-@pytest.mark.parametrize("old, new, key", [
-    ("  speed_mm_s: 40\n", "  speed_mm_s: 400\n", "speed_mm_s"),
-    ("  heights_mm: [12, 90]\n  tilted", "  heights_mm: [12]\n  tilted", "heights_mm"),
-    ("  heights_mm: [12, 90]\n  tilted", "  heights_mm: [12, 150]\n  tilted", "heights_mm"),
-    ("  tilt_deg: 45\n  tilts: 4\n", "  tilt_deg: 60\n  tilts: 4\n", "tilt_deg"),
-    ("  max_latency_ms: 20\n", "  max_latency_ms: 20\n  sweep_speed: 3\n", "sweep_speed"),
+@pytest.mark.parametrize("tcp_laser, key", [
+    ({"speed_mm_s": 400}, "speed_mm_s"),
+    ({"heights_mm": [12]}, "heights_mm"),
+    ({"heights_mm": [12, 150]}, "heights_mm"),
+    ({"tilt_deg": 60}, "tilt_deg"),
+    ({"sweep_speed": 3}, "sweep_speed"),
 ])
-def test_options_out_of_bounds_are_refused_at_load_naming_the_key(tmp_path, old, new, key):
+def test_options_out_of_bounds_are_refused_at_load_naming_the_key(tmp_path, tcp_laser, key):
     with pytest.raises(CellFileError, match=rf"tcp_laser.*{key}"):
-        load_cell(variant(tmp_path, replace=[(old, new)]))
+        load_cell(variant(tmp_path, {"tcp_laser": tcp_laser}))

@@ -11,7 +11,6 @@ import re
 import numpy as np
 import pytest
 
-from cellcal.config.cells import shipped_cells
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.cli.main import main
 from cellcal.routines import runner
@@ -19,7 +18,9 @@ from cellcal.routines.base import PlanRefused, RoutineError
 from cellcal.routines.records import read_dataset
 from cellcal.solvers import pivot as pv
 from cellcal.solvers import se3
+from cell_edits import edited_cell  # tests/cell_edits.py
 from report_check import assert_report_draws, layer
+from routine_checks import RecordingRobot  # tests/routine_checks.py
 
 SIGMA_MM = 0.03 / np.sqrt(3.0)  # per axis, for the sim cell's 0.03 mm repeatability
 
@@ -34,14 +35,8 @@ def seated_flanges(rotations, tool_point, pivot_point):
     return pivot_point - np.einsum("nij,j->ni", rotations, tool_point)
 
 
-def variant(tmp_path, name="c.yaml", *, replace=(), section=""):
-    text = shipped_cells()["sim"].read_text()
-    for old, new in replace:
-        assert old in text
-        text = text.replace(old, new)
-    path = tmp_path / name
-    path.write_text(text + section)
-    return load_cell(path)
+def variant(tmp_path, changes=None, name="c.yaml"):
+    return load_cell(edited_cell(tmp_path, "sim", changes, name=name))
 
 
 def run(argv, capsys):
@@ -92,7 +87,7 @@ def test_pivot_fit_rejects_one_bad_seat_and_names_it():
 # -- the design check before anything moves ---------------------------------------------------------
 
 def test_too_little_spread_is_refused_before_anything_moves_saying_how_much_is_needed(tmp_path, capsys):
-    cell = variant(tmp_path, replace=[("  spread_deg: 30\n", "  spread_deg: 4\n")])
+    cell = variant(tmp_path, {"tcp_npoint": {"spread_deg": 4}})
     with pytest.raises(PlanRefused) as err:
         runner.prepare("tcp-npoint", cell)
     message = str(err.value)
@@ -204,26 +199,6 @@ def test_a_fouled_seat_in_the_sim_is_rejected_and_named(tmp_path):
     assert truth.score_tool_frame(result.tool_frame)["position_error_mm"] <= 0.05
 
 
-class RecordingRobot:
-    def __init__(self, robot):
-        self.robot, self.commands = robot, []
-
-    def __getattr__(self, name):
-        return getattr(self.robot, name)
-
-    def move_j(self, *args):
-        self.commands.append("joint")
-        return self.robot.move_j(*args)
-
-    def move_l(self, *args):
-        self.commands.append("linear")
-        return self.robot.move_l(*args)
-
-    def move_until_contact(self, *args):
-        self.commands.append("contact")
-        return self.robot.move_until_contact(*args)
-
-
 def test_a_pivot_the_search_never_reaches_is_one_error_and_nothing_moves_after(tmp_path):
     cell = load_cell("sim")
     prepared = runner.prepare("tcp-npoint", cell)
@@ -234,14 +209,14 @@ def test_a_pivot_the_search_never_reaches_is_one_error_and_nothing_moves_after(t
         with pytest.raises(RoutineError, match=r"seat 1: the contact search along the tool axis went 10 mm without "
                                                r"touching the pivot: is \[pivot\] point_m"):
             runner.measure(prepared, drivers, tmp_path, lambda message: None)
-        assert drivers.robot.commands == ["joint", "linear", "contact"]
+        assert [kind for kind, *_ in drivers.robot.commands] == ["joint", "linear", "contact"]
         np.testing.assert_allclose(drivers.robot.tcp(), np.zeros(6))  # the controller's tool frame as it was
     assert list(tmp_path.iterdir()) == []
 
 
 def test_cli_reports_an_unreachable_pivot_with_one_message_and_no_dataset(tmp_path, capsys):
     # seed 6 puts the real pivot 40 mm to the side of where the file says: beyond the fixture
-    cell = variant(tmp_path, replace=[("seed: 7", "seed: 6"), ("fixture_error_mm: 0.5", "fixture_error_mm: 40")])
+    cell = variant(tmp_path, {"sim_truth": {"seed": 6, "fixture_error_mm": 40}})
     with open_drivers(cell) as drivers:
         off = (drivers.world.truth.pivot_m - cell.pivot_m) * 1e3
     assert np.hypot(off[0], off[1]) > 30
@@ -271,7 +246,7 @@ def test_a_tip_landing_beside_the_socket_fails_the_residual_gate(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2, 3, 4, 5])
 def test_npoint_is_within_0_05_mm_for_other_cells_and_noise(tmp_path, seed):
-    cell = variant(tmp_path, replace=[("seed: 7", f"seed: {seed}")])
+    cell = variant(tmp_path, {"sim_truth": {"seed": seed}})
     prepared = runner.prepare("tcp-npoint", cell)
     with open_drivers(cell) as drivers:
         drivers.world.rng = np.random.default_rng(100 + seed)  # the arm's scatter differs too

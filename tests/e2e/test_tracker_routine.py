@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellcal.config.cells import CellFileError, shipped_cells
+from cellcal.config.cells import CellFileError
 from cellcal.config.robot_files import load_robot
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.cli.main import main as cli_main
@@ -34,38 +34,24 @@ from cellcal.solvers.inverse import tcp_frames
 from cellcal.solvers.measurement_model import Layout, Observations, predict
 from cellcal.solvers.chain import forward
 from cellcal.solvers.pose_design import Sight, move_time_s, sighted_candidates
+from cell_edits import edited_cell, replaced  # tests/cell_edits.py
 from report_check import assert_report_draws, layer
 
 HOME = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
-ARM_ERRORS = "  arm_length_error_mm: 0.5\n  arm_angle_error_deg: 0.05\n"
+ARM_ERRORS = {"arm_length_error_mm": 0.5, "arm_angle_error_deg": 0.05}
 FLOOR_FACTOR = 1.15
 
 
-def without_section(text: str, name: str) -> str:
-    kept, skipping = [], False
-    for line in text.splitlines(keepends=True):
-        if line[:1].strip() and not line.startswith("#"):
-            skipping = line.split(":")[0] == name
-        if not skipping:
-            kept.append(line)
-    return "".join(kept)
-
-
-def variant(tmp_path: Path, tracker: str, name: str = "cell.yaml", arm_errors: bool = True,
+def variant(tmp_path: Path, tracker: dict, name: str = "cell.yaml", arm_errors: bool = True,
             base: str = "sim") -> Path:
     """The shipped cell with the arm off its drawing and its own [tracker] section."""
-    text = without_section(shipped_cells()[base].read_text(), "tracker")
-    if arm_errors:
-        text = text.replace("sim_truth:\n", "sim_truth:\n" + ARM_ERRORS)
-    path = tmp_path / name
-    path.write_text(text + "\ntracker:\n" + tracker)
-    return path
+    changes = {"tracker": replaced(tracker), **({"sim_truth": ARM_ERRORS} if arm_errors else {})}
+    return edited_cell(tmp_path, base, changes, name=name)
 
 
-SECTION = ("  instrument_m: [-2.5, 0.0, 1.0]\n  view_half_angle_deg: 60\n  target_acceptance_deg: 30\n"
-           "  poses: 60\n  validation_poses: 30\n")
-SMALL = ("  instrument_m: [-2.5, 0.0, 1.0]\n  poses: 10\n  validation_poses: 2\n  candidates: 100\n"
-         "  seed: 3\n")
+SECTION = {"instrument_m": [-2.5, 0.0, 1.0], "view_half_angle_deg": 60, "target_acceptance_deg": 30,
+           "poses": 60, "validation_poses": 30}
+SMALL = {"instrument_m": [-2.5, 0.0, 1.0], "poses": 10, "validation_poses": 2, "candidates": 100, "seed": 3}
 
 
 def run_cli(capsys, *argv) -> tuple[int, dict]:
@@ -313,7 +299,7 @@ def test_a_doubtful_reading_is_repeated_and_one_that_stays_doubtful_ends_the_run
 
 
 def test_a_fault_before_the_first_measurement_leaves_no_dataset(tmp_path):
-    cell = load_cell(variant(tmp_path, SMALL.replace("  seed: 3\n", "  seed: 3\n  target: smr9\n")))
+    cell = load_cell(variant(tmp_path, {**SMALL, "target": "smr9"}))
     with open_drivers(cell) as drivers:
         with pytest.raises(DeviceError, match="target not found: 'smr9'"):
             runner.measure(runner.prepare("tracker", cell), drivers, tmp_path / "runs", lambda message: None)
@@ -359,7 +345,7 @@ def test_resume_refuses_a_dataset_of_another_plan_or_one_already_complete(tmp_pa
     path, cell, dataset = resumed["path"], resumed["cell"], resumed["whole"]
     with pytest.raises(RoutineError, match="nothing left to measure"):
         runner.prepare("tracker", cell, resume=dataset.path)
-    other = load_cell(variant(tmp_path, SMALL.replace("seed: 3", "seed: 4"), name="other.yaml"))
+    other = load_cell(variant(tmp_path, {**SMALL, "seed": 4}, name="other.yaml"))
     with pytest.raises(RoutineError, match="planned from another cell file or other"):
         runner.prepare("tracker", other, resume=dataset.path)
     code = cli_main(["run", "tracker", "--cell", str(path), "--resume", dataset.path, "--from", dataset.path])
@@ -367,11 +353,11 @@ def test_resume_refuses_a_dataset_of_another_plan_or_one_already_complete(tmp_pa
 
 
 @pytest.mark.parametrize("section, needle", [
-    ("  poses: 60\n", r"\[tracker.instrument_m\]: missing"),
-    ("  instrument_m: [-2.5, 0.0, 1.0]\n  poses: 60\n  validation_poses: 30\n  candidates: 80\n",
+    ({"poses": 60}, r"\[tracker.instrument_m\]: missing"),
+    ({"instrument_m": [-2.5, 0.0, 1.0], "poses": 60, "validation_poses": 30, "candidates": 80},
      r"\[tracker.candidates\]: 80 is fewer than poses \+ validation_poses = 90"),
-    ("  instrument_m: [-2.5, 0.0, 1.0]\n  poses: 5\n", r"\[tracker.poses\]"),
-    ("  instrument_m: [-2.5, 0.0, 1.0]\n  instrument_axes: [1, 0, 0]\n", r"\[tracker.instrument_axes\]: unknown key"),
+    ({"instrument_m": [-2.5, 0.0, 1.0], "poses": 5}, r"\[tracker.poses\]"),
+    ({"instrument_m": [-2.5, 0.0, 1.0], "instrument_axes": [1, 0, 0]}, r"\[tracker.instrument_axes\]: unknown key"),
 ])
 def test_bad_options_are_refused_at_load_naming_the_key(tmp_path, section, needle):
     with pytest.raises(CellFileError, match=needle):
@@ -380,27 +366,23 @@ def test_bad_options_are_refused_at_load_naming_the_key(tmp_path, section, needl
 
 def test_a_tracker_that_cannot_see_the_arm_is_refused_before_anything_moves(tmp_path):
     # an instrument under the table, looking away: no pose can be seen
-    cell = load_cell(variant(tmp_path, "  instrument_m: [0.0, 0.0, -3.0]\n  instrument_axis: [0, 0, -1]\n"
-                                       "  poses: 10\n  validation_poses: 0\n  candidates: 20\n"))
+    cell = load_cell(variant(tmp_path, {"instrument_m": [0.0, 0.0, -3.0], "instrument_axis": [0, 0, -1],
+                                        "poses": 10, "validation_poses": 0, "candidates": 20}))
     with pytest.raises(RoutineError, match=r"only 0 configurations"):
         runner.prepare("tracker", cell)
 
 
 @pytest.mark.slow
-def test_the_campaign_through_the_network_fakes_reaches_the_same_floor(tmp_path, campaign):
+def test_the_campaign_through_the_network_fakes_reaches_the_same_floor(tmp_path, campaign, start_sim_net):
     """The same cell behind ur_rtde, the tracker socket and the fake UR controller, which obey
     the same hidden truth: the same plan, the same identification quality (about 2 min: the
     fake controller moves in real time)."""
-    import os
-
-    from cellcal.sims.net.cell import SimCell
     from cellcal.sims.physics.truth import truth_of_cell
 
-    cell = load_cell(variant(tmp_path, SECTION, base="sim-net")).on_host(f"127.9.{os.getpid() % 250 + 1}.201")
-    with SimCell(cell):
-        prepared = runner.prepare("tracker", cell)
-        with open_drivers(cell) as drivers:
-            dataset = runner.measure(prepared, drivers, tmp_path / "runs", lambda message: None)
+    cell, _ = start_sim_net(load_cell(variant(tmp_path, SECTION, base="sim-net")))  # tests/conftest.py
+    prepared = runner.prepare("tracker", cell)
+    with open_drivers(cell) as drivers:
+        dataset = runner.measure(prepared, drivers, tmp_path / "runs", lambda message: None)
     assert prepared.routine.plan_id == read_dataset(campaign["doc"]["dataset"], "tracker",
                                                     ("split", "target")).meta["plan_id"]
     result = runner.solve("tracker", cell, dataset)

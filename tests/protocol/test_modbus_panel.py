@@ -26,12 +26,6 @@ def panel(cell_server):
     panel.close()
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 class SilentDevice:
     """Accepts Modbus connections and never answers: a hung PLC."""
 
@@ -131,15 +125,15 @@ def test_options_out_of_range_are_refused_naming_the_option():
 
 # --- failures ---------------------------------------------------------------------------
 
-def test_connection_refused_names_the_panel_and_address():
-    port = free_port()
+def test_connection_refused_names_the_panel_and_address(loopback_host):
+    host, port = loopback_host, 5020  # an address of the test's own: nothing listens there
     started = time.monotonic()
     with pytest.raises(DeviceError) as err:
-        ModbusPanel(port=port, timeout_s=1.0)
+        ModbusPanel(host, port=port, timeout_s=1.0)
     assert time.monotonic() - started < 1.0 + MARGIN_S
     assert type(err.value) is DeviceError
-    assert err.value.device == f"panel (Modbus TCP 127.0.0.1:{port}, unit 1)"
-    assert f"cannot connect to 127.0.0.1:{port}" in str(err.value)
+    assert err.value.device == f"panel (Modbus TCP {host}:{port}, unit 1)"
+    assert f"cannot connect to {host}:{port}" in str(err.value)
 
 
 def test_connection_lost_mid_operation_is_named_and_recovered(cell_server):

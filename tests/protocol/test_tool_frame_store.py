@@ -22,7 +22,6 @@ from cellcal.sims.inproc.devices import SimRobot
 pytest.importorskip("rtde_control", reason="ur_rtde is not installed")
 
 from cellcal.drivers.ur.robot import UrRtdeRobot  # noqa: E402
-from test_ur_rtde_fake import connect, fake, start_fake  # noqa: E402,F401 (fixtures)
 
 FRAME_A = np.array([0.0123456789, -0.0045, 0.1876, 0.01, -0.02, 0.003])
 FRAME_B = np.array([0.0119, -0.0051, 0.1881, 0.012, -0.018, 0.0])

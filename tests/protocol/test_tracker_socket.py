@@ -1,5 +1,4 @@
 """The tracker's TCP line protocol: the socket client against the simulated tracker server."""
-import socket
 import time
 
 import numpy as np
@@ -27,12 +26,6 @@ def tracker(server):
     tracker = TrackerSocket(port=server.port)
     yield tracker
     tracker.close()
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 # --- measurements ---------------------------------------------------------------------
@@ -97,12 +90,12 @@ def test_bad_port_option_is_refused_naming_it():
 
 # --- failures ---------------------------------------------------------------------------
 
-def test_connection_refused_names_the_tracker():
-    port = free_port()
+def test_connection_refused_names_the_tracker(loopback_host):
+    host, port = loopback_host, 5030  # an address of the test's own: nothing listens there
     with pytest.raises(DeviceError) as err:
-        TrackerSocket(port=port)
+        TrackerSocket(host, port=port)
     assert type(err.value) is DeviceError
-    assert str(err.value) == f"tracker (127.0.0.1:{port}): cannot connect: Connection refused"
+    assert str(err.value) == f"tracker ({host}:{port}): cannot connect: Connection refused"
 
 
 def test_connection_lost_mid_measurement_is_named_and_reopened(server, tracker):

@@ -2,12 +2,11 @@
 
 Each test starts its own fake in another process on its own loopback address (the
 controller ports are fixed, so parallel tests cannot share one); fixtures stop every
-fake and close every adapter even when a test fails.
+fake and close every adapter even when a test fails (start_fake, connect and fake are
+tests/protocol/conftest.py's).
 """
 from __future__ import annotations
 
-import itertools
-import os
 import threading
 import time
 
@@ -20,54 +19,12 @@ from cellcal.config.robot_files import load_robot  # noqa: E402
 from cellcal.drivers.interfaces import DeviceError, Edge, RobotState  # noqa: E402
 from cellcal.drivers.ur.robot import UrRtdeRobot  # noqa: E402
 from cellcal.drivers.ur.trigger import UrDigitalInputTrigger  # noqa: E402
-from cellcal.sims.fake_ur.process import FakeUrProcess  # noqa: E402
 from cellcal.solvers.chain import forward  # noqa: E402
 from cellcal.solvers.se3 import matrix_to_rotvec, rotvec_to_matrix  # noqa: E402
-
-_HOSTS = (f"127.7.{os.getpid() % 250 + 1}.{n}" for n in itertools.cycle(range(1, 255)))
 
 
 def rotation_error_rad(rotvec_a, rotvec_b) -> float:
     return float(np.linalg.norm(matrix_to_rotvec(rotvec_to_matrix(rotvec_b) @ rotvec_to_matrix(rotvec_a).T)))
-
-
-@pytest.fixture
-def start_fake():
-    fakes = []
-
-    def start(**options) -> FakeUrProcess:
-        fake = FakeUrProcess(next(_HOSTS), **options)
-        fakes.append(fake)
-        return fake.start()
-
-    yield start
-    for fake in fakes:  # stop() ends the process even if it does not answer; fakes also exit with us
-        fake.stop()
-
-
-@pytest.fixture
-def connect():
-    opened = []
-
-    def open_(kind, *args, **options):
-        device = kind(*args, **options)
-        opened.append(device)
-        return device
-
-    yield open_
-    errors = []
-    for device in reversed(opened):  # every device, even when one fails to close
-        try:
-            device.close()
-        except Exception as exc:
-            errors.append(exc)
-    if errors:
-        raise errors[0]
-
-
-@pytest.fixture
-def fake(start_fake):
-    return start_fake()
 
 
 @pytest.fixture
@@ -186,8 +143,8 @@ def test_stop_from_another_thread_ends_the_move_and_the_robot_takes_commands_aga
     assert np.abs(robot.actual_q() - target).max() < 1e-6
 
 
-def test_connection_refused_raises_device_error_within_5_s():
-    host = next(_HOSTS)  # nothing listens there
+def test_connection_refused_raises_device_error_within_5_s(loopback_host):
+    host = loopback_host  # nothing listens there
     t0 = time.monotonic()
     with pytest.raises(DeviceError) as raised:
         UrRtdeRobot(host, connect_timeout_s=2.0)
@@ -292,13 +249,11 @@ def test_control_script_on_the_upper_register_range_is_served(fake):
 def exact_cell(tmp_path):
     """The sim-net cell file with the arm's repeatability 0 (it goes exactly where it is sent),
     its truth and its path."""
-    from cellcal.config.cells import read_cell, shipped_cells
+    from cell_edits import edited_cell
+    from cellcal.config.cells import read_cell
     from cellcal.sims.physics.truth import truth_of_cell
 
-    text = shipped_cells()["sim-net"].read_text()
-    sim_truth = text[text.index("sim_truth:"):]  # the section, not a routine's option of that name
-    path = tmp_path / "cell.yaml"
-    path.write_text(text.replace(sim_truth, sim_truth.replace("repeatability_mm: 0.03", "repeatability_mm: 0.0", 1)))
+    path = edited_cell(tmp_path, "sim-net", {"sim_truth": {"repeatability_mm": 0.0}})
     cell = read_cell(path)
     assert cell.sim_truth.repeatability_mm == 0.0
     return cell, truth_of_cell(cell, load_robot(cell.robot)), path

@@ -9,9 +9,9 @@ import pytest
 
 from cellcal.config.robot_files import load_robot
 from hidden_cases import make_case  # tests/hidden_cases.py: a fixture, not part of the package
+from naming_stubs import BASELINE, StubScorer, scored  # tests/naming_stubs.py
 from cellcal.sims.physics.physical_arm import HiddenEffect
-from cellcal.solvers.analyze import MIN_GAIN, MIN_MARGIN, Scored, analyze, name_cause
-from cellcal.solvers.effects import Term
+from cellcal.solvers.analyze import MIN_GAIN, MIN_MARGIN, analyze, name_cause
 from cellcal.solvers.robot_model import parallel_joint_pairs
 
 ROBOTS = ("ur10e", "abb-irb4600", "elite-ec66")
@@ -120,33 +120,7 @@ def test_cyclic_error_is_not_taken_for_compliance_of_the_same_joint(robot):
     assert finding.gain_pct >= 50.0
 
 
-# -- the naming rule alone, on made-up held-out scores ------------------------------------------------------
-
-
-def scored(cause: str, heldout_mean_mm: float, size: int = 1) -> Scored:
-    term = Term(cause, {"joint": 2}, tuple(f"p{i}" for i in range(size)))
-    return Scored(label=term.label(), cause=cause, where=term.where, heldout_errors=np.full(20, heldout_mean_mm),
-                  theta=np.zeros(size), magnitude={}, x=np.zeros(0), terms=(term,))
-
-
-class StubScorer:
-    """Answers the naming rule's tie questions with fixed values (separation: residual sum of squares,
-    mm^2, of one explanation refitted to the other's predictions)."""
-
-    def __init__(self, pair_mean_mm: float = 1.0, nested: bool = False, separation_mm2: float = 1e6):
-        self.pair_mean_mm, self.nested, self.separation = pair_mean_mm, nested, separation_mm2
-
-    def separation_mm2(self, fitted, refitted):
-        return self.separation
-
-    def heldout_errors_mm(self, terms):
-        return np.full(20, self.pair_mean_mm)
-
-    def is_nested(self, inner, outer):
-        return self.nested
-
-
-BASELINE = scored("none", 1.0)
+# -- the naming rule alone, on made-up held-out scores (tests/naming_stubs.py) ------------------------------
 
 
 def test_naming_rule_says_none_when_the_best_gains_too_little():

@@ -102,13 +102,10 @@ def cr_only(ok: Path, tmp: Path) -> Path:
     return path
 
 
-def cell_with_tracker_port(tmp: Path, port: str) -> Path:
-    from cellcal.config.cells import shipped_cells
+def cell_with_tracker_port(tmp: Path, port) -> Path:
+    from cell_edits import edited_cell  # tests/cell_edits.py
 
-    text = shipped_cells()["sim-net"].read_text().replace("port: 5030}", f"port: {port}}}")
-    path = tmp / "cell.yaml"
-    path.write_text(text)
-    return path
+    return edited_cell(tmp, "sim-net", {"drivers": {"tracker": {"port": port}}})
 
 
 # (id, argv builder (ok, tmp) -> list, exit status, fragments of the message on stderr)
@@ -160,11 +157,11 @@ CASES = [
      ["CR alone"]),
     ("an empty robot name", lambda ok, t: ["identify", "--robot", "", "--data", ok / "cal.csv"], 2,
      ["no robot given"]),
-    ("tracker port as text", lambda ok, t: ["sim-cell", "--cell", cell_with_tracker_port(t, '"5030"')], 2,
+    ("tracker port as text", lambda ok, t: ["sim-cell", "--cell", cell_with_tracker_port(t, "5030")], 2,
      ["[drivers.tracker.port]", "not an integer"]),
-    ("tracker port too high", lambda ok, t: ["sim-cell", "--cell", cell_with_tracker_port(t, "70000")], 2,
+    ("tracker port too high", lambda ok, t: ["sim-cell", "--cell", cell_with_tracker_port(t, 70000)], 2,
      ["[drivers.tracker.port]", "out of range"]),
-    ("tracker port zero", lambda ok, t: ["sim-cell", "--cell", cell_with_tracker_port(t, "0")], 2,
+    ("tracker port zero", lambda ok, t: ["sim-cell", "--cell", cell_with_tracker_port(t, 0)], 2,
      ["[drivers.tracker.port]"]),
 ]
 

@@ -123,7 +123,7 @@ def test_console_script_shows_no_traceback(tmp_path):
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr
     assert "bad.csv:2" in proc.stderr and "z_mm" in proc.stderr
-    # with --json, scripts that read stdout get one error object (spec/cli.md)
+    # with --json, scripts that read stdout get one error object (docs/cli.md)
     error = __import__("json").loads(proc.stdout)["error"]
     assert error["code"] == 2 and "bad.csv:2" in error["message"]
 

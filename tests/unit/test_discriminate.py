@@ -18,7 +18,7 @@ from cellcal.measurements.table import write_measurements
 from cellcal.solvers.analyze import MIN_GAIN, MIN_MARGIN, Naming, analyze
 from cellcal.solvers.ties import DECIDE_LAMBDA, MEAN_PER_SIGMA, TYPICAL_MAX, tied_explanations
 from hidden_cases import SWEEP_ROBOT, elbow_pair, sweep_case  # tests/hidden_cases.py: a fixture
-from test_analyze import BASELINE, StubScorer, scored
+from naming_stubs import BASELINE, StubScorer, scored  # tests/naming_stubs.py
 
 
 

@@ -56,7 +56,7 @@ def test_shipped_model_loads(name):
     ("ur5e", (-817.2, -232.9, 62.8)),        # UR classic DH zero pose: x = a2 + a3, y = -(d4 + d6), z = d1 - d5
     ("ur10e", (-1184.25, -290.7, 60.85)),
     ("abb-irb4600", (1580.0, 0.0, 1765.0)),  # ABB home position of the IRB 4600-40/2.55
-    ("epson-c4-a901s", (0.0, 565.0, 720.0)),  # seed 002's fkine at q = 0 from its Table 6
+    ("epson-c4-a901s", (0.0, 565.0, 720.0)),  # Yan et al. (Sensors 2025): fkine at q = 0 from their Table 6
     ("puma560", (452.1, -150.05, 431.8)),    # Corke's qz pose, base frame at shoulder height
     ("elite-ec66", (816.0, 33.0, -2.0)),      # Elite URDF zero pose (per the file's own note)
 ])
