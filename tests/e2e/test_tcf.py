@@ -19,7 +19,7 @@ from cellcal.routines.records import read_dataset
 from cellcal.solvers import pivot as pv
 from cellcal.solvers import se3
 from cell_edits import edited_cell  # tests/cell_edits.py
-from report_check import assert_report_draws, layer
+from report_check import assert_report_draws
 
 SIGMA_MM = 0.03 / np.sqrt(3.0)  # per axis, for the sim cell's 0.03 mm repeatability
 DRAWN = np.array([0.0, 0.0, 1.0])

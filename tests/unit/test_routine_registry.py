@@ -12,7 +12,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from cellcal.config.cells import CellFileError, shipped_cells
+from cell_edits import edited_cell
+from cellcal.config.cells import CellFileError
 from cellcal.daemon.cells import load_cell
 from cellcal.daemon.service import Service, panel_routines
 from cellcal.drivers.interfaces import RobotState
@@ -57,9 +58,7 @@ def probe():
 
 @pytest.fixture
 def probe_cell_file(tmp_path):
-    path = tmp_path / "probe.yaml"
-    path.write_text(shipped_cells()["sim"].read_text() + "\ntest_probe:\n  depth_mm: 3\n")
-    return path
+    return edited_cell(tmp_path, "sim", {"test_probe": {"depth_mm": 3}}, name="probe.yaml")
 
 
 def _selected_by_panel(cell, selector: int) -> list[str]:
@@ -93,8 +92,7 @@ def test_a_routine_declared_once_is_seen_by_the_registry_the_panel_the_cell_file
     # the cell file: the section is the routine's, read (and bounded) by it at load
     assert cell.routines["test_probe"] == {"depth_mm": 3}
     assert registry.read_options("test-probe", cell) == 3.0
-    bad = probe_cell_file.with_name("bad.yaml")
-    bad.write_text(probe_cell_file.read_text().replace("depth_mm: 3", "depth_mm: 30"))
+    bad = edited_cell(probe_cell_file.parent, probe_cell_file, {"test_probe": {"depth_mm": 30}}, name="bad.yaml")
     with pytest.raises(CellFileError, match=r"\[test_probe\.depth_mm\]"):
         load_cell(bad)
     # cellcal run's list

@@ -13,6 +13,7 @@ import pytest
 
 from cellcal.cli import service
 from cellcal.cli.main import main
+from cell_edits import edited_cell
 from cellcal.config.cells import shipped_cells
 
 UNIT = Path("etc/systemd/system/cellcal.service")
@@ -145,15 +146,14 @@ def test_a_model_file_the_cell_names_by_a_relative_path_goes_beside_it(root, tmp
     site = tmp_path / "site"
     (site / "models").mkdir(parents=True)
     shutil.copy(shipped_cells()["sim"].parent.parent / "robots" / "ur10e.yaml", site / "models" / "ur10e-cal.yaml")
-    text = shipped_cells()["sim"].read_text().replace("robot: ur10e", "robot: models/ur10e-cal.yaml")
-    (site / "my-cell.yaml").write_text(text)
+    edited_cell(site, "sim", {"cell": {"robot": "models/ur10e-cal.yaml"}}, name="my-cell.yaml")
     assert install(root, "--cell", str(site / "my-cell.yaml")) == 0
     assert "etc/cellcal/models/ur10e-cal.yaml" in capsys.readouterr().out
     from cellcal.daemon.cells import load_cell
     installed = load_cell(root / CELL)  # finds its model where the daemon will look
     assert installed.robot == str(root / "etc/cellcal/models/ur10e-cal.yaml")
 
-    (site / "outside.yaml").write_text(text.replace("models/ur10e-cal.yaml", "../site/models/ur10e-cal.yaml"))
+    edited_cell(site, "sim", {"cell": {"robot": "../site/models/ur10e-cal.yaml"}}, name="outside.yaml")
     assert install(tmp_path / "root", "--cell", str(site / "outside.yaml"), "--force") == 2
     assert "outside the cell file's folder" in capsys.readouterr().err
 
