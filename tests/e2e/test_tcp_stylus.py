@@ -170,6 +170,18 @@ def without(dataset, rows):
     return out
 
 
+def assert_same_fit(tool_frame, result):
+    """tool_frame is result's, as far as two fits of the same kept contacts can tell: a fit stops once a
+    step gains less than ftol = 1e-12 of its cost, so up to ftol * cost above the minimum, which leaves each
+    parameter up to sqrt(ftol dof) of its standard deviation off (|J dx|^2 <= 2 ftol cost, std^2 = 2 cost /
+    dof (J'J)^-1); twice that for two fits: ~2e-10 m and ~1.3e-9 rad here. Where a fit stops depends on
+    the BLAS kernel; the runs seen have ended up to 3e-12 m and 3e-11 rad apart."""
+    std = {p.name: p.std * (1e-3 if p.unit == "mm" else np.pi / 180.0) for p in result.parameters}
+    stop = 2.0 * np.sqrt(1e-12 * (len(result.residuals_mm) - len(result.extra["fitted"])))
+    np.testing.assert_allclose(tool_frame[:3], result.tool_frame[:3], atol=stop * max(std[f"tcp.{c}"] for c in "xyz"))
+    np.testing.assert_allclose(tool_frame[3:], result.tool_frame[3:], atol=stop * max(std["tool.rx"], std["tool.ry"]))
+
+
 def test_ten_percent_gross_outliers_are_left_out(default_run):
     """10 % of the contacts pushed 3-6 mm off the cylinder (as the seed's Table 8 defines an
     outlier): the robust fit leaves out exactly those, so its result is the plain fit of the
@@ -188,7 +200,7 @@ def test_ten_percent_gross_outliers_are_left_out(default_run):
         result = runner.solve("tcp-stylus", cell, spoilt)
         assert result.extra["contacts"]["left_out"] == len(rows) and result.write_back, result.reasons()
         rest = cls.solve(without(dataset, rows), cell, plain)
-        np.testing.assert_allclose(result.tool_frame, rest.tool_frame, atol=1e-9)
+        assert_same_fit(result.tool_frame, rest)
         robust_e.append(errors(result.tool_frame, truth))
         least = cls.solve(spoilt, cell, plain)  # plain least squares: refused by its gates, and far off
         assert not least.write_back
@@ -206,7 +218,7 @@ def test_ten_percent_more_contacts_gone_wrong_change_nothing(default_run):
     more.columns = {k: np.concatenate([v, v[extra]]) for k, v in dataset.columns.items()}
     result = runner.solve("tcp-stylus", cell, push(more, np.arange(len(dataset), len(more)), cell, rng))
     assert result.extra["contacts"]["left_out"] == len(extra) and result.write_back
-    np.testing.assert_allclose(result.tool_frame, clean.tool_frame, atol=1e-9)
+    assert_same_fit(result.tool_frame, clean)
 
 
 def test_outliers_among_the_coarse_touches_do_not_spoil_the_start(default_run):
@@ -220,7 +232,7 @@ def test_outliers_among_the_coarse_touches_do_not_spoil_the_start(default_run):
     start = fitting.coarse(data.rotation, data.position_mm, data.kind, data.group, data.approach, 0.5, 3.5,
                            cell.tool.axis)
     assert np.linalg.norm(start.tip_mm - truth.tool.tcp_m * 1e3) > 5.0
-    np.testing.assert_allclose(runner.solve("tcp-stylus", cell, spoilt).tool_frame, clean.tool_frame, atol=1e-9)
+    assert_same_fit(runner.solve("tcp-stylus", cell, spoilt).tool_frame, clean)
 
 
 def test_a_stylus_out_of_reach_stops_at_the_first_contact_with_one_message(tmp_path):
