@@ -3,9 +3,9 @@
 Each routine class declares itself (:class:`~.base.Routine`): its ``name`` (``tcp-laser``),
 the ``section`` of the cell file it owns (``tcp_laser``) and its panel ``selector`` number
 (None when the panel cannot select it). The registry finds the classes in the modules of
-:data:`ROUTINE_MODULES`, imported the first time it is asked (so importing the registry,
-and ``cellcal --help``, imports no routine), and refuses two that claim one name, section
-or selector. Everything else asks it: the cell file's routine sections (:func:`sections`,
+this package (:func:`routine_modules`: a new routine is a new module here and nothing
+else), imported the first time it is asked (so importing the registry, and ``cellcal
+--help``, imports no routine), and refuses two that claim one name, section or selector. Everything else asks it: the cell file's routine sections (:func:`sections`,
 read at cell load by :func:`check_sections`), the panel's selector values
 (:func:`panel_selectors`), ``cellcal run``'s list (:func:`available`).
 """
@@ -13,20 +13,12 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import pkgutil
 import threading
 
 from cellcal.config.cells import CELL_SECTIONS, Cell, CellFileError
 from cellcal.routines.base import Routine
 
-# where the routines are; each module's Routine subclasses are found in it (in this order)
-ROUTINE_MODULES: tuple[str, ...] = (
-    "cellcal.routines.tcp_laser",
-    "cellcal.routines.tcp_stylus",
-    "cellcal.routines.tcp_npoint",
-    "cellcal.routines.tcf",
-    "cellcal.routines.tracker",
-    "cellcal.routines.handshake",
-)
 SELECTOR_RANGE = (1, 65535)  # a holding register; 0 selects nothing
 
 _found: dict[str, type[Routine]] | None = None  # name -> class, in the order found
@@ -76,13 +68,21 @@ def _in_module(module) -> list[type[Routine]]:
             and not inspect.isabstract(obj)]
 
 
+def routine_modules() -> tuple[str, ...]:
+    """Every module of the routines package (the framework's too: it defines no concrete routine)."""
+    package = importlib.import_module(__package__)
+    return tuple(f"{__package__}.{m.name}" for m in sorted(pkgutil.iter_modules(package.__path__), key=lambda m: m.name)
+                 if not m.ispkg)
+
+
 def _routines() -> dict[str, type[Routine]]:
-    """Every routine by name, the modules of ROUTINE_MODULES imported on the first call."""
+    """Every routine by name, in panel selector order (those without one last, by name); the
+    package's modules are imported on the first call."""
     global _found
     with _lock:
         if _found is None:
             found: dict[str, type[Routine]] = {}
-            for module_name in ROUTINE_MODULES:
+            for module_name in routine_modules():
                 try:
                     module = importlib.import_module(module_name)
                 except ModuleNotFoundError:  # a routine that is not installed
@@ -90,7 +90,8 @@ def _routines() -> dict[str, type[Routine]]:
                 for cls in _in_module(module):
                     _check(cls, found)
                     found[cls.name] = cls
-            _found = found
+            order = sorted(found.values(), key=lambda c: (c.selector is None, c.selector or 0, c.name))
+            _found = {cls.name: cls for cls in order}
         return _found
 
 
@@ -113,7 +114,7 @@ def unregister(name: str) -> None:
 
 
 def available() -> list[str]:
-    """The routines' names, in the order found."""
+    """The routines' names, in panel selector order."""
     return list(_routines())
 
 
