@@ -56,7 +56,7 @@ def test_structurally_redundant_parameters_are_held_and_named(irb4600):
         assert result.x[i] == irb4600.nominal[i] and result.std[i] == 0.0
 
 
-def _seed004_cell(seed):
+def _small_volume_cell(seed):
     """The set-up of Liu et al., "L2-Regularization-Based Kinematic Parameter Identification for
     Industrial Robots in Limited Measurement Space" (Actuators 2025): Elite EC66, 60 poses of a ball inside a 20 mm cube measured by an
     R-test (a few um), robot repeatability 0.02 mm; validation over the full workspace."""
@@ -72,7 +72,7 @@ def _seed004_cell(seed):
 @pytest.mark.parametrize("regularize", ["none", "cv"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_calibration_in_a_20mm_cube_generalises_to_the_full_workspace(regularize, seed):
-    model, arm, cal, val = _seed004_cell(seed)
+    model, arm, cal, val = _small_volume_cell(seed)
     assert np.ptp(cal.xyz_mm, axis=0).max() < 35.0  # the cube (plus the tool's true offset error)
     result = identify(model, cal, IdentifyOptions(regularize=regularize))
     before = result.errors(val, nominal=True).mean()
@@ -149,7 +149,7 @@ def test_d_optimal_pose_design_beats_random_choice():
 def test_linearised_cross_validation_matches_refitting_every_fold():
     from cellcal.solvers.crossval import fold_ids
 
-    model, arm, cal, _ = _seed004_cell(0)  # the small-volume case, where the prior matters most
+    model, arm, cal, _ = _small_volume_cell(0)  # the small-volume case, where the prior matters most
     options = IdentifyOptions(regularize="cv")
     result = identify(model, cal, options)
     folds = fold_ids(cal.q, options.folds, options.seed)
