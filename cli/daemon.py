@@ -32,7 +32,10 @@ def cmd_daemon(args) -> int:
     folder = state_dir(args.state_dir)
     notifier = Notifier()
     stopping = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stopping.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
+    # set from a thread of its own: the handler runs in the main thread, which may hold the Event's
+    # lock at that moment (inside stopping.wait), and setting it there would deadlock
+    previous = {sig: signal.signal(sig, lambda *_: threading.Thread(target=stopping.set).start())
+                for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         interrupted = store.mark_interrupted(int(ResultCode.INTERRUPTED))
         for run_id in interrupted:

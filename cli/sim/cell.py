@@ -22,7 +22,10 @@ def cmd_sim_cell(args) -> int:
         print(f"cellcal sim-cell: error: {exc}", file=sys.stderr)
         return 2
     stopping = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stopping.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
+    # set from a thread of its own: the handler runs in the main thread, which may hold the Event's
+    # lock at that moment (inside stopping.wait), and setting it there would deadlock
+    previous = {sig: signal.signal(sig, lambda *_: threading.Thread(target=stopping.set).start())
+                for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         try:
             sim.start()

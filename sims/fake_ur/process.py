@@ -192,7 +192,9 @@ def main(argv=None) -> int:
     for fault in args.fault:
         kind, _, after = fault.partition("@")
         controller.control({"cmd": "fault", "kind": kind, **({"after_motion_s": float(after)} if after else {})})
-    signal.signal(signal.SIGTERM, lambda *_: controller.close())
+    # closed from a thread of its own: the handler runs in the main thread, which may hold the lock
+    # of the event controller.wait() waits on, and closing there would deadlock
+    signal.signal(signal.SIGTERM, lambda *_: threading.Thread(target=controller.close, daemon=True).start())
     if args.parent_pid:
         threading.Thread(target=_exit_with_parent, args=(args.parent_pid, controller), daemon=True).start()
     controller.start()
