@@ -6,7 +6,7 @@ import json
 
 from cellcal.config.robot_files import load_robot
 from cellcal.routines.base import jsonable
-from cellcal.measurements.table import check_joint_limits, joint_velocities, read_measurements
+from cellcal.measurements.table import check_joint_limits, joint_velocities, read_measurements, repeated_warning
 from cellcal.solvers.analyze import AnalyzeOptions, Finding, Scored, analyze
 from cellcal.solvers.identify import LOSSES
 from cellcal.solvers.effects import CAUSES, Context, approach_directions
@@ -14,7 +14,7 @@ from cellcal.solvers.effects.cyclic_joint_error import order_search
 from cellcal.solvers.physical_sizes import describe
 from cellcal.cli import model_out
 from cellcal.cli import discriminate as discriminate_cmd
-from cellcal.cli.common import ReportError, UsageError, check_folds, print_progress
+from cellcal.cli.common import ReportError, UsageError, print_progress, whole, writable_folder
 
 MIN_MEASUREMENTS = 30
 
@@ -30,7 +30,7 @@ def add_parser(sub):
     p.add_argument("--report", metavar="DIR", help="write plots and a readable page of the finding here")
     p.add_argument("--causes", nargs="+", choices=tuple(CAUSES), default=tuple(CAUSES), metavar="CAUSE",
                    help=f"candidate causes to consider (default: all of {', '.join(CAUSES)})")
-    p.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
+    p.add_argument("--folds", type=whole(2, 100), default=5, help="cross-validation folds, 2 .. 100 (default 5)")
     p.add_argument("--loss", choices=LOSSES, default="linear",
                    help="robust loss against gross outliers, as identify's; the held-out scores then leave out "
                         "each model's largest 10%% of errors (default: linear, i.e. least squares)")
@@ -136,11 +136,14 @@ def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
 
 
 def run(args) -> int:
-    check_folds(args.folds)
     model_out.check_target(args.write_model)
+    if args.report:  # before the analysis: a folder that cannot take the report is said at once
+        writable_folder(args.report, "--report")
     discriminate_cmd.check_arguments(args)
     model = load_robot(args.robot)
     table = read_measurements(args.data, model.n_joints)
+    if (warning := repeated_warning(table)) is not None:
+        print_progress(f"warning: {warning}")
     check_joint_limits(table, model.joint_limits, model.name)
     if len(table) < MIN_MEASUREMENTS:
         raise UsageError(f"{args.data}: {len(table)} measurements; the analysis needs at least {MIN_MEASUREMENTS}")

@@ -18,12 +18,14 @@ from scipy.spatial.transform import Rotation
 
 from cellcal.config.model_files import load_calibrated, source_model
 from cellcal.config.robot_files import load_robot
+from cellcal.measurements.table import MAX_JOINT, MAX_POSITION_MM, MAX_PAYLOAD_KG
 from cellcal.solvers.compensate import OK, compensate
 from cellcal.solvers.effects import Context, approach_directions
-from cellcal.cli.common import UsageError, check_positive, output_file, print_progress
+from cellcal.cli.common import UsageError, counted, number, print_progress, writable_file
 
 XYZ, QUAT = ("x_mm", "y_mm", "z_mm"), ("qw", "qx", "qy", "qz")
 SHOWN_ROWS = 10  # rows named one by one in the text report
+MAX_TOOL_MM = 5000.0  # a tool point 5 m from the flange is beyond any tool an arm carries
 
 
 def add_parser(sub):
@@ -42,14 +44,17 @@ def add_parser(sub):
     p.add_argument("--nominal", metavar="ROBOT",
                    help="the controller's nominal model (default: the model the calibration started from)")
     p.add_argument("--target", metavar="ID", help="which calibrated target offset is the tool point (default: the first)")
-    p.add_argument("--tcp-mm", nargs=3, type=float, metavar=("X", "Y", "Z"),
-                   help="tool point in the flange frame instead of a calibrated target offset (mm)")
-    p.add_argument("--seed-deg", nargs="+", type=float, metavar="Q",
-                   help="joints (deg) of the branch to start from when TARGETS has no joint columns")
+    p.add_argument("--tcp-mm", nargs=3, type=number(-MAX_TOOL_MM, MAX_TOOL_MM, unit="mm"), metavar=("X", "Y", "Z"),
+                   help="tool point in the flange frame instead of a calibrated target offset (mm, each within "
+                        f"+-{MAX_TOOL_MM:g})")
+    p.add_argument("--seed-deg", nargs="+", type=number(-MAX_JOINT["deg"], MAX_JOINT["deg"], unit="deg"),
+                   metavar="Q", help="joints (deg, each within two turns) of the branch to start from when TARGETS "
+                                     "has no joint columns")
     p.add_argument("--unit", choices=("deg", "rad"), help="unit of the joint columns written (default: as TARGETS, "
                                                           "else deg)")
-    p.add_argument("--max-correction-deg", type=float, default=1.0,
-                   help="a row whose correction exceeds this is reported as near a singularity (default 1)")
+    p.add_argument("--max-correction-deg", type=number(0.0, 180.0, above=True, unit="deg"), default=1.0,
+                   help="a row whose correction exceeds this is reported as near a singularity (above 0, at "
+                        "most 180; default 1)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 
@@ -74,7 +79,8 @@ def read_targets(path, n_joints: int) -> dict:
         if len(row) != len(header):
             raise UsageError(f"{path}:{i}: row has {len(row)} fields, header has {len(header)}")
 
-    def numbers(name):
+    def numbers(name, limit, unit, why):
+        """The column's values: finite, |value| at most `limit` (as the measurement CSV's columns)."""
         out = np.empty(len(rows))
         for k, (i, row) in enumerate(rows):
             try:
@@ -83,17 +89,22 @@ def read_targets(path, n_joints: int) -> dict:
                 out[k] = np.nan
             if not np.isfinite(out[k]):
                 raise UsageError(f"{path}:{i}: column {name!r}: {row[col[name]]!r} is not a finite number")
+            if abs(out[k]) > limit:
+                raise UsageError(f"{path}:{i}: column {name!r}: {row[col[name]].strip()}{unit} is {why} "
+                                 f"(|value| must be at most {limit:g})")
         return out
 
     missing = [c for c in XYZ if c not in col]
     if missing:
         raise UsageError(f"{path}:{header_line}: missing required column {missing[0]!r} (needs x_mm, y_mm, z_mm)")
-    xyz = np.column_stack([numbers(c) for c in XYZ])
+    xyz = np.column_stack([numbers(c, MAX_POSITION_MM, " mm", "not a target any arm reaches (over 100 m away)")
+                           for c in XYZ])
     quat = None
     if any(c in col for c in QUAT):
         if not all(c in col for c in QUAT):
             raise UsageError(f"{path}:{header_line}: give all of qw, qx, qy, qz or none")
-        quat = np.column_stack([numbers(c) for c in QUAT])
+        quat = np.column_stack([numbers(c, 1e6, "", "not a quaternion component (any scale up to 1e6 is taken)")
+                                for c in QUAT])
         bad = np.flatnonzero(np.linalg.norm(quat, axis=1) < 1e-9)
         if bad.size:
             raise UsageError(f"{path}:{rows[bad[0]][0]}: columns qw..qz: quaternion has zero norm")
@@ -106,16 +117,16 @@ def read_targets(path, n_joints: int) -> dict:
         if present:
             if q is not None:
                 raise UsageError(f"{path}:{header_line}: joint columns in both deg and rad; use one unit")
-            q = np.column_stack([numbers(n) for n in names])
+            q = np.column_stack([numbers(n, MAX_JOINT[u], f" {u}", "beyond two turns of any joint")
+                                 for n in names])
             q, unit = (np.deg2rad(q) if u == "deg" else q), u
-    payload = numbers("payload_kg") if "payload_kg" in col else None
+    payload = numbers("payload_kg", MAX_PAYLOAD_KG, " kg", "more than any arm carries") if "payload_kg" in col else None
     return {"header": header, "rows": [r for _, r in rows], "lines": [i for i, _ in rows], "xyz": xyz, "quat": quat,
             "q": q, "unit": unit, "payload": payload}
 
 
 def run(args) -> int:
-    check_positive("--max-correction-deg", args.max_correction_deg)
-    output_file(args.out, "-o")
+    writable_file(args.out, "-o")
     calibrated = load_calibrated(args.robot)
     model = calibrated.model
     if len(model.chains) != 1:
@@ -160,7 +171,7 @@ def run(args) -> int:
         print_progress(f"{args.targets}:{t['lines'][i]}: {result.status[i]}"
                        + (f" (correction {np.rad2deg(result.correction_rad[i]):.3g} deg)" if result.status[i] != "unreachable" else ""))
     if len(bad) > SHOWN_ROWS:
-        print_progress(f"... {len(bad) - SHOWN_ROWS} more rows not ok (column status in {args.out})")
+        print_progress(f"... {counted(len(bad) - SHOWN_ROWS, 'more row')} not ok (column status in {args.out})")
     ok = result.status == OK
     summary = {"rows": n, "ok": int(ok.sum()),
                "not_ok": [{"line": int(t["lines"][i]), "status": str(result.status[i])} for i in bad],
@@ -170,9 +181,9 @@ def run(args) -> int:
     if args.json:
         print(json.dumps(summary))
     else:
-        print(f"compensated {summary['ok']} of {n} targets with {args.robot} (nominal: {nominal.name}) in "
+        print(f"compensated {summary['ok']} of {counted(n, 'target')} with {args.robot} (nominal: {nominal.name}) in "
               f"{seconds:.2f} s; joint corrections mean {summary['correction_deg']['mean']:.4f} deg, max "
-              f"{summary['correction_deg']['max']:.4f} deg; {len(bad)} rows not ok; written to {args.out}")
+              f"{summary['correction_deg']['max']:.4f} deg; {counted(len(bad), 'row')} not ok; written to {args.out}")
     return 0
 
 

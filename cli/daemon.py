@@ -11,15 +11,16 @@ import logging
 import signal
 import sys
 import threading
+from contextlib import ExitStack
 
-
-from cellcal.cli.common import STATE_HELP, open_store
+from cellcal.cli.common import STATE_HELP, number, open_store, service_state_folder
+from cellcal.daemon.claims import held
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.notify import Notifier
 from cellcal.daemon.service import ResultCode, Service
-from cellcal.daemon.store import state_dir
 from cellcal.drivers.interfaces import DeviceError
 from cellcal.reports.run import write_run_report
+from cellcal.routines import registry
 
 log = logging.getLogger("cellcal.daemon")
 STOP_WAIT_S = 1.5  # how long a stop waits for the running routine to halt before leaving
@@ -28,8 +29,16 @@ STOP_WAIT_S = 1.5  # how long a stop waits for the running routine to halt befor
 def cmd_daemon(args) -> int:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="cellcal: %(message)s", force=True)
     cell = load_cell(args.cell)
-    store = open_store(args)
-    folder = state_dir(args.state_dir)
+    folder = service_state_folder(args)  # made if missing; it and the store's files writable by this user
+    # one service per store, per panel and per robot, held for the service's life and taken before the
+    # store is touched (a second daemon must not mark the first one's live run interrupted)
+    claims = ExitStack()
+    claims.enter_context(held(cell, state_folder=folder, kinds=("robot", "panel")))
+    try:
+        store = open_store(args, create=True)
+    except BaseException:
+        claims.close()
+        raise
     notifier = Notifier()
     stopping = threading.Event()
     # set from a thread of its own: the handler runs in the main thread, which may hold the Event's
@@ -58,9 +67,11 @@ def cmd_daemon(args) -> int:
                               reconnect=lambda: open_drivers(cell))
             service._panel("set_lamps", busy=False)
             service.discard_requests("pending when the service started")
-            if interrupted:
-                service.give_back_frame_of(interrupted[-1])
-            log.info("ready: cell %s, robot %s", cell.name, state.value)
+            service.announce_interrupted(interrupted)
+            service.resume_owed_frame()
+            log.info("ready: cell %s, robot %s; the panel offers %s", cell.name, state.value,
+                     ", ".join(f"{k} {v}" for k, v in service.routines.items()
+                               if registry.unavailable(v, cell) is None))
             notifier.ready(f"idle; robot {state.value}")
             try:
                 while not stopping.is_set():
@@ -82,6 +93,7 @@ def cmd_daemon(args) -> int:
             signal.signal(sig, handler)
         notifier.close()
         store.close()
+        claims.close()
 
 
 def add_parser(sub) -> None:
@@ -91,5 +103,6 @@ def add_parser(sub) -> None:
                                    "routine; a tool frame is written back only when every gate passes.")
     p.add_argument("--cell", required=True, metavar="CELL.yaml", help="cell file, or a shipped cell's name")
     p.add_argument("--state-dir", metavar="DIR", help=STATE_HELP)
-    p.add_argument("--poll-s", type=float, default=0.05, help="panel polling interval (default 0.05 s)")
+    p.add_argument("--poll-s", type=number(0.005, 10.0, unit="s"), default=0.05,
+                   help="panel polling interval, 0.005 .. 10 s (default 0.05 s)")
     p.set_defaults(func=cmd_daemon)

@@ -12,37 +12,39 @@ import csv
 import numpy as np
 
 from cellcal.solvers.analyze import Finding
+from cellcal.measurements.table import MAX_PAYLOAD_KG
 from cellcal.solvers.discriminate import Design, DesignError, design
-from cellcal.cli.common import UsageError, check_positive, output_file, print_progress
+from cellcal.cli.common import UsageError, number, print_progress, whole, writable_file
+
+MAX_POSES = 1000  # an experiment to tell two explanations apart is a few dozen poses; 1000 is a long day's measuring
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--discriminate", type=int, metavar="N",
+    p.add_argument("--discriminate", type=whole(1, MAX_POSES), metavar="N",
                    help="when the data cannot tell causes apart, propose N new configurations (within the "
-                        "robot file's joint limits) that would, and say how many should suffice; needs -o")
+                        "robot file's joint limits) that would, and say how many should suffice (N at most "
+                        f"{MAX_POSES}); needs -o")
     p.add_argument("-o", "--output", metavar="POSES.csv",
                    help="with --discriminate: write the configurations here, one row each, columns "
                         "q1_rad .. qN_rad as in the measurement CSV, most telling first; measure each at every "
                         "target, append the rows to the data and analyse again")
-    p.add_argument("--payload-kg", type=float, metavar="KG",
+    p.add_argument("--payload-kg", type=number(0.0, MAX_PAYLOAD_KG, above=True, unit="kg"), metavar="KG",
                    help="with --discriminate: a payload the cell can mount; each configuration is also offered "
-                        "with it, and POSES.csv gets a payload_kg column saying which poses to measure with it")
+                        "with it, and POSES.csv gets a payload_kg column saying which poses to measure with it "
+                        f"(above 0, at most {MAX_PAYLOAD_KG:g})")
 
 
 def check_arguments(args) -> None:
-    """Before any computation: --discriminate and -o together, N at least 1, -o writable."""
+    """Before any computation: --discriminate and -o together, -o writable (N and the payload are
+    bounded where they are parsed)."""
     if args.discriminate is None:
         if args.output is not None or args.payload_kg is not None:
             raise UsageError("-o/--output and --payload-kg belong to --discriminate N; give -o with it, "
                              "or none of them")
         return
-    if args.payload_kg is not None:
-        check_positive("--payload-kg", args.payload_kg)
-    if args.discriminate < 1:
-        raise UsageError(f"--discriminate needs a number of poses of at least 1, got {args.discriminate}")
     if args.output is None:
         raise UsageError("--discriminate N needs -o POSES.csv: the file to write the configurations to")
-    output_file(args.output, "-o")
+    writable_file(args.output, "-o")
 
 
 def tie_lines(f: Finding) -> list[str]:

@@ -6,9 +6,9 @@ import json
 import numpy as np
 
 from cellcal.cli import model_out
-from cellcal.cli.common import UsageError, check_folds, check_positive, print_progress
+from cellcal.cli.common import UsageError, number, print_progress, whole
 from cellcal.config.robot_files import load_robot
-from cellcal.measurements.table import MeasurementTable, check_joint_limits, read_measurements
+from cellcal.measurements.table import MeasurementTable, check_joint_limits, read_measurements, repeated_warning
 from cellcal.reports.identification import identification_json, identification_text
 from cellcal.solvers.identify import LOSSES, REGULARIZE, IdentifyOptions, identify
 
@@ -31,14 +31,15 @@ def run(args) -> int:
     model = load_robot(args.robot)
     table = read_measurements(args.data, model.n_joints)
     validate = read_measurements(args.validate, model.n_joints) if args.validate else None
+    for data in (table, validate):
+        if data is not None and (warning := repeated_warning(data)) is not None:
+            print_progress(f"warning: {warning}")
     cal, val = _split(table, validate, args.data)
     if val is not None:
         unknown = sorted(set(val.target_names) - set(cal.target_names))
         if unknown:
             raise UsageError(f"{args.validate or args.data}: target(s) {', '.join(unknown)} do not occur "
                              "in the calibration rows, so their offsets are unknown")
-    check_folds(args.folds)
-    check_positive("--prior-mm", args.prior_mm)
     check_joint_limits(cal, model.joint_limits, model.name)
     if val is not None:
         check_joint_limits(val, model.joint_limits, model.name)
@@ -85,11 +86,11 @@ def add_parser(sub) -> None:
                         "none: least squares over the identifiable parameters")
     p.add_argument("--loss", choices=LOSSES, default="linear",
                    help="robust loss against outliers (default: linear, i.e. least squares)")
-    p.add_argument("--folds", type=int, default=5, help="folds of the cross-validation (default 5)")
+    p.add_argument("--folds", type=whole(2, 100), default=5, help="folds of the cross-validation, 2 .. 100 (default 5)")
     p.add_argument("--fix", nargs="+", metavar="PARAM", help="hold these parameters at nominal (e.g. d1 theta1)")
-    p.add_argument("--prior-mm", type=float, default=1.0,
+    p.add_argument("--prior-mm", type=number(0.0, 1000.0, above=True, unit="mm"), default=1.0,
                    help="a direction whose estimate would scatter more than this (mm at the target) "
-                        "is held at nominal (default 1.0)")
+                        "is held at nominal (above 0, at most 1000; default 1.0)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     model_out.add_argument(p)
     p.set_defaults(func=run)

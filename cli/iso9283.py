@@ -15,10 +15,10 @@ import json
 import numpy as np
 
 from cellcal.config.model_files import load_calibrated
-from cellcal.measurements.table import read_measurements
+from cellcal.measurements.table import read_measurements, repeated_measurements
 from cellcal.solvers.effects import Context, approach_directions
-from cellcal.solvers.iso9283 import DISTANCE_PAIR, characteristics
-from cellcal.cli.common import ReportError, UsageError, print_progress
+from cellcal.solvers.iso9283 import DISTANCE_PAIR, MIN_CYCLES, POSES, STANDARD_CYCLES, characteristics
+from cellcal.cli.common import ReportError, UsageError, counted, print_progress, writable_folder
 
 
 def add_parser(sub):
@@ -37,8 +37,56 @@ def add_parser(sub):
     p.set_defaults(func=run)
 
 
-def evaluate(robot, data_path):
-    """(model name, pose labels, cycles, commanded (N, 3), attained (N, 3), poses, distance) of one data set."""
+def check_test(data_path, table, pose, cycle) -> list[str]:
+    """Refuse (UsageError naming file, line and column) what ISO 9283's definitions exclude, and
+    return warnings for what it allows but does not call the standard's test: each row is one
+    of the test poses P1 .. P5 (the cube's points), in a cycle numbered by a whole number, each
+    pose once per cycle (x_j is the position attained in cycle j), at least MIN_CYCLES cycles per
+    pose (with two, S_l is 0 by construction); fewer than the standard's 30 cycles, a test pose
+    left out, or one measured position appearing twice are warned of."""
+    for k, p in enumerate(map(str, pose)):
+        if p not in POSES:
+            raise UsageError(f"{data_path}:{table.line[k]}: column 'pose': {p!r} is not a test pose of ISO 9283 "
+                             f"({', '.join(POSES)}: the centre of the test cube and four points on its diagonals)")
+    for k, c in enumerate(map(str, cycle)):
+        if not (c.isascii() and c.isdigit()):
+            raise UsageError(f"{data_path}:{table.line[k]}: column 'cycle': {c!r} is not a cycle number "
+                             "(a whole number: the j-th run through the test poses)")
+    seen: dict[tuple[str, int], int] = {}
+    for k, key in enumerate(zip(map(str, pose), (int(c) for c in cycle))):
+        if key in seen:
+            raise UsageError(f"{data_path}:{table.line[k]}: pose {key[0]} in cycle {key[1]} again (first at line "
+                             f"{seen[key]}): ISO 9283 measures each pose once per cycle")
+        seen[key] = int(table.line[k])
+    counts = {p: int(np.sum(pose == p)) for p in POSES if np.any(pose == p)}
+    few = [p for p, n in counts.items() if n < MIN_CYCLES]
+    if few:
+        raise UsageError(f"{data_path}: pose {few[0]} is measured in {counted(counts[few[0]], 'cycle')}; "
+                         f"repeatability needs at least {MIN_CYCLES} (with two, both positions lie equally far "
+                         "from their barycentre and S_l is 0 whatever the robot does)")
+    warnings = []
+    least = min(counts, key=counts.get)
+    if counts[least] < STANDARD_CYCLES:
+        measured = (f"{counts[least]} cycles" if len(set(counts.values())) == 1 else
+                    f"as few as {counts[least]} cycles ({least})")
+        warnings.append(f"{measured}; ISO 9283 asks for {STANDARD_CYCLES} cycles for pose accuracy and "
+                        "repeatability, so these AP and RP are not the standard's figures")
+    missing = [p for p in POSES if p not in counts]
+    if missing:
+        warnings.append(f"no rows for {', '.join(missing)}: the standard's test visits all of {', '.join(POSES)}")
+    repeated = repeated_measurements(table)
+    if repeated:
+        first, again = repeated[0]
+        warnings.append(f"{counted(len(repeated), 'measured position')} repeat earlier ones exactly (line {again} "
+                        f"repeats line {first}): "
+                        "a copied measurement is no new cycle; the standard deviations S_l (and so RP) come out "
+                        "too small")
+    return warnings
+
+
+def evaluate(robot, data_path, warnings: list[str] | None = None):
+    """(model name, pose labels, cycles, commanded (N, 3), attained (N, 3), poses, distance) of one data set.
+    What the standard allows but does not call its test goes to `warnings` (a list), else to stderr."""
     model = load_calibrated(robot)
     table = read_measurements(data_path, model.model.n_joints)
     for column in ("pose", "cycle"):
@@ -47,6 +95,12 @@ def evaluate(robot, data_path):
                              "P1 .. P5 and its cycle)")
     pose = np.array([p.strip() for p in table.extra["pose"]])
     cycle = np.array([c.strip() for c in table.extra["cycle"]])
+    for warning in check_test(data_path, table, pose, cycle):
+        if warnings is None:
+            print_progress(f"warning: {data_path}: {warning}")
+        else:
+            warnings.append(warning)
+    cycle = cycle.astype(int)
     names = list(model.target_names)
     index = []
     for t in table.target_names:
@@ -58,10 +112,6 @@ def evaluate(robot, data_path):
             raise UsageError(f"{data_path}: target {t!r} has no offset in {robot} ({', '.join(names)})")
     ctx = Context(direction=approach_directions(table.q_rad), payload_kg=table.payload_kg)
     commanded = model.predict(table.q_rad, np.array(index)[table.target], ctx)
-    counts = {p: int(np.sum(pose == p)) for p in dict.fromkeys(pose)}
-    few = [p for p, n in counts.items() if n < 2]
-    if few:
-        raise UsageError(f"{data_path}: pose {few[0]} has {counts[few[0]]} row; repeatability needs at least 2 cycles")
     poses, distance = characteristics(pose, cycle, commanded, table.xyz_mm)
     return model.model.name, pose, cycle, commanded, table.xyz_mm, poses, distance
 
@@ -92,11 +142,14 @@ def as_text(title: str, poses, distance) -> str:
 
 
 def run(args) -> int:
-    name, pose, cycle, commanded, attained, poses, distance = evaluate(args.robot, args.data)
+    if args.report:  # before reading anything: a folder that cannot take the report is said at once
+        writable_folder(args.report, "--report")
+    warnings: list[str] = []
+    name, pose, cycle, commanded, attained, poses, distance = evaluate(args.robot, args.data, warnings)
     title = f"cellcal iso9283: {name} ({args.robot}), {args.data}"
-    text = as_text(title, poses, distance)
+    text = as_text(title, poses, distance) + "".join(f"\nwarning: {w}" for w in warnings)
     if args.json:
-        print(json.dumps(as_json(poses, distance)), flush=True)
+        print(json.dumps({**as_json(poses, distance), "warnings": warnings}), flush=True)
     else:
         print(text, flush=True)
     if args.report:

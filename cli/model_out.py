@@ -8,13 +8,13 @@ from importlib import metadata
 
 from cellcal.config.model_files import write_calibrated
 from cellcal.solvers.calibrated_model import from_fit
-from cellcal.cli.common import UsageError, output_file, print_progress
+from cellcal.cli.common import UsageError, print_progress, writable_file
 
 
 def check_target(path) -> None:
     """Refuse an output path that cannot be written before any computation."""
     if path is not None:
-        output_file(path, "--write-model")
+        writable_file(path, "--write-model")
 
 
 def provenance(command: str, data_path, rows: int, heldout_mean_mm: float | None, heldout_how: str) -> dict:

@@ -6,25 +6,35 @@ Plans the routine from the cell file, checks every motion against the cell's lim
 ``--resume DATASET`` continues a campaign a fault stopped (routines that can). On a
 simulated cell the result also carries ``sim_truth``: the error against the hidden truth.
 
-Exit status: 0 the result passed every gate (it may be written back); 1 a device fault,
+Nothing is written to the controller here (the daemon writes results back): the JSON says
+``passed_gates`` (every quality gate passed, so the result may be written back) and
+``written_back: false``.
+
+Exit status: 0 the result passed every gate; 1 a device fault,
 a computation that failed, or a result that failed a gate (the JSON still comes, with
-``write_back: false`` and the reasons); 2 bad usage, a bad cell file, a plan that would
-leave the cell's limits, or a dataset that cannot be used.
+``passed_gates: false`` and the reasons); 2 bad usage, a bad cell file, a plan that would
+leave the cell's limits or that the cell cannot carry out (a pose out of reach, a device
+the routine needs), an ``--out`` folder that cannot be written (checked before anything
+moves), or a dataset that cannot be used. ``--from`` also says when the store recorded the
+dataset with another checksum (``--state-dir``; a store is never created for it).
 """
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 
 from cellcal.config.robot_files import load_robot
 from cellcal.drivers import registry as drivers_registry
 from cellcal.routines import registry, runner
-from cellcal.routines.base import PlanRefused, Result, frame_text, gate_line
+from cellcal.routines.base import NotForThisCell, PlanRefused, Result, frame_text, gate_line, jsonable
 from cellcal.routines.records import read_dataset
 from cellcal.solvers.measurement_model import Layout, Observations, predict
 from cellcal.daemon.cells import load_cell, open_drivers
-from cellcal.cli.common import UsageError, print_progress
+from cellcal.daemon.claims import held
+from cellcal.daemon.store import Store, StoreError, file_sha256, state_dir as store_folder
+from cellcal.cli.common import STATE_HELP, UsageError, counted, print_progress, writable_folder
 
 
 def _score(result: Result, cell) -> None:
@@ -33,7 +43,8 @@ def _score(result: Result, cell) -> None:
         return
     score = truth.report()
     if result.tool_frame is not None:
-        score.update(truth.score_tool_frame(result.tool_frame))
+        score.update(truth.score_tool_frame(result.tool_frame))  # the frame as written: kept parts too
+        score["determined"] = sorted(result.determines)  # the errors of the rest are the kept frame's
     if result.routine == "tracker" and result.dataset and truth.tool is not None:
         score.update(_score_kinematics(result, truth, load_robot(cell.robot)))
     if result.routine == "handshake" and result.frame is not None:
@@ -66,7 +77,8 @@ def _score_kinematics(result: Result, truth, model) -> dict:
 
 
 def _text(result: Result) -> str:
-    lines = [f"{result.routine}: {'PASSED every gate: may be written back' if result.write_back else 'NOT to be written back'}"]
+    lines = [f"{result.routine}: " + ("PASSED every gate: may be written back" if result.write_back else
+                                      "NOT to be written back")]
     if result.tool_frame is not None:
         lines.append(f"  tool frame  {frame_text(result.tool_frame)}")
     for p in result.parameters:
@@ -82,8 +94,10 @@ def _text(result: Result) -> str:
     if result.sim_truth:
         t = result.sim_truth
         if "position_error_mm" in t:
-            lines.append(f"  against the simulation's hidden truth: TCP {t['position_error_mm']:.4f} mm, "
-                         f"axis {t['axis_error_deg']:.4f} deg")
+            determined = t.get("determined", ("tip", "axis"))
+            kept = {k: "" if k in determined else " (kept, not determined by this run)" for k in ("tip", "axis")}
+            lines.append(f"  against the simulation's hidden truth: TCP {t['position_error_mm']:.4f} mm{kept['tip']}, "
+                         f"axis {t['axis_error_deg']:.4f} deg{kept['axis']}")
         if "base_position_error_mm" in t:
             lines.append(f"  against the simulation's hidden truth: robot b's base {t['base_position_error_mm']:.4f} mm, "
                          f"{t['base_rotation_error_deg']:.5f} deg; tips {t.get('tip_a_error_mm', float('nan')):.4f} "
@@ -91,6 +105,32 @@ def _text(result: Result) -> str:
     if result.dataset:
         lines.append(f"  dataset: {result.dataset}")
     return "\n".join(lines)
+
+
+RUNS_SEARCHED = 100_000  # the latest runs whose datasets --from is looked up among (years of a cell's runs)
+
+
+def _say_if_edited(path, state_dir: str | None) -> None:
+    """A dataset the store recorded (found by its path in the --state-dir / $STATE_DIRECTORY store,
+    when one exists) that no longer has the checksum recorded with it: say so on stderr. The
+    re-solve goes on; it is of the data as they are now."""
+    try:
+        store = Store.open(store_folder(state_dir), create=False)
+    except StoreError:
+        return  # no store here (or not readable): nothing recorded to compare with
+    try:
+        wanted = os.path.realpath(path)
+        run = next((r for r in store.runs(RUNS_SEARCHED) if r.dataset_path and r.dataset_sha256
+                    and os.path.realpath(r.dataset_path) == wanted), None)
+    finally:
+        store.close()
+    try:
+        if run is not None and file_sha256(path) != run.dataset_sha256:
+            print_progress(f"warning: {path}: changed since run {run.id} recorded it (sha256 "
+                           f"{run.dataset_sha256[:12]}... then, {file_sha256(path)[:12]}... now); this re-solves "
+                           "the data as they are now")
+    except OSError:
+        pass  # unreadable: reading the dataset says why
 
 
 def cmd_run(args) -> int:
@@ -101,6 +141,7 @@ def cmd_run(args) -> int:
         if args.from_dataset and args.resume:
             raise UsageError("--from re-solves a dataset, --resume measures the rest of one: give one of them")
         if args.from_dataset:
+            _say_if_edited(args.from_dataset, args.state_dir)
             result = runner.solve_file(args.routine, cell, args.from_dataset)
         else:
             prepared = runner.prepare(args.routine, cell, resume=args.resume)
@@ -111,19 +152,25 @@ def cmd_run(args) -> int:
                 if args.json:
                     print(json.dumps(summary))
                 else:
-                    print(f"{args.routine}: {len(prepared.plan)} moves planned; every one is within the "
+                    print(f"{args.routine}: {counted(len(prepared.plan), 'move')} planned; every one is within the "
                           f"limits of {cell.path} (nothing moved)")
                 return 0
-            with open_drivers(cell) as drivers:
+            writable_folder(args.out, "--out")  # the datasets' place, made once the plan stands: nothing moved yet
+            # the robot's claim first: while the service (or another run) holds the robot, say so; nothing moves
+            with held(cell, kinds=("robot",)), open_drivers(cell) as drivers:
                 dataset = runner.measure(prepared, drivers, args.out, print_progress)
             result = runner.solve(args.routine, cell, dataset)
     except PlanRefused as exc:
         raise UsageError(f"{args.cell}: plan refused, nothing moved: {exc}") from None
+    except NotForThisCell as exc:  # the cell lacks what the routine needs: input at fault, as a refused plan
+        raise UsageError(f"{exc}; nothing moved") from None
     _score(result, cell)
     if args.json:
-        print(result.json_text())
+        print(json.dumps({**result.as_json(), "written_back": False}, default=jsonable))
     else:
         print(_text(result))
+        if result.tool_frame is not None:
+            print("  nothing written to the controller (cellcal run never writes; the daemon writes back)")
     return 0 if result.write_back else 1
 
 
@@ -141,5 +188,8 @@ def add_parser(sub) -> None:
     p.add_argument("--resume", metavar="DATASET",
                    help="continue the incomplete dataset a fault left: measure only what it lacks")
     p.add_argument("--out", default="out/runs", metavar="DIR", help="where datasets are written (default: out/runs)")
+    p.add_argument("--state-dir", metavar="DIR",
+                   help="with --from: the store whose record of the dataset's checksum is compared (never "
+                        "created); " + STATE_HELP.removeprefix("the store's folder "))
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=cmd_run)

@@ -4,8 +4,9 @@ from __future__ import annotations
 import json
 import time
 
-from cellcal.cli.common import STATE_HELP, UsageError, open_store
+from cellcal.cli.common import RECORD_ID, STATE_HELP, UsageError, open_store, whole
 from cellcal.daemon.service import RESULT_MEANINGS, ResultCode
+from cellcal.daemon.store import file_sha256
 from cellcal.routines.base import gate_line
 
 
@@ -14,7 +15,8 @@ def cmd_runs_list(args) -> int:
     try:
         runs = store.runs(args.limit)
         if args.json:
-            print(json.dumps([_run_summary(r) for r in runs]))
+            written = _written_back(store)
+            print(json.dumps({"runs": [_run_summary(r, written) for r in runs]}))
             return 0
         if not runs:
             print("no runs recorded")
@@ -27,10 +29,36 @@ def cmd_runs_list(args) -> int:
         store.close()
 
 
-def _run_summary(r) -> dict:
+def _written_back(store) -> set[int]:
+    """The runs whose tool frame was written to the controller (and read back)."""
+    return {f["run_id"] for f in store.tool_frames() if f["action"] == "write"}
+
+
+def _run_summary(r, written: set[int]) -> dict:
+    """``passed_gates``: every quality gate passed, so the result was fit to be written back;
+    ``written_back``: its tool frame was written to the controller and read back."""
     return {"id": r.id, "routine": r.routine, "cell": r.cell, "started_at": r.started_at,
             "finished_at": r.finished_at, "state": r.state, "result_code": r.result_code, "reason": r.reason,
-            "write_back": r.write_back}
+            "passed_gates": r.write_back, "written_back": r.id in written}
+
+
+DATASET_CHECK_TEXT = {"matches": "as recorded: its sha256 matches", "changed": "CHANGED since it was recorded: "
+                      "its sha256 no longer matches the store's", "missing": "no longer there",
+                      "unreadable": "cannot be read to compare", "not recorded": "no checksum recorded"}
+
+
+def _dataset_check(r) -> str | None:
+    """Whether the run's dataset is still the file recorded: one of DATASET_CHECK_TEXT's keys (None: no dataset)."""
+    if not r.dataset_path:
+        return None
+    if not r.dataset_sha256:
+        return "not recorded"
+    try:
+        return "matches" if file_sha256(r.dataset_path) == r.dataset_sha256 else "changed"
+    except FileNotFoundError:
+        return "missing"
+    except OSError:
+        return "unreadable"
 
 
 def cmd_runs_show(args) -> int:
@@ -39,8 +67,9 @@ def cmd_runs_show(args) -> int:
         r = store.run(args.id)
         if r is None:
             raise UsageError(f"no run {args.id} in {store.path}")
-        out = _run_summary(r)
-        out.update(dataset=r.dataset_path, dataset_sha256=r.dataset_sha256, report=r.report_path,
+        out = _run_summary(r, _written_back(store))
+        out.update(dataset=r.dataset_path, dataset_sha256=r.dataset_sha256, dataset_check=_dataset_check(r),
+                   report=r.report_path,
                    states=[{"at": at, "state": s, "message": m} for at, s, m in store.states(r.id)],
                    parameters=store.parameters(r.id), gates=store.gates(r.id),
                    result=None if r.result_json is None else json.loads(r.result_json))
@@ -53,14 +82,19 @@ def cmd_runs_show(args) -> int:
               + ("" if r.result_code is None else f" (code {r.result_code}: {out['result_meaning']})"))
         if r.reason:
             print(f"  {r.reason}")
+        if out["written_back"]:
+            print("  passed every gate; its tool frame was written back")
+        elif r.write_back:
+            print("  passed every gate; no tool frame written back")
         for s in out["states"]:
             print(f"  {time.strftime('%H:%M:%S', time.localtime(s['at']))}  {s['state']}"
                   + (f": {s['message']}" if s["message"] else ""))
         for g in out["gates"]:
             print(f"  {gate_line(g)}")
-        for key in ("dataset", "report"):
-            if out[key]:
-                print(f"  {key}: {out[key]}")
+        if out["dataset"]:
+            print(f"  dataset: {out['dataset']} ({DATASET_CHECK_TEXT[out['dataset_check']]})")
+        if out["report"]:
+            print(f"  report: {out['report']}")
         return 0
     finally:
         store.close()
@@ -69,12 +103,13 @@ def cmd_runs_show(args) -> int:
 def add_parser(sub) -> None:
     runs = sub.add_parser("runs", help="the runs recorded in the store").add_subparsers(dest="what", required=True)
     p = runs.add_parser("list", help="the latest runs, newest first")
-    p.add_argument("--limit", type=int, default=50)
+    p.add_argument("--limit", type=whole(1, 1_000_000), default=50, metavar="N",
+                   help="show at most N runs, 1 .. 1000000 (default 50)")
     p.add_argument("--state-dir", metavar="DIR", help=STATE_HELP)
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", action="store_true", help='print one JSON object on stdout: {"runs": [...]}')
     p.set_defaults(func=cmd_runs_list)
     p = runs.add_parser("show", help="one run: states, gates, parameters, dataset, report")
-    p.add_argument("id", type=int)
+    p.add_argument("id", type=RECORD_ID, metavar="ID", help="the run's number (cellcal runs list)")
     p.add_argument("--state-dir", metavar="DIR", help=STATE_HELP)
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=cmd_runs_show)

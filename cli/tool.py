@@ -3,14 +3,18 @@ from __future__ import annotations
 
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 
-from cellcal.cli.common import STATE_HELP, UsageError, open_store
+from cellcal.cli.common import RECORD_ID, STATE_HELP, UsageError, open_store
+from cellcal.cli.common import print_progress
+from cellcal.config.reader import ConfigError
 from cellcal.daemon.cells import load_cell, open_drivers
+from cellcal.daemon.claims import devices, held
 from cellcal.daemon.write_back import ControllerFrames, replace_frames, stored_from_json
 from cellcal.drivers.interfaces import DeviceError, RobotState
-from cellcal.routines.base import frame_text
+from cellcal.routines.base import frame_text, tool_frame_json
 
 
 def cmd_tool_history(args) -> int:
@@ -18,7 +22,7 @@ def cmd_tool_history(args) -> int:
     try:
         frames = store.tool_frames()
         if args.json:
-            print(json.dumps(frames))
+            print(json.dumps({"tool_frames": frames}))
             return 0
         if not frames:
             print("no tool frame written yet")
@@ -33,20 +37,17 @@ def cmd_tool_history(args) -> int:
 
 
 def cmd_tool_rollback(args) -> int:
-    """Restore the tool frames the controller had before a run's write-back (default: the latest):
-    the running program's and the one the robot program applies at its start."""
+    """Restore the tool frames the controller had before a run's write-back (default: the latest one
+    not yet undone): the running program's and the one the robot program applies at its start."""
     store = open_store(args)
     try:
-        writes = [f for f in store.tool_frames() if f["action"] == "write" and f["frame_before"] is not None]
-        if args.run is not None:
-            writes = [f for f in writes if f["run_id"] == args.run]
-        if not writes:
-            raise UsageError("no write-back to roll back" + (f" for run {args.run}" if args.run else ""))
-        entry = writes[-1]
+        entry = _write_to_undo(store, args.run)
         frame = np.asarray(entry["frame_before"], dtype=float)
         target = ControllerFrames(frame, stored_from_json(entry["stored_before"]))
         cell = load_cell(args.cell)
-        with open_drivers(cell) as drivers:
+        _check_same_robot(store.run(entry["run_id"]), cell, args.cell)
+        # the robot's claim first: while the service holds the robot, say so plainly; nothing is written
+        with held(cell, kinds=("robot",)), open_drivers(cell) as drivers:
             if drivers.robot.state() is not RobotState.READY:
                 raise UsageError(f"the robot is not ready ({drivers.robot.state().value}); nothing changed")
             current, failure = replace_frames(drivers.robot, target)
@@ -54,12 +55,74 @@ def cmd_tool_rollback(args) -> int:
             raise DeviceError("robot", f"rollback: {failure}")
         store.record_tool_frame(entry["run_id"], "rollback", current.running, frame, current.stored_json(),
                                 target.stored_json() if current.stored is not None else None)
-        print(f"restored the tool frame from before run {entry['run_id']}: {frame_text(frame)}"
-              + ("" if current.stored is None or target.stored is None else
-                 f"; the robot program's start frame back to generation {target.stored.generation}"))
+        _print_restored(args, entry["run_id"], frame,
+                        None if current.stored is None or target.stored is None else target.stored.generation)
+        left = store.writes_not_undone()
+        print_progress(f"a rollback without RUN now undoes run {left[-1]['run_id']}'s write-back" if left else
+                       "every recorded write-back is now undone: a rollback without RUN has nothing left to undo")
         return 0
     finally:
         store.close()
+
+
+def _write_to_undo(store, run: int | None) -> dict:
+    """The write-back a rollback undoes: RUN's, else the latest one not yet undone."""
+    if run is not None:
+        writes = [f for f in store.tool_frames()
+                  if f["action"] == "write" and f["frame_before"] is not None and f["run_id"] == run]
+        if not writes:
+            raise UsageError(f"no write-back of run {run} in {store.path.parent} (cellcal tool history lists them)")
+        return writes[-1]
+    writes = store.writes_not_undone()
+    if not writes:
+        raise UsageError(f"no write-back to undo in {store.path.parent}: "
+                         + ("every one recorded has been rolled back already" if any(
+                             f["action"] == "write" for f in store.tool_frames()) else "none recorded"))
+    return writes[-1]
+
+
+def _robots(cell) -> str:
+    labels = [d.label for d in devices(cell, ("robot",))]
+    return ", ".join(labels) if labels else "a simulated robot, in process"
+
+
+def _check_same_robot(run, cell, given: str) -> None:
+    """A rollback gives a frame back to the robot the run wrote it to: the run's cell file, or a
+    file of the same cell name and the same robots (a copy, /etc/cellcal/cell.yaml); else UsageError
+    naming both."""
+    if run is None:
+        return
+    recorded, path = Path(run.cell), Path(cell.path)
+    try:
+        if recorded == path or (recorded.exists() and path.exists() and recorded.samefile(path)):
+            return
+    except OSError:
+        pass
+    try:
+        other = load_cell(recorded)
+    except (ConfigError, OSError) as exc:
+        raise UsageError(f"run {run.id} was recorded on the cell {recorded}, which cannot be read to compare "
+                         f"with --cell {given} ({exc}); give --cell the cell file of the robot run {run.id} "
+                         "wrote to") from None
+    mine = [d.key for d in devices(cell, ("robot",))]
+    if other.name == cell.name and [d.key for d in devices(other, ("robot",))] == mine:
+        return
+    raise UsageError(f"run {run.id} wrote to the robot of cell {other.name} ({recorded}: {_robots(other)}), not "
+                     f"to --cell {given} (cell {cell.name}: {_robots(cell)}); a rollback puts a frame back only "
+                     f"on the robot it came from: give --cell {recorded}")
+
+
+def _print_restored(args, run_id: int, frame, generation: int | None) -> None:
+    """What a rollback put back: one line, or with --json one object ``{"restored": {...}}``:
+    ``run_id`` (the run whose write-back was undone), ``tool_frame`` (the frame now on the
+    controller, as a run's JSON gives it) and ``program_start_generation`` (the robot program's
+    start frame now that generation; null when the controller keeps none)."""
+    if args.json:
+        print(json.dumps({"restored": {"run_id": run_id, "tool_frame": tool_frame_json(frame),
+                                       "program_start_generation": generation}}))
+        return
+    print(f"restored the tool frame from before run {run_id}: {frame_text(frame)}"
+          + ("" if generation is None else f"; the robot program's start frame back to generation {generation}"))
 
 
 def add_parser(sub) -> None:
@@ -67,10 +130,21 @@ def add_parser(sub) -> None:
                                                                                               required=True)
     p = tool.add_parser("history", help="every tool frame written or restored")
     p.add_argument("--state-dir", metavar="DIR", help=STATE_HELP)
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", action="store_true", help='print one JSON object on stdout: {"tool_frames": [...]}')
     p.set_defaults(func=cmd_tool_history)
-    p = tool.add_parser("rollback", help="restore the tool frame from before a run's write-back (default: the last)")
-    p.add_argument("run", type=int, nargs="?", metavar="RUN")
+    p = tool.add_parser("rollback", help="restore the tool frame from before a run's write-back (default: the latest)",
+                        description="Write back to the robot the tool frames (the running program's and the one "
+                                    "the robot program applies at its start) it had before a run's write-back, "
+                                    "read them back and compare. Without RUN: undo the latest write-back not yet "
+                                    "undone, so repeated rollbacks walk back through the history one write-back "
+                                    "at a time. With RUN: restore the frames from before RUN's write-back; that "
+                                    "undoes RUN's and every later write-back. The run must have written to the "
+                                    "robot of --cell. While the cellcal service holds the robot this is refused "
+                                    "(stop the service first); nothing is changed.")
+    p.add_argument("run", type=RECORD_ID, nargs="?", metavar="RUN",
+                   help="the run whose write-back to undo (a number from cellcal runs list; default: the latest "
+                        "not yet undone)")
     p.add_argument("--cell", required=True, metavar="CELL.yaml", help="the cell whose robot gets the frame back")
     p.add_argument("--state-dir", metavar="DIR", help=STATE_HELP)
+    p.add_argument("--json", action="store_true", help='print one JSON object on stdout: {"restored": {...}}')
     p.set_defaults(func=cmd_tool_rollback)

@@ -14,7 +14,9 @@ the driver from a cell file re-raises the error with the file and section in fro
 from __future__ import annotations
 
 import math
+import os
 import re
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -218,28 +220,95 @@ _StrictLoader.add_implicit_resolver(
     list("-+0123456789."),
 )
 
+# What a hand-written file may be. The largest shipped file is a few kB; a calibrated model file
+# with its effects some tens of kB.
+MAX_FILE_BYTES = 4 << 20
+# Anchors and aliases (&limits ... *limits) are allowed: people share a block between robots, and
+# yaml.safe_dump writes them for a value our model files hold twice. But an alias is expanded by
+# whoever walks the data, so nested aliases multiply (a "billion laughs" file of a few hundred
+# bytes is 10^9 values): the nodes aliases add on top of those written are capped here, before
+# anything is built, and an alias that contains itself is refused.
+MAX_ALIAS_NODES = 10_000
+
 
 def read_yaml(path: str | Path, error: type[ConfigError] = ConfigError):
     """Read a hand-written YAML file strictly; every problem is one `error` whose message
-    starts with the file (and line, where YAML knows it)."""
+    starts with the file (and line, where YAML knows it). A device, a pipe or a folder, a file
+    over MAX_FILE_BYTES, and aliases that expand beyond MAX_ALIAS_NODES are refused."""
+    source = str(path)
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        with open(path, "rb") as f:
+            info = os.fstat(f.fileno())
+            if not stat.S_ISREG(info.st_mode):
+                raise error("not a regular file (a device, a pipe or a folder cannot be read as YAML)", source=source)
+            if info.st_size > MAX_FILE_BYTES:
+                raise error(f"{info.st_size} bytes; a file written by hand is far smaller (at most "
+                            f"{MAX_FILE_BYTES >> 20} MiB are read)", source=source)
+            text = f.read(MAX_FILE_BYTES + 1).decode("utf-8")
     except FileNotFoundError:
-        raise error("no such file", source=str(path)) from None
+        raise error("no such file", source=source) from None
+    except IsADirectoryError:
+        raise error("not a regular file (a device, a pipe or a folder cannot be read as YAML)", source=source) from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise error(f"cannot read: {exc}", source=str(path)) from None
+        raise error(f"cannot read: {exc}", source=source) from None
     loader = _StrictLoader(text)
-    loader.name = str(path)
+    loader.name = source
     try:
-        return loader.get_single_data()
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _check_aliases(node, source, error)
+        return loader.construct_document(node)
     except _RepeatedKey as exc:
         raise error(str(exc)) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f":{mark.line + 1}" if mark is not None else ""
         raise error(f"not valid YAML: {getattr(exc, 'problem', exc)}", source=f"{path}{where}") from None
+    except RecursionError:
+        raise error("nested too deeply to be a file written by hand", source=source) from None
     finally:
         loader.dispose()
+
+
+def _check_aliases(root: yaml.Node, source: str, error: type[ConfigError]) -> None:
+    """Refuse a document whose aliases add more than MAX_ALIAS_NODES nodes when expanded, or
+    that contains itself. Counts with each node's size computed once (so a bomb is measured in
+    the time of its few written nodes, never expanded), depth first without recursion."""
+    size: dict[int, int] = {}
+    path: set[int] = set()  # the nodes being counted: a child among them is an alias of an ancestor
+    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
+    while stack:
+        node, counted = stack.pop()
+        key = id(node)
+        children = _children(node)
+        if counted:
+            path.discard(key)
+            size[key] = 1 + sum(size[id(c)] for c in children)
+            continue
+        if key in size:
+            continue
+        path.add(key)
+        stack.append((node, True))
+        for child in children:
+            if id(child) in path:
+                raise error(f"an alias refers to a node that contains it (line {child.start_mark.line + 1}): the "
+                            "value would be infinite", source=source)
+            if id(child) not in size:
+                stack.append((child, False))
+    added = size[id(root)] - len(size)
+    if added > MAX_ALIAS_NODES:
+        raise error(f"its aliases (*name) expand to {added} more values than the file writes; at most "
+                    f"{MAX_ALIAS_NODES} are allowed (a file of nested aliases is a memory bomb, not a cell)",
+                    source=source)
+
+
+def _children(node: yaml.Node) -> list[yaml.Node]:
+    if isinstance(node, yaml.MappingNode):
+        return [n for pair in node.value for n in pair]
+    if isinstance(node, yaml.SequenceNode):
+        return list(node.value)
+    return []
 
 
 def shipped(folder: str) -> dict[str, Path]:

@@ -25,7 +25,6 @@ ready again, reconnecting a robot whose connection was lost, and no run starts b
 from __future__ import annotations
 
 import enum
-import json
 import logging
 import threading
 import time
@@ -36,7 +35,9 @@ import numpy as np
 
 from cellcal.drivers.interfaces import DeviceError, DeviceTimeout, RobotState
 from cellcal.routines import registry, runner
+from cellcal.config.reader import ConfigError
 from cellcal.routines.base import PlanRefused, Result, RoutineAborted, RoutineError
+from cellcal.routines.frames_owed import FramesOwed
 from cellcal.routines.gates import frame_change
 from cellcal.daemon.notify import Notifier
 from cellcal.daemon.store import Store
@@ -64,6 +65,7 @@ class ResultCode(enum.IntEnum):
     WRITE_BACK_FAILED = 32
     ABORTED = 40
     INTERRUPTED = 41
+    SERVICE_FAULT = 50
 
 
 RESULT_MEANINGS = {
@@ -80,6 +82,8 @@ RESULT_MEANINGS = {
     ResultCode.WRITE_BACK_FAILED: "the controller did not keep the written tool frame; the old one was restored",
     ResultCode.ABORTED: "aborted by the operator or by a stop of the service; nothing written back",
     ResultCode.INTERRUPTED: "the service died during the run; found at the next start, nothing written back",
+    ResultCode.SERVICE_FAULT: "the service could not keep its own records (state folder, datasets, store); "
+                              "nothing written back",
 }
 
 
@@ -110,12 +114,15 @@ class Service:
         self.report = report  # callable(run_id, result, store) -> path, or None
         self.reconnect = reconnect  # callable() -> a fresh set of the cell's drivers, or None
         self._reconnect_at: float | None = None  # when the robot is to be reconnected (it is unusable)
+        self._reconnecting: threading.Thread | None = None  # the reconnection under way, off the main loop
         self._frame_owed: tuple[int, np.ndarray] | None = None  # (run id, the frame from before it)
+        self._others_owed = FramesOwed()  # the same for the cell's other robots (robot b of a handshake)
         self._unconfirmed = False  # the panel just came back: a pending start is not taken
         self.state = "idle"
         self.abort = threading.Event()
         self._worker: threading.Thread | None = None
         self._active = False  # a run is under way: from start() until its end state is decided
+        self._run_id: int | None = None  # the run under way, once the store has it
         self._lock = threading.Lock()  # the panel: one caller at a time
         self.panel_ok = True
         self.last: RunOutcome | None = None
@@ -124,23 +131,30 @@ class Service:
 
     def _panel(self, what: str, *args, **kwargs):
         """A panel call that survives a dropped connection (logged once per drop)."""
-        panel = self.drivers.panel
-        if panel is None:
-            return None
-        try:
-            with self._lock:
+        with self._lock:  # also keeps a reconnection from swapping the drivers under the call
+            panel = self.drivers.panel
+            if panel is None:
+                return None
+            try:
                 value = getattr(panel, what)(*args, **kwargs)
-        except DeviceError as exc:
-            if self.panel_ok:
-                self.panel_ok = False
-                log.warning("panel lost: %s", exc)
-                self.store.event("panel_lost", str(exc))
-            return None
+            except DeviceError as exc:
+                if self.panel_ok:
+                    self.panel_ok = False
+                    log.warning("panel lost: %s", exc)
+                    self._event("panel_lost", str(exc))
+                return None
         if not self.panel_ok:
             self.panel_ok, self._unconfirmed = True, True
             log.info("panel back")
-            self.store.event("panel_back", None)
+            self._event("panel_back", None)
         return value
+
+    def _event(self, kind: str, message: str | None) -> None:
+        """An event in the store; a store that cannot take it is logged, never fatal here."""
+        try:
+            self.store.event(kind, message)
+        except Exception as exc:
+            log.error("the results store did not take the event %s (%s): %s", kind, message, exc)
 
     def _transition(self, run_id: int | None, state: str, message: str | None = None) -> None:
         self.state = state
@@ -150,8 +164,10 @@ class Service:
         if run_id is not None and state not in ("checking", "done", "fault", "refused", "aborted"):
             self.store.record_state(run_id, state, message)
         self.notifier.status(f"{state}{f' (run {run_id})' if run_id is not None else ''}")
-        busy = state not in ("idle", "done", "fault", "refused", "aborted")
-        self._panel("set_lamps", busy=busy)
+        if state == "checking":  # a new run: the last one's lamps are history
+            self._panel("set_lamps", busy=True, done=False, fault=False)
+        elif state not in ("idle", "done", "fault", "refused", "aborted"):
+            self._panel("set_lamps", busy=True)
 
     # -- one run --------------------------------------------------------------------------
 
@@ -159,25 +175,37 @@ class Service:
         return self._active
 
     def poll_panel(self) -> None:
-        """One look at the panel: abort while running; a start request otherwise."""
+        """One look at the panel: abort while running; a start request otherwise. The abort
+        button is read first: a start pressed together with it (or while it is held) is
+        refused, and an abort always stops a run it finds."""
         if self.busy():
             if self._panel("abort_requested"):
                 self.request_abort("abort button")
             if self._panel("start_requested"):
-                log.info("start pressed while a run is going on: ignored")
+                log.info("start pressed while run %s is going on: refused (result code %d BUSY)",
+                         self._run_id, ResultCode.BUSY)
+                self._event("start_refused_busy", f"run {self._run_id}")
+                self._panel("set_result", int(ResultCode.BUSY), increment_counter=False)
             return
         self.recover()
-        self._panel("abort_requested")  # an abort with nothing running is cleared, not remembered
+        aborted = self._panel("abort_requested")  # an abort with nothing running is cleared, not remembered
         pressed = self._panel("start_requested")
         if pressed is None:
             return
         unconfirmed, self._unconfirmed = self._unconfirmed, False
-        if pressed and unconfirmed:
+        if pressed and aborted:
+            self._discarded("pressed together with abort (abort wins)")
+            self._panel("set_lamps", done=False, fault=False)
+            self._panel("set_result", int(ResultCode.ABORTED))  # counted: the PLC sees an answer to the press
+        elif pressed and unconfirmed:
             self._discarded("pending when the panel came back")
         elif pressed:
             selector = self._panel("routine_selector")
             if selector is None:  # the request cannot be confirmed: never start from it
                 log.warning("start request seen but the routine selector could not be read: not started")
+                return
+            if self._panel("abort_requested"):  # abort pressed meanwhile: it wins
+                self._discarded("followed by abort before it was taken (abort wins)")
                 return
             self.start(self.routines.get(int(selector), f"selector {selector}"))
 
@@ -190,7 +218,14 @@ class Service:
 
     def _discarded(self, why: str) -> None:
         log.warning("a start request %s: cleared, not started (press start again)", why)
-        self.store.event("start_discarded", why)
+        self._event("start_discarded", why)
+
+    def announce_interrupted(self, run_ids: list[int]) -> None:
+        """Runs a previous process died in (found at start-up): the panel says so, result
+        code INTERRUPTED and the fault lamp, until the next run."""
+        if run_ids:
+            self._panel("set_lamps", busy=False, done=False, fault=True)
+            self._panel("set_result", int(ResultCode.INTERRUPTED), increment_counter=False)
 
     def start(self, routine: str) -> None:
         """Start a run in the worker thread (returns at once)."""
@@ -200,6 +235,7 @@ class Service:
             self._worker.join()
         self.abort.clear()
         self._active = True
+        self._run_id = None
         self._worker = threading.Thread(target=self._run_safely, args=(routine,), name="cellcal-run", daemon=True)
         self._worker.start()
 
@@ -222,22 +258,52 @@ class Service:
     def _run_safely(self, routine: str) -> None:
         try:
             self.last = self.run(routine)
-        except Exception as exc:  # a bug must not leave the lamps busy or the run open
-            log.exception("run failed unexpectedly")
-            self.last = RunOutcome(-1, "fault", ResultCode.COMPUTATION_FAILED, f"internal error: {exc}")
+        except Exception as exc:
+            # the service's own bookkeeping failed (store, state folder) or a bug: the run still
+            # ends, in fault, with the lamps and the result register right and nothing written back
+            log.exception("run %s: the service failed", self._run_id)
+            self.last = self._end_broken(routine, exc)
         finally:
             self._active = False
 
+    def _end_broken(self, routine: str, exc: Exception) -> RunOutcome:
+        run_id = -1 if self._run_id is None else self._run_id
+        reason = f"the service failed during the run: {type(exc).__name__}: {exc}"
+        if self._frame_owed is not None and self._frame_owed[0] == run_id:
+            self._recover_quietly()
+        if run_id >= 0:
+            try:
+                self.store.finish_run(run_id, "fault", int(ResultCode.SERVICE_FAULT), reason)
+            except Exception as again:
+                log.error("run %d: the results store cannot record its end either: %s", run_id, again)
+        self.state = "fault"
+        log.error("run %d (%s): fault: code %d %s: %s", run_id, routine, ResultCode.SERVICE_FAULT,
+                  ResultCode.SERVICE_FAULT.name, reason)
+        self._active = False
+        self._panel("set_lamps", busy=False, done=False, fault=True)
+        self._panel("set_result", int(ResultCode.SERVICE_FAULT))
+        self.state = "idle"
+        return RunOutcome(run_id, "fault", ResultCode.SERVICE_FAULT, reason)
+
+    def _recover_quietly(self) -> None:
+        try:
+            self.recover()
+        except Exception as exc:
+            log.error("giving the tool frame back failed: %s", exc)
+
     def run(self, routine: str) -> RunOutcome:
         """The whole state machine for one run, in the calling thread."""
-        run_id = self.store.begin_run(routine, self.cell.path)
+        run_id = self._run_id = self.store.begin_run(routine, self.cell.path)
         self._transition(run_id, "checking", routine)
         prepared, frame_before, refusal = self._check(routine)
+        if refusal is None and self.abort.is_set():
+            refusal = (ResultCode.ABORTED, "abort pressed before anything moved")
         if refusal is not None:
             code, why = refusal
-            return self._end(run_id, "refused", code, why)
+            return self._end(run_id, "aborted" if code is ResultCode.ABORTED else "refused", code, why)
         self._frame_owed = (run_id, frame_before)
-        self.store.record_frame_before(run_id, frame_before)
+        self._others_owed.owe(run_id, self._other_robots())
+        self.store.owe_frame(run_id, frame_before)
         self._transition(run_id, "running", f"{len(prepared.plan)} moves")
         try:
             dataset = runner.measure(prepared, self.drivers, self.out_dir,
@@ -250,6 +316,8 @@ class Service:
             return self._end(run_id, "fault", _device_code(self.drivers, exc), str(exc))
         except RoutineError as exc:
             return self._end(run_id, "fault", ResultCode.COMPUTATION_FAILED, str(exc))
+        except OSError as exc:
+            return self._end(run_id, "fault", ResultCode.SERVICE_FAULT, f"the dataset could not be written: {exc}")
         self._transition(run_id, "solving", dataset.path)
         try:
             result = runner.solve(routine, self.cell, dataset)
@@ -265,23 +333,38 @@ class Service:
         if not result.write_back:
             return self._end(run_id, "fault", ResultCode.GATE_FAILED, "; ".join(result.reasons()), result)
         if self.abort.is_set():
-            return self._end(run_id, "aborted", ResultCode.ABORTED, "aborted before write-back", result)
+            return self._end(run_id, "aborted", ResultCode.ABORTED, "abort pressed before write-back", result)
         if result.tool_frame is None:
-            return self._end(run_id, "done", ResultCode.OK, "no tool frame to write (a frame routine)", result)
+            return self._end(run_id, "done", ResultCode.OK,
+                             f"every gate passed; {routine} determines no tool frame, so nothing was written to "
+                             "the controller (the result is in the store and the report)", result)
         self._transition(run_id, "writing back")
         failure = self.write_back(run_id, result.tool_frame)
         if failure is not None:
             return self._end(run_id, "fault", ResultCode.WRITE_BACK_FAILED, failure, result)
         self._frame_owed = None  # the new frame is the controller's now
+        self.store.frame_settled(run_id)
         mm, deg = frame_change(result.tool_frame, dataset.meta.get("tool_frame_before", np.zeros(6)))
         return self._end(run_id, "done", ResultCode.OK, f"tool frame written back ({mm:.3f} mm, {deg:.3f} deg "
-                                                         "from the previous one)", result)
+                                                         "from the previous one)", result, wrote=True)
 
     def _check(self, routine: str):
         """(the prepared routine, the controller's tool frame, None) when it may run, else
         (None, None, (code, why))."""
+        if routine not in registry.available():
+            return None, None, (ResultCode.NO_SUCH_ROUTINE,
+                                f"no routine {routine!r} (routines: {', '.join(registry.available())})")
+        why_not = registry.unavailable(routine, self.cell)
+        if why_not is not None:
+            return None, None, (ResultCode.NO_SUCH_ROUTINE, f"this cell cannot run {routine}: {why_not}")
+        if self._reconnecting is not None:
+            return None, None, (ResultCode.NOT_READY, "the service is reconnecting to the robot")
         if self._frame_owed is not None:
             self.recover()
+        self._others_owed.give_back(self._other_robots(), self._event)
+        waiting = self._others_owed.waiting(registry.routine_class(routine).robots)
+        if waiting is not None:
+            return None, None, (ResultCode.NOT_READY, waiting)
         if self._frame_owed is not None:
             return None, None, (ResultCode.NOT_READY, f"the tool frame from before run {self._frame_owed[0]} "
                                                       "is not yet back on the controller")
@@ -293,26 +376,37 @@ class Service:
             return None, None, (ResultCode.NOT_READY, f"the robot does not answer: {exc}")
         if state is not RobotState.READY:
             return None, None, (ResultCode.NOT_READY, f"the robot is not ready: {state.value}")
-        if routine not in registry.available():
-            return None, None, (ResultCode.NO_SUCH_ROUTINE,
-                                f"no routine {routine!r} (routines: {', '.join(registry.available())})")
         try:
             prepared = runner.prepare(routine, self.cell)
         except PlanRefused as exc:
             return None, None, (ResultCode.LIMITS, f"plan refused, nothing moved: {exc}")
-        except RoutineError as exc:
+        except (RoutineError, ConfigError) as exc:
             return None, None, (ResultCode.NO_SUCH_ROUTINE, str(exc))
         for kind in type(prepared.routine).needs:
             if getattr(self.drivers, kind, None) is None:
                 return None, None, (ResultCode.SENSOR_FAULT, f"the cell has no {kind} for {routine}")
+        try:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            probe = self.out_dir / f".cellcal-write-probe-{run_id_tag()}"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as exc:
+            return None, None, (ResultCode.SERVICE_FAULT,
+                                f"the datasets folder {self.out_dir} cannot be written ({exc.strerror or exc}); "
+                                "nothing moved: check the state folder's owner and permissions")
         return prepared, before, None
 
     # -- between runs ---------------------------------------------------------------------
 
     def recover(self) -> None:
         """Between runs: reconnect a robot whose connection was lost (once it has been unusable
-        for RECONNECT_AFTER_S, then every RECONNECT_EVERY_S), and give the controller back the
-        tool frame a run that wrote none left changed."""
+        for RECONNECT_AFTER_S, then every RECONNECT_EVERY_S, in a thread of its own so the
+        panel is served meanwhile), and give the controller back the tool frame a run that
+        wrote none left changed."""
+        if self._reconnecting is not None:
+            if self._reconnecting.is_alive():
+                return
+            self._reconnecting = None
         state, now = self._robot_state(), time.monotonic()
         if state is not RobotState.DISCONNECTED or self.reconnect is None:
             self._reconnect_at = None
@@ -320,19 +414,11 @@ class Service:
             self._reconnect_at = now + RECONNECT_AFTER_S
         elif now >= self._reconnect_at:
             self._reconnect_at = now + RECONNECT_EVERY_S
-            try:  # the old connections first: the controller lets one client hold its RTDE inputs
-                self.drivers.close()
-            except Exception as exc:
-                log.info("closing the lost connections: %s", exc)
-            try:
-                self.drivers = self.reconnect()
-            except Exception as exc:  # anything a half-reachable cell raises: the service keeps running
-                log.warning("the robot's connection is still lost: %s", exc)
-                return
-            log.info("reconnected the cell's devices")
-            self.store.event("reconnected", None)
-            self._reconnect_at = None
-            state = self._robot_state()
+            self._reconnecting = threading.Thread(target=self._reconnect, name="cellcal-reconnect", daemon=True)
+            self._reconnecting.start()
+            return
+        if self._others_owed:
+            self._others_owed.give_back(self._other_robots(), self._event)
         if self._frame_owed is None or state is not RobotState.READY:
             return
         run_id, frame = self._frame_owed
@@ -341,18 +427,60 @@ class Service:
             if np.abs(np.asarray(robot.tcp(), dtype=float) - frame).max() > TOLERANCE:
                 robot.set_tcp(frame)
                 log.info("run %d: the tool frame from before it is back on the controller", run_id)
-                self.store.event("tool_frame_given_back", f"run {run_id}")
+                self._event("tool_frame_given_back", f"run {run_id}")
         except DeviceError as exc:
             log.warning("run %d: the tool frame from before it could not be given back yet: %s", run_id, exc)
             return
         self._frame_owed = None
+        self.store.frame_settled(run_id)
 
-    def give_back_frame_of(self, run_id: int) -> None:
-        """A run the service died in (found interrupted at start-up) may have left the drawing's
-        tool frame on the controller: the idle loop gives back the one it had, as after a fault."""
-        row = self.store.run(run_id)
-        if row is not None and row.tool_frame_before is not None:
-            self._frame_owed = (run_id, np.array(json.loads(row.tool_frame_before), dtype=float))
+    def _reconnect(self) -> None:
+        """Off the main loop: the lost robots' connections closed (the controller lets one
+        client hold its RTDE inputs), a fresh set of the cell's devices opened, and swapped in
+        under the panel's lock, so no panel call runs on a device being replaced; the main
+        loop starts no run meanwhile (NOT_READY)."""
+        old = self.drivers
+        robots = list(dict.fromkeys([*(getattr(old, "robots", None) or {}).values(), old.robot]))
+        for robot in robots:
+            try:
+                robot.close()
+            except Exception as exc:
+                log.info("closing the lost connection: %s", exc)
+        try:
+            fresh = self.reconnect()
+        except Exception as exc:  # anything a half-reachable cell raises: the service keeps running
+            log.warning("the robot's connection is still lost: %s", exc)
+            return
+        with self._lock:
+            self.drivers = fresh
+        for device in (old.trigger, old.tracker, old.panel):
+            if device is not None:
+                try:
+                    device.close()
+                except Exception as exc:
+                    log.info("closing the replaced connection: %s", exc)
+        log.info("reconnected the cell's devices")
+        self._event("reconnected", None)
+        self._reconnect_at = None
+
+    def resume_owed_frame(self) -> int | None:
+        """At start-up: a tool frame a run owes the controller (a fault or a stop of the
+        service left the tool as drawn on it) is given back by the idle loop once the robot
+        is ready; a frame from before a newer write is stale and never comes back. Returns
+        the run it is owed for."""
+        owed = self.store.owed_frame()
+        if owed is None:
+            return None
+        run_id, frame = owed
+        self._frame_owed = (run_id, np.asarray(frame, dtype=float))
+        log.info("run %d left the controller on another tool frame than before it: it is given back once the "
+                 "robot is ready", run_id)
+        return run_id
+
+    def _other_robots(self) -> dict:
+        """The cell's robots besides robot a (``drivers.robot``), by name."""
+        robots = getattr(self.drivers, "robots", None) or {}
+        return {name: robot for name, robot in robots.items() if name != "a" and robot is not self.drivers.robot}
 
     def _robot_state(self) -> RobotState:
         try:
@@ -370,16 +498,22 @@ class Service:
                                      before.stored_json(), written.stored_json())
         return None
 
-    def _end(self, run_id: int, state: str, code: ResultCode, reason: str, result: Result | None = None) -> RunOutcome:
+    def _end(self, run_id: int, state: str, code: ResultCode, reason: str, result: Result | None = None,
+             wrote: bool = False) -> RunOutcome:
         if self._frame_owed is not None and self._frame_owed[0] == run_id:
             self.recover()
         self.store.finish_run(run_id, state, int(code), reason)
         self._active = False  # the panel shows the end next: a press after it starts the next run
-        self._transition(run_id, state, f"{code.name.lower()}: {reason}")
-        self._panel("set_lamps", busy=False, done=state == "done", fault=state in ("fault", "refused"))
+        self._transition(run_id, state, f"{reason} (code {int(code)} {code.name})")
+        # the done lamp says a frame went to the controller; a run that wrote none lights neither
+        self._panel("set_lamps", busy=False, done=wrote, fault=state in ("fault", "refused"))
         self._panel("set_result", int(code))
         self.state = "idle"
         return RunOutcome(run_id, state, code, reason, result)
+
+
+def run_id_tag() -> str:
+    return f"{threading.get_ident()}-{time.monotonic_ns()}"
 
 
 def _device_code(drivers, exc: DeviceError) -> ResultCode:

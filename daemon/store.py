@@ -12,7 +12,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import pwd
 import sqlite3
+import stat
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -77,6 +79,9 @@ MIGRATIONS = (
     """,
     # 4: the controller's tool frame when each run began (given back after a run that died)
     "ALTER TABLE runs ADD COLUMN tool_frame_before TEXT;",
+    # 5: a run that may have left the controller on another tool frame than the one it had
+    # before, until that frame is back (or a newer one was written): owed across restarts
+    "ALTER TABLE runs ADD COLUMN frame_owed INTEGER NOT NULL DEFAULT 0;",
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 OPEN_STATES = ("checking", "running", "solving", "gates", "writing back")
@@ -118,13 +123,87 @@ class RunRow:
     write_back: bool
     result_json: str | None
     tool_frame_before: str | None = None
+    frame_owed: int = 0
+
+
+STORE_FILE = "cellcal.db"
+# what the service writes in its state folder besides reports and datasets (cellcal.lock: daemon/claims.py)
+STORE_FILES = (STORE_FILE, STORE_FILE + "-wal", STORE_FILE + "-shm", "cellcal.lock")
+
+
+def _user(uid: int) -> str:
+    try:
+        return pwd.getpwuid(uid).pw_name
+    except KeyError:
+        return str(uid)
+
+
+def _not_writable(path: Path, folder: Path) -> str:
+    """Which file this user cannot write, whose it is, and the command that fixes it."""
+    me = _user(os.geteuid())
+    try:
+        info = path.stat()
+        owner = _user(info.st_uid)
+        whose = f"it belongs to {owner}, mode {stat.S_IMODE(info.st_mode):04o}"
+    except OSError as exc:
+        owner, whose = None, f"it cannot be looked at: {exc.strerror or exc}"
+    if owner is not None and owner != me:
+        fix = f"chown -R {me}: {folder}"
+    else:
+        fix = f"chmod -R u+rwX {folder}"
+    return f"{path} is not writable by user {me} (uid {os.geteuid()}), who runs this service: {whose}; fix: {fix}"
+
+
+def check_state_folder(folder: str | Path, create: bool = False) -> Path:
+    """The state folder (made if missing, with `create`), and every store file in it, writable by
+    this user; else StoreError naming the file, its owner and the fix. A store made by another
+    user (``cellcal runs list`` as root before the service first started) ends here, at start-up,
+    not at the first write of a run."""
+    folder = Path(folder)
+    if create:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except FileExistsError:
+            raise StoreError(f"{folder}: exists and is not a folder; give --state-dir a folder") from None
+        except OSError as exc:
+            raise StoreError(f"{folder}: cannot make the state folder ({exc.strerror or exc}); make it and give "
+                             f"it to user {_user(os.geteuid())}: mkdir -p {folder} && "
+                             f"chown {_user(os.geteuid())}: {folder}") from None
+    if not folder.is_dir():
+        raise StoreError(f"{folder}: not a folder")
+    if not _can(folder, os.W_OK | os.X_OK):
+        raise StoreError(_not_writable(folder, folder))
+    for name in STORE_FILES:
+        path = folder / name
+        if path.exists() and not _can(path, os.R_OK | os.W_OK):
+            raise StoreError(_not_writable(path, folder))
+    return folder
+
+
+def _is_file(path: Path) -> bool:
+    try:
+        return path.is_file()
+    except OSError as exc:  # a folder on the way this user may not enter
+        raise StoreError(f"{path}: cannot look at the results store: {exc.strerror or exc}") from None
+
+
+def _can(path: Path, mode: int) -> bool:
+    """Whether this process (its effective user, as the writes will be) may use `path` so."""
+    return os.access(path, mode, effective_ids=os.access in os.supports_effective_ids)
 
 
 class Store:
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, create: bool = True):
+        """The store at `path`. `create`: make it (and its folder) when missing, and check at once
+        that this user can write it (the service); without, a missing store is a StoreError and
+        nothing is made (the commands that read it)."""
         self.path = Path(path)
+        if create:
+            check_state_folder(self.path.parent, create=True)
+        elif not _is_file(self.path):
+            raise StoreError(f"no results store in {self.path.parent} (nothing recorded there yet, or a typo in "
+                             "--state-dir?)")
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
             self.db = sqlite3.connect(str(self.path), timeout=10.0, isolation_level=None, check_same_thread=False)
             self.db.execute("PRAGMA journal_mode=WAL")
             self.db.execute("PRAGMA synchronous=FULL")
@@ -132,10 +211,25 @@ class Store:
             self._migrate()
         except (OSError, sqlite3.Error) as exc:
             raise StoreError(f"{self.path}: cannot open the results store: {exc}") from None
+        if create:
+            self._probe_write()
 
     @classmethod
-    def open(cls, state_dir_path: str | Path) -> "Store":
-        return cls(Path(state_dir_path) / "cellcal.db")
+    def open(cls, state_dir_path: str | Path, create: bool = True) -> "Store":
+        return cls(Path(state_dir_path) / STORE_FILE, create=create)
+
+    def _probe_write(self) -> None:
+        """One write, rolled back: a store this user cannot write fails here, not in a run."""
+        try:
+            self.db.execute("BEGIN IMMEDIATE")
+            try:
+                self.db.execute("INSERT INTO events VALUES (0, 'write probe', NULL)")
+            finally:
+                if self.db.in_transaction:
+                    self.db.execute("ROLLBACK")
+        except sqlite3.Error as exc:
+            self.db.close()
+            raise StoreError(f"{_not_writable(self.path, self.path.parent)} ({exc})") from None
 
     def close(self) -> None:
         self.db.close()
@@ -208,6 +302,35 @@ class Store:
             db.execute("UPDATE runs SET tool_frame_before = ? WHERE id = ?",
                        (json.dumps([float(v) for v in frame]), run_id))
 
+    def owe_frame(self, run_id: int, frame) -> None:
+        """The controller's tool frame as run `run_id` began, owed back to it from now on
+        (the routines put the tool as drawn on the controller while they measure)."""
+        with self._tx() as db:
+            db.execute("UPDATE runs SET tool_frame_before = ?, frame_owed = 1 WHERE id = ?",
+                       (json.dumps([float(v) for v in frame]), run_id))
+
+    def frame_settled(self, run_id: int) -> None:
+        """The controller has the frame owed for `run_id`, or a newer one (a write-back of
+        this run or a later one, a rollback): nothing from `run_id` or before is owed any more."""
+        with self._tx() as db:
+            db.execute("UPDATE runs SET frame_owed = 0 WHERE id <= ? AND frame_owed = 1", (run_id,))
+
+    def owed_frame(self) -> tuple[int, list[float]] | None:
+        """(run id, frame) the controller is still owed, or None. Only the newest run can owe
+        one (the service starts no run while a frame is owed); a frame owed from before a
+        tool frame was written (write-back, rollback) is stale and never comes back."""
+        row = self.db.execute("SELECT id, started_at, tool_frame_before FROM runs WHERE frame_owed = 1 "
+                              "ORDER BY id DESC LIMIT 1").fetchone()
+        if row is None:
+            return None
+        run_id, started_at, frame = row
+        newer = self.db.execute("SELECT COUNT(*) FROM tool_frames WHERE run_id > ? OR at > ?",
+                                (run_id, started_at)).fetchone()[0]
+        if newer or frame is None:
+            self.frame_settled(run_id)
+            return None
+        return int(run_id), json.loads(frame)
+
     def mark_interrupted(self, result_code: int) -> list[int]:
         """Runs a previous process left open (it died mid-run): recorded as interrupted."""
         open_runs = [r[0] for r in self.db.execute(
@@ -258,6 +381,23 @@ class Store:
                 for i, r, at, a, b, f, sb, sa in self.db.execute(
                     "SELECT id, run_id, at, action, frame_before, frame_after, stored_before, stored_after "
                     "FROM tool_frames ORDER BY id")]
+
+    def writes_not_undone(self) -> list[dict]:
+        """The write-backs still in effect, oldest first: what ``tool rollback`` can undo.
+
+        A rollback of run R put the controller back where it was before R's write, so it
+        undoes R's write and every write recorded after it; the last entry of this list is
+        what a rollback without a run undoes next (repeated, they walk back through the
+        history)."""
+        active: list[dict] = []
+        for frame in self.tool_frames():
+            if frame["action"] == "write" and frame["frame_before"] is not None:
+                active.append(frame)
+            elif frame["action"] == "rollback":
+                undone = next((k for k, w in enumerate(active) if w["run_id"] == frame["run_id"]), None)
+                if undone is not None:
+                    del active[undone:]
+        return active
 
     # -- events ---------------------------------------------------------------------------
 

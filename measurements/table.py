@@ -33,6 +33,7 @@ KNOWN = XYZ + QUAT + SCALARS + ("target", "split")
 
 MAX_POSITION_MM = 1e5  # 100 m: beyond any tracker's range
 MAX_JOINT = {"rad": 4 * np.pi, "deg": 720.0}  # two turns either way
+MAX_PAYLOAD_KG = 2500.0  # the heaviest industrial arms carry about 2.3 t
 
 _JOINT = re.compile(r"q(\d+)_(deg|rad)")
 # Stricter than float(): no "1_000", no non-ASCII digits, no nan/inf.
@@ -141,10 +142,14 @@ def read_measurements(path, n_joints: int) -> MeasurementTable:
                                    f"(|value| must be at most {limit:g})")
         return values[c]
 
-    q = np.column_stack([column(c, MAX_JOINT[unit], unit, "no joint turns that far") for c in joints])
+    turns = "beyond two turns, further than any joint turns" + (" (degrees under a _rad header?)" if unit == "rad"
+                                                                else "")
+    q = np.column_stack([column(c, MAX_JOINT[unit], unit, turns) for c in joints])
     xyz = np.column_stack([column(c, MAX_POSITION_MM, "mm",
                                   "not a position a measuring instrument gives (over 100 m away)") for c in XYZ])
     scalars = {c: column(c) if c in cols else None for c in SCALARS}
+    if scalars["payload_kg"] is not None:
+        column("payload_kg", MAX_PAYLOAD_KG, "kg", "more than any arm carries")
 
     quat = None
     if "qw" in cols:
@@ -311,9 +316,9 @@ def check_joint_limits(table: MeasurementTable, joint_limits, model_name: str) -
             hint = " (degrees under a _rad header?)" if unit == "rad" and np.abs(table.q_rad).max() > 2 * np.pi \
                 else ""
             raise DatasetError(
-                f"{table.path}: column 'q{j + 1}_{unit}': {outside.size} of {len(table)} rows are outside "
-                f"{model_name}'s joint {j + 1} limits {lo * scale:g}..{hi * scale:g} {unit}{hint}; "
-                f"lines {lines}")
+                f"{table.path}: column 'q{j + 1}_{unit}': {outside.size} of {len(table)} rows "
+                f"{'is' if outside.size == 1 else 'are'} outside {model_name}'s joint {j + 1} limits "
+                f"{lo * scale:g}..{hi * scale:g} {unit}{hint}; line{'' if outside.size == 1 else 's'} {lines}")
 
 
 def write_measurements(path, *, q_rad, xyz_mm, target_names=None, target=None, t_s=None, temp_c=None,
@@ -410,3 +415,25 @@ def joint_velocities(table: MeasurementTable) -> np.ndarray | None:
                 out[start: start + len(cells), k] = parsed
         return out * factor
     return None
+
+
+def repeated_measurements(table: MeasurementTable) -> list[tuple[int, int]]:
+    """Rows that repeat an earlier row's joints, target and measured position exactly, as (line of the
+    first, line of the repeat) pairs in file order. No instrument measures the same position twice to
+    the last digit, so these are copies: fits and spreads then count one measurement as two, and every
+    standard deviation computed from the data comes out too small."""
+    key = np.column_stack([table.q_rad, table.xyz_mm, table.target])
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    return [(int(table.line[first[g]]), int(table.line[k])) for k, g in enumerate(inverse) if first[g] != k]
+
+
+def repeated_warning(table: MeasurementTable) -> str | None:
+    """One line on :func:`repeated_measurements` for a command's stderr, or None when there are none."""
+    repeated = repeated_measurements(table)
+    if not repeated:
+        return None
+    first, again = repeated[0]
+    return (f"{table.path}: {len(repeated)} of {len(table)} rows repeat an earlier row exactly (line {again} is line "
+            f"{first} again): copies, not measurements; the standard deviations and standard errors reported come "
+            "out too small")

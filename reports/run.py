@@ -11,18 +11,25 @@ from pathlib import Path
 import numpy as np
 
 from cellcal.reports.page import plt, write_page
+from cellcal.solvers import se3
+from cellcal.routines import tool_frame
 from cellcal.routines.base import FRAME_KEYS, Result, tool_frame_json
 from cellcal.routines.drawing import Drawing
 
 STYLES = {"measured": dict(ls="none", marker=".", ms=5), "fitted": dict(ls="-", lw=1.2, color="0.25")}
 
 
-def _frame_row(label: str, pose) -> str:
+def _frame_row(label: str, pose, lean: bool = True) -> str:
+    """One frame's row: x, y, z (mm), its rotation vector (deg) and, for a tool frame (`lean`),
+    how its z axis leans toward the flange's x and y (deg: what ``axis_tilt_x_deg`` /
+    ``axis_tilt_y_deg`` count for a tool drawn along the flange's z)."""
     if pose is None:
-        return f"<tr><th>{label}</th><td colspan=6>none</td></tr>"
+        return f"<tr><th>{label}</th><td colspan=8>none</td></tr>"
     f = tool_frame_json(pose)
     cells = "".join(f"<td>{f[k]:.4f}</td>" for k in FRAME_KEYS)
-    return f"<tr><th>{label}</th>{cells}</tr>"
+    leans = "".join(f"<td>{v:.4f}</td>" for v in np.degrees(se3.z_axis_lean(np.asarray(pose, dtype=float)[3:]))) \
+        if lean else "<td></td><td></td>"
+    return f"<tr><th>{label}</th>{cells}{leans}</tr>"
 
 
 def _draw(drawing: Drawing, path: Path) -> None:
@@ -75,8 +82,11 @@ def write_run_report(folder: str | Path, run_id: int, result: Result) -> Path:
                    f"alt='{caption}'><figcaption>{caption}</figcaption></figure>")
     before = result.extra.get("tool_frame_before")
     frame = result.frame or {}
-    base_row = _frame_row(f"{frame['to']} in the {frame['from']} frame, found", frame["pose_m_rad"]) \
+    base_row = _frame_row(f"{frame['to']} in the {frame['from']} frame, found", frame["pose_m_rad"], lean=False) \
         if {"to", "from", "pose_m_rad"} <= set(frame) else ""
+    determined = (f"<p>This run determined {html.escape(tool_frame.described(result.determines))} of the tool "
+                  "frame; the rest is kept from the controller's frame before the run (the notes say where it "
+                  "came from).</p>" if result.tool_frame is not None else "")
     gates = "".join(f"<tr><td>{'pass' if g.passed else '<b>FAIL</b>'}</td><td>{html.escape(g.name)}</td>"
                     f"<td>{html.escape(g.why)}</td></tr>" for g in result.gates)
     params = "".join(f"<tr><td>{html.escape(p.name)}</td><td>{p.value:.5g}</td>"
@@ -88,8 +98,10 @@ def write_run_report(folder: str | Path, run_id: int, result: Result) -> Path:
         out / "report.html", "cellcal run",
         f"<h1>Run {run_id}: {html.escape(result.routine)}</h1><p><b>{html.escape(verdict)}</b></p>" + drawing +
         "<h2>Tool frame</h2><table border=1 cellpadding=4><tr><th></th><th>x mm</th><th>y mm</th><th>z mm</th>"
-        "<th>rx deg</th><th>ry deg</th><th>rz deg</th></tr>"
+        "<th>rx deg</th><th>ry deg</th><th>rz deg</th><th>z leans toward x, deg</th><th>toward y, deg</th></tr>"
         + _frame_row("before", before) + _frame_row("found", result.tool_frame) + base_row + "</table>"
+        "<p>rx, ry, rz: the rotation vector (flange to tool frame); a lean of the z axis toward x is a turn "
+        "about y.</p>" + determined +
         f"<h2>Gates</h2><table border=1 cellpadding=4>{gates}</table>"
         f"<h2>Parameters</h2><table border=1 cellpadding=4>{params}</table>"
         "<h2>Residuals</h2><img src='residuals.png' alt='residual of every measurement'>"

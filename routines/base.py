@@ -24,11 +24,17 @@ import numpy as np
 from cellcal.config.cells import Cell
 from cellcal.config.reader import Section
 from cellcal.drivers.interfaces import DeviceError, Robot, Tracker, TriggerInput
+from cellcal.solvers import se3
 from cellcal.routines.drawing import Drawing
 
 
 class RoutineError(RuntimeError):
     """The routine could not run or solve; the message says what to fix (exit 1)."""
+
+
+class NotForThisCell(RoutineError):
+    """The cell cannot run this routine at all (a device, a second robot or a section it
+    needs is missing): refused before anything moves, exit 2, panel result code 11."""
 
 
 class RoutineAborted(RuntimeError):
@@ -118,7 +124,8 @@ class Result:
 
     ``tool_frame`` is the flange -> TCP frame [x, y, z, rx, ry, rz] (m, rad) that would be
     written back, for routines that find one; ``frame`` a base frame for those that find
-    that. ``write_back`` is True only when every gate passed. ``drawing`` is what the run's
+    that. ``write_back`` is True only when every gate passed: the result may be written back
+    (``passed_gates`` in the JSON; whether it was is the daemon's record). ``drawing`` is what the run's
     report draws of the measurements against the fitted geometry (:mod:`.drawing`).
     """
 
@@ -132,6 +139,9 @@ class Result:
     frame: dict | None = None
     notes: list[str] = field(default_factory=list)
     extra: dict = field(default_factory=dict)  # routine-specific numbers, units in the keys
+    # what of `tool_frame` the routine measured, of "tip" and "axis" (routines/tool_frame.py); the rest
+    # of the frame is the controller's from before the run. Empty for routines that find no tool frame.
+    determines: frozenset[str] = frozenset()
     dataset: str | None = None
     cycle_time_s: float | None = None
     sim_truth: dict | None = None
@@ -154,13 +164,14 @@ class Result:
         return [f"{g.name}: {g.why}" for g in self.gates if not g.passed]
 
     def as_json(self) -> dict:
-        out = {"routine": self.routine, "dataset": self.dataset, "write_back": self.write_back,
+        out = {"routine": self.routine, "dataset": self.dataset, "passed_gates": self.write_back,
                "reasons": self.reasons(), "parameters": [p.as_json() for p in self.parameters],
                "residual_rms_mm": _finite(self.residual_rms_mm), "expected_noise_mm": self.expected_noise_mm,
                "n_measurements": int(len(self.residuals_mm)), "condition": _finite(self.condition),
                "gates": [g.as_json() for g in self.gates], "notes": list(self.notes)}
         if self.tool_frame is not None:
             out["tool_frame"] = tool_frame_json(self.tool_frame)
+            out["determines"] = sorted(self.determines)
         if self.frame is not None:
             out["frame"] = self.frame
         if self.cycle_time_s is not None:
@@ -194,14 +205,22 @@ def tool_frame_json(pose) -> dict:
 FRAME_KEYS = ("x_mm", "y_mm", "z_mm", "rx_deg", "ry_deg", "rz_deg")  # tool_frame_json's numbers, in order
 
 
-def frame_text(frame, angle_digits: int = 4) -> str:
-    """A frame on one line as people read it: ``x 1.2345 y .. z .. mm, rx 0.1234 ry .. rz .. deg``.
+def frame_text(frame, angle_digits: int = 4, lean: bool = True) -> str:
+    """A frame on one line as people read it: ``x 1.2345 y .. z .. mm, rotation vector rx 0.1234
+    ry .. rz .. deg`` and, for a tool frame (`lean`), how its z axis leans from the flange's z:
+    ``(z axis leans 0.0486 deg toward x, -0.4838 deg toward y)``, the numbers a routine's
+    ``axis_tilt_x_deg`` / ``axis_tilt_y_deg`` give for a tool drawn along the flange's z (a lean
+    toward x is a turn about y: the rotation vector's ry, not its rx).
     `frame` is a pose [x, y, z, rx, ry, rz] (m, rad) or a dict with :func:`tool_frame_json`'s keys
-    (a base frame a routine found has them too)."""
+    (a base frame a routine found has them too; give ``lean=False`` for one)."""
     f = frame if isinstance(frame, dict) else tool_frame_json(frame)
     a = angle_digits
-    return (f"x {f['x_mm']:.4f} y {f['y_mm']:.4f} z {f['z_mm']:.4f} mm, "
-            f"rx {f['rx_deg']:.{a}f} ry {f['ry_deg']:.{a}f} rz {f['rz_deg']:.{a}f} deg")
+    text = (f"x {f['x_mm']:.4f} y {f['y_mm']:.4f} z {f['z_mm']:.4f} mm, "
+            f"rotation vector rx {f['rx_deg']:.{a}f} ry {f['ry_deg']:.{a}f} rz {f['rz_deg']:.{a}f} deg")
+    if lean:
+        toward_x, toward_y = np.degrees(se3.z_axis_lean(np.radians([f["rx_deg"], f["ry_deg"], f["rz_deg"]])))
+        text += f" (z axis leans {toward_x:.{a}f} deg toward x, {toward_y:.{a}f} deg toward y)"
+    return text
 
 
 def gate_line(gate) -> str:
@@ -229,11 +248,17 @@ def drawn_tool(robot, tool_pose):
     robot.set_tcp(tool_pose)
     try:
         yield before
-    finally:
-        try:
+    except BaseException:
+        # a fault or an interrupt (Ctrl-C) may land while a move is still under way, and a
+        # controller that is moving does not take a new tool frame: stop it first
+        with contextlib.suppress(DeviceError):
+            robot.stop()
+        with contextlib.suppress(DeviceError):
             robot.set_tcp(before)
-        except DeviceError:
-            pass
+        raise
+    else:
+        with contextlib.suppress(DeviceError):
+            robot.set_tcp(before)
 
 
 @dataclass(frozen=True)
@@ -263,6 +288,7 @@ class Routine(abc.ABC):
     section: str = ""
     selector: int | None = None
     needs: tuple[str, ...] = ("robot",)  # device kinds the cell must have
+    robots: tuple[str, ...] = ("a",)  # the cell's robots it moves (and sets on the tool as drawn)
 
     def __init__(self, cell: Cell, options):
         self.cell = cell

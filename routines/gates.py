@@ -10,6 +10,7 @@ import numpy as np
 from cellcal.config.cells import ToolSpec
 from cellcal.solvers import se3
 from cellcal.routines.base import Gate
+from cellcal.routines.tool_frame import AXIS_ONLY, TIP_AND_AXIS, TIP_ONLY, controller_frame
 
 RESIDUAL_FACTOR = 3.0  # residual RMS may be this many times the expected noise
 MAX_CONDITION = 1e6  # of the scaled normal equations: beyond, some direction is barely measured
@@ -52,25 +53,41 @@ def frame_change(frame_a, frame_b) -> tuple[float, float]:
     return float(np.linalg.norm(a[:3] - b[:3]) * 1e3), angle
 
 
+def _compared(mm: float, deg: float, determines, max_mm: float, max_deg: float) -> tuple[bool, float, float, str]:
+    """(passed, value, limit, words) of a frame comparison over what a result determined: the
+    position for the tip, the axis' direction for the axis, both for both."""
+    determines = frozenset(determines)
+    if determines == TIP_ONLY:
+        return (mm <= max_mm, mm, max_mm,
+                f"the tip {mm:.3f} mm (limit {max_mm:g} mm; the axis is not compared: this routine does not "
+                "determine it)")
+    if determines == AXIS_ONLY:
+        return (deg <= max_deg, deg, max_deg,
+                f"the axis {deg:.3f} deg (limit {max_deg:g} deg; the TCP position is not compared: this routine "
+                "does not determine it)")
+    return (mm <= max_mm and deg <= max_deg, mm, max_mm,
+            f"the tip {mm:.3f} mm and the axis {deg:.3f} deg (limits {max_mm:g} mm, {max_deg:g} deg)")
+
+
 def plausible_tool(tool_frame, drawn: ToolSpec | None, max_mm: float = TOOL_PLAUSIBLE_MM,
-                   max_deg: float = TOOL_PLAUSIBLE_DEG) -> Gate:
+                   max_deg: float = TOOL_PLAUSIBLE_DEG, determines=TIP_AND_AXIS) -> Gate:
+    """The result against the tool as drawn, over what it `determines` (``tip``, ``axis``)."""
     if drawn is None:
         return Gate("plausibility", True, 0.0, max_mm, "no drawn tool in the cell file to compare with")
-    mm, deg = frame_change(tool_frame, drawn.tcp_pose)
-    ok = mm <= max_mm and deg <= max_deg
-    why = (f"{mm:.3f} mm and {deg:.3f} deg from the tool as drawn (limits {max_mm:g} mm, {max_deg:g} deg)"
+    ok, value, limit, words = _compared(*frame_change(tool_frame, drawn.tcp_pose), determines, max_mm, max_deg)
+    why = (f"{words} from the tool as drawn"
            + ("" if ok else ": is the right tool mounted, and the cell file's [tool] right?"))
-    return Gate("plausibility", ok, mm, max_mm, why)
+    return Gate("plausibility", ok, value, limit, why)
 
 
 def agrees_with_previous(tool_frame, previous, max_mm: float = PREVIOUS_MAX_MM,
-                         max_deg: float = PREVIOUS_MAX_DEG) -> Gate:
-    """Against the frame the controller had before the run (the previous result)."""
-    if previous is None or not np.any(np.asarray(previous, dtype=float)):
+                         max_deg: float = PREVIOUS_MAX_DEG, determines=TIP_AND_AXIS) -> Gate:
+    """Against the frame the controller had before the run (the previous result), over what
+    the result `determines` (``tip``, ``axis``): what it did not determine it keeps from that
+    frame, so comparing that would only compare the frame with itself."""
+    if controller_frame(previous) is None:
         return Gate("previous", True, 0.0, max_mm, "no previous tool frame on the controller to compare with")
-    mm, deg = frame_change(tool_frame, previous)
-    ok = mm <= max_mm and deg <= max_deg
-    why = (f"changes the controller's tool frame by {mm:.3f} mm and {deg:.3f} deg "
-           f"(limits {max_mm:g} mm, {max_deg:g} deg)"
-           + ("" if ok else ": more than a recalibration should; confirm the tool was changed"))
-    return Gate("previous", ok, mm, max_mm, why)
+    ok, value, limit, words = _compared(*frame_change(tool_frame, previous), determines, max_mm, max_deg)
+    why = (f"{words} from the controller's tool frame before the run"
+           + ("" if ok else ": more than a recalibration should change; confirm the tool was changed"))
+    return Gate("previous", ok, value, limit, why)

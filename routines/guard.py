@@ -313,7 +313,7 @@ class GuardedRobot:
     def run(self, move: Move) -> ContactResult | None:
         """Check `move` from where the arm is now (the other robots where they are), then send it."""
         if self.abort is not None and self.abort.is_set():
-            raise RoutineAborted(f"aborted before move '{move.label}'")
+            raise RoutineAborted(f"stopped before move '{move.label}'")
         if move.robot != self.name:
             raise PlanRefused(f"move '{move.label}': a move of robot {move.robot}, sent to robot {self.name}")
         others = {name: peer._state() for name, peer in self.peers.items()} if self.peers else None

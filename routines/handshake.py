@@ -120,6 +120,7 @@ class Handshake(StepRoutine):
     section = "handshake"
     selector = 4
     needs = ("robot",)
+    robots = ("a", "b")
 
     @classmethod
     def read_options(cls, section: Section, cell: Cell) -> HandshakeOptions:

@@ -12,6 +12,7 @@ from cellcal.solvers import se3
 from cellcal.routines import gates
 from cellcal.routines.base import Gate, Parameter, Result, frame_text
 from cellcal.routines.drawing import meeting_points
+from cellcal.routines.tool_frame import TIP_ONLY
 
 PLAUSIBLE_BASE_MM = 30.0  # a base found this far from where it was installed is doubted ...
 PLAUSIBLE_BASE_DEG = 2.0  # ... or turned this far
@@ -42,7 +43,7 @@ def handshake_result(name, dataset, cell: Cell, options, fit: hs.HandshakeFit, d
                       + ("" if plausible else ": has robot b been moved, or is [robots.b] base_m wrong?"))]
     for letter, tip in (("a", fit.tip_a_mm), ("b", fit.tip_b_mm)):
         drawn = cell.robots[letter].tool
-        gate = gates.plausible_tool(np.concatenate([tip / 1e3, drawn.tcp_pose[3:]]), drawn)
+        gate = gates.plausible_tool(np.concatenate([tip / 1e3, drawn.tcp_pose[3:]]), drawn, determines=TIP_ONLY)
         gate_list.append(Gate(f"plausibility tip {letter}", gate.passed, gate.value, gate.limit, gate.why))
     params = [Parameter(f"base_b_{c}_mm", float(fit.translation_mm[j]), float(fit.std[3 + j]), "mm")
               for j, c in enumerate("xyz")]
@@ -61,7 +62,7 @@ def handshake_result(name, dataset, cell: Cell, options, fit: hs.HandshakeFit, d
              "cell_file": "robots:\n  b:\n    base_m: [" + ", ".join(f"{v:.7f}" for v in pose[:3])
                           + "]\n    base_rotvec_deg: [" + ", ".join(f"{np.rad2deg(v):.6f}" for v in rotvec) + "]"}
     start_turn = se3.matrix_to_rotvec(fit.start_rotation.T @ fit.rotation)
-    notes = [f"robot b's base in robot a's frame: {frame_text(frame, angle_digits=5)} (+- {std_mm:.4f} mm, "
+    notes = [f"robot b's base in robot a's frame: {frame_text(frame, angle_digits=5, lean=False)} (+- {std_mm:.4f} mm, "
              f"{std_deg:.5f} deg); for the cell file: " + " ".join(frame["cell_file"].split()),
              f"{n} meeting points, conditioning {fit.points.condition:.3g} (spread "
              f"{np.round(fit.points.spread_mm, 1).tolist()} mm RMS along their principal axes); the fit's condition "

@@ -18,6 +18,13 @@ The file is CSV with a small header of metadata lines::
 Columns are numbers, except those the routine names as text. The file is written to a
 temporary name and renamed into place, so a reader never sees half a dataset; a routine
 stopped by a fault writes what it has with ``complete: false``.
+
+Reading checks the numbers as the measurement CSV's are checked: each is finite (``nan``
+only in the columns a routine names as sometimes not applicable, ``nan_columns``) and
+within what its unit allows, read from the end of the column's name (``_mm``, ``_m``: 100 m;
+``_rad``, ``_deg``: two turns; anything else: 1e10, beyond any count or time in seconds of a
+run). A row that repeats an earlier one exactly is a copy, not a measurement: the dataset
+keeps them in ``repeated_rows``, and the solve says its standard deviations are too small.
 """
 from __future__ import annotations
 
@@ -34,10 +41,16 @@ from pathlib import Path
 import numpy as np
 
 from cellcal.routines.base import jsonable
-from cellcal.measurements.table import DatasetError
+from cellcal.measurements.table import MAX_JOINT, MAX_POSITION_MM, DatasetError
 
 MAGIC = "# cellcal dataset"
 HEADER_KEYS = ("routine", "cell", "robot", "cellcal", "created", "complete", "meta")
+# |value| allowed by the unit a column's name ends in: (suffix, bound, what a larger value would be)
+UNIT_BOUNDS = (("_mm", MAX_POSITION_MM, "not a position in a cell (over 100 m away)"),
+               ("_m", MAX_POSITION_MM / 1e3, "not a position in a cell (over 100 m away)"),
+               ("_rad", MAX_JOINT["rad"], "beyond two turns"),
+               ("_deg", MAX_JOINT["deg"], "beyond two turns"))
+OTHER_BOUND = 1e10  # counts, indices, directions, times in s, speeds: nothing of a run is this large
 
 
 def cellcal_version() -> str:
@@ -58,6 +71,7 @@ class Dataset:
     created: str = ""
     version: str = ""
     path: str | None = None
+    repeated_rows: list[tuple[int, int]] = field(default_factory=list)  # (line, line it repeats), when read
 
     @classmethod
     def of_rows(cls, routine: str, rows: list[dict], meta: dict) -> "Dataset":
@@ -113,9 +127,10 @@ def _cell_text(value) -> str:
     return repr(value) if math.isfinite(value) else "nan"
 
 
-def read_dataset(path: str | Path, routine: str | None = None, text_columns=()) -> Dataset:
-    """Read a routine's dataset; `routine` (if given) must match the file's. Raises
-    DatasetError naming the file, line and column."""
+def read_dataset(path: str | Path, routine: str | None = None, text_columns=(), nan_columns=()) -> Dataset:
+    """Read a routine's dataset; `routine` (if given) must match the file's. `nan_columns`: numeric
+    columns where ``nan`` means "not applicable" (elsewhere it is refused). Raises DatasetError naming
+    the file, line and column."""
     name = os.fspath(path)
     try:
         lines = Path(name).read_text(encoding="utf-8").splitlines()
@@ -137,9 +152,11 @@ def read_dataset(path: str | Path, routine: str | None = None, text_columns=()) 
     if routine is not None and header["routine"] != routine:
         raise DatasetError(f"{name}: a dataset of routine {header['routine']!r}, not of {routine!r}")
     try:
-        meta = json.loads(header["meta"])
+        meta = json.loads(header["meta"], parse_constant=_no_constant)
     except json.JSONDecodeError as exc:
         raise DatasetError(f"{name}: header 'meta' is not one JSON object: {exc}") from None
+    except ValueError as exc:
+        raise DatasetError(f"{name}: header 'meta': {exc}") from None
     if not isinstance(meta, dict):
         raise DatasetError(f"{name}: header 'meta' is not one JSON object")
     rows = list(csv.reader(lines[i:]))
@@ -148,7 +165,10 @@ def read_dataset(path: str | Path, routine: str | None = None, text_columns=()) 
     names = [n.strip() for n in rows[0]]
     if len(set(names)) != len(names) or not all(names):
         raise DatasetError(f"{name}:{i + 1}: empty or repeated column names")
+    bounds = {n: _bound(n) for n in names}
     values: dict[str, list] = {n: [] for n in names}
+    seen: dict[tuple, int] = {}
+    repeated: list[tuple[int, int]] = []
     for k, row in enumerate(rows[1:], start=i + 2):
         if not row:
             continue
@@ -162,7 +182,42 @@ def read_dataset(path: str | Path, routine: str | None = None, text_columns=()) 
                 v = float(text)
             except ValueError:
                 raise DatasetError(f"{name}:{k}: column {n!r}: {text[:24]!r} is not a number") from None
+            if not math.isfinite(v) and not (math.isnan(v) and n in nan_columns):
+                raise DatasetError(f"{name}:{k}: column {n!r}: {text.strip()[:24]!r} is not finite (a value "
+                                   "was lost or edited: no measurement is nan or infinite)")
+            limit, why = bounds[n]
+            if abs(v) > limit:
+                raise DatasetError(f"{name}:{k}: column {n!r}: {text.strip()[:24]} is {why} "
+                                   f"(|value| must be at most {limit:g})")
             values[n].append(v)
+        key = tuple(row)
+        if key in seen:
+            repeated.append((k, seen[key]))
+        else:
+            seen[key] = k
     columns = {n: np.array(v, dtype=str if n in text_columns else float) for n, v in values.items()}
     return Dataset(header["routine"], columns, meta, header.get("cell", ""), header.get("robot", ""),
-                   header["complete"] == "true", header.get("created", ""), header.get("cellcal", ""), name)
+                   header["complete"] == "true", header.get("created", ""), header.get("cellcal", ""), name,
+                   repeated)
+
+
+def _bound(column: str) -> tuple[float, str]:
+    """The largest |value| a column may hold, by the unit its name ends in, and what a larger one is."""
+    for suffix, limit, why in UNIT_BOUNDS:
+        if column.endswith(suffix):
+            return limit, why
+    return OTHER_BOUND, "beyond any number a run records"
+
+
+def _no_constant(text: str):
+    raise ValueError(f"{text} is not a number a dataset's meta may hold")
+
+
+def repeated_rows_note(dataset: Dataset) -> str | None:
+    """What a dataset's repeated rows mean for its result, or None when it has none."""
+    if not dataset.repeated_rows:
+        return None
+    line, first = dataset.repeated_rows[0]
+    return (f"{len(dataset.repeated_rows)} of {len(dataset)} rows of {dataset.path} repeat an earlier row exactly "
+            f"(line {line} is line {first} again): copies, not measurements; the fit counts them as independent "
+            "measurements, so the standard deviations (+-) are too small")

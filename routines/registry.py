@@ -136,6 +136,26 @@ def panel_selectors() -> dict[int, str]:
             if cls.selector is not None}
 
 
+def unavailable(name: str, cell: Cell) -> str | None:
+    """Why `cell` cannot run the routine `name` at all (a device kind it needs is not among the
+    cell's drivers, or its section cannot be read for this cell, e.g. the handshake on a
+    one-robot cell), or None when it can."""
+    cls = routine_class(name)
+    missing = [k for k in cls.needs if k not in cell.drivers]
+    if missing:
+        return f"{cell.path}: routine {name} needs a {' and a '.join(missing)} in [drivers]"
+    try:
+        read_options(name, cell)
+    except CellFileError as exc:
+        return str(exc)
+    return None
+
+
+def runnable(cell: Cell) -> list[str]:
+    """The routines `cell` can run, in panel selector order."""
+    return [name for name in available() if unavailable(name, cell) is None]
+
+
 def read_options(name: str, cell: Cell):
     """The routine's options from its section of the cell file; CellFileError naming the key."""
     cls = routine_class(name)

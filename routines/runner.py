@@ -16,10 +16,11 @@ import numpy as np
 from cellcal.config.cells import Cell
 from cellcal.config.robot_files import load_robot
 from cellcal.drivers.interfaces import DeviceError
-from cellcal.routines.base import Devices, Move, Progress, Result, Routine, RoutineError
+from cellcal.routines.base import (Devices, Move, NotForThisCell, Progress, Result, Routine, RoutineError,
+                                   frame_text)
 from cellcal.routines.guard import ArmState, GuardedRobot, MotionGuard
-from cellcal.routines.records import Dataset, read_dataset
-from cellcal.routines.registry import read_options, routine_class
+from cellcal.routines.records import Dataset, read_dataset, repeated_rows_note
+from cellcal.routines.registry import read_options, routine_class, unavailable
 
 
 @dataclass
@@ -40,14 +41,15 @@ def prepare(name: str, cell: Cell, resume: str | Path | None = None) -> Prepared
     `resume`: an incomplete dataset of this routine; a routine that can continue one
     (``resume(dataset)``) plans only what it still lacks."""
     cls = routine_class(name)
+    why_not = unavailable(name, cell)
+    if why_not is not None:
+        raise NotForThisCell(why_not)
     routine = cls(cell, read_options(name, cell))
-    missing = [k for k in cls.needs if k not in cell.drivers]
-    if missing:
-        raise RoutineError(f"{cell.path}: routine {name} needs a {' and a '.join(missing)} in [drivers]")
     if resume is not None:
         if not hasattr(routine, "resume"):
             raise RoutineError(f"routine {name} cannot resume a dataset; run it anew")
-        routine.resume(read_dataset(resume, name, getattr(cls, "text_columns", ())))
+        routine.resume(read_dataset(resume, name, getattr(cls, "text_columns", ()),
+                                    getattr(cls, "nan_columns", ())))
     plan = routine.plan()
     guard = MotionGuard(cell, load_robot(cell.robot))
     guard.check_plan(plan, ArmState(np.asarray(cell.home_q_rad, dtype=float), planning_tool(cell)))
@@ -75,6 +77,7 @@ def measure(prepared: Prepared, drivers, out_dir: str | Path, progress: Progress
                 arm.stop()
             except DeviceError:
                 pass
+        _give_back(drivers.robot, previous, progress)
         kept = _keep_partial(routine, previous, out_dir, progress)
         if kept and isinstance(exc, DeviceError):
             raise DeviceError(exc.device, f"{exc.what}; {kept}") from exc
@@ -84,6 +87,21 @@ def measure(prepared: Prepared, drivers, out_dir: str | Path, progress: Progress
     _write(dataset, routine, previous, out_dir)
     progress(f"wrote {dataset.path}")
     return dataset
+
+
+def _give_back(robot, previous: np.ndarray, progress: Progress) -> None:
+    """After a fault or an interrupt: the controller's tool frame from before the run, if the
+    routine could not give it back itself (the arm was still moving); says so when the
+    controller does not take it yet (a safety stop): the service gives it back once the
+    robot is ready, ``cellcal run`` cannot."""
+    try:
+        if np.abs(np.asarray(robot.tcp(), dtype=float) - previous).max() <= 1e-9:
+            return
+        robot.set_tcp(previous)
+        progress("the tool frame from before the run is back on the controller")
+    except (DeviceError, OSError) as exc:
+        progress(f"the controller still has the tool as drawn; its tool frame before the run was "
+                 f"{frame_text(previous)} (could not give it back: {exc})")
 
 
 def _write(dataset: Dataset, routine: Routine, previous: np.ndarray, out_dir) -> None:
@@ -124,6 +142,11 @@ def solve(name: str, cell: Cell, dataset: Dataset) -> Result:
 
 
 def solve_file(name: str, cell: Cell, path: str | Path) -> Result:
-    """Re-solve a recorded dataset offline with the same code (``--from``)."""
+    """Re-solve a recorded dataset offline with the same code (``--from``); rows that repeat an
+    earlier one are noted on the result (its standard deviations are too small)."""
     cls = routine_class(name)
-    return solve(name, cell, read_dataset(path, name, getattr(cls, "text_columns", ())))
+    dataset = read_dataset(path, name, getattr(cls, "text_columns", ()), getattr(cls, "nan_columns", ()))
+    result = solve(name, cell, dataset)
+    if (note := repeated_rows_note(dataset)) is not None:
+        result.notes.append(note)
+    return result

@@ -13,9 +13,13 @@ Each pair of opposite touches is centred on where the axis crosses that search l
 (the shank's and the ball's radii cancel), so the crossing moves with the height by
 the axis' tilt: :func:`cellcal.solvers.pivot.fit_axis` solves that linear least
 squares for the axis in the flange frame over all turns (turning the tool separates
-its tilt from anything fixed in the base frame). The rotation about the axis is the
-drawing's convention (a round tool has no x of its own): the smallest turn from the
-flange's z. The TCP is the drawing's, or `tcp_mm` from a ``tcp-npoint`` result.
+its tilt from anything fixed in the base frame). The routine determines the axis only:
+the tool frame it writes keeps the TCP position of the controller's frame from before
+the run, and that frame's orientation turned by the smallest rotation that takes its z
+onto the axis found, so its turn about the axis (a round tool has no x of its own) is kept
+too (:mod:`.tool_frame`). Only where no controller frame is known are they the drawing's,
+the TCP `tcp_mm` where given. The tilts are reported as tcp-laser's: how far the axis
+leans from the drawn axis toward the flange's x and y.
 
 Section ``tcf`` of the cell file (all optional)::
 
@@ -26,7 +30,7 @@ Section ``tcf`` of the cell file (all optional)::
     search_speed_mm_s: 5
     repeatability_mm: 0.03   # the arm's stated repeatability (RMS distance of a repeated pose)
     target_deg: 0.05         # refuse a design whose expected axis error (1 sigma) is larger
-    tcp_mm: [0, 0, 150]      # the TCP in the flange frame (from tcp-npoint), else the drawing's
+    tcp_mm: [0, 0, 150]      # the TCP in the flange frame (from tcp-npoint) where no controller frame is known
 """
 from __future__ import annotations
 
@@ -41,7 +45,8 @@ from cellcal.config.robot_files import load_robot
 from cellcal.solvers import pivot as pv
 from cellcal.solvers import se3
 from cellcal.solvers.inverse import inverse
-from cellcal.routines import gates
+from cellcal.solvers.tcp_laser import axis_pair
+from cellcal.routines import gates, tool_frame
 from cellcal.routines.base import (Design, Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError,
                                    StepRoutine, drawn_tool)
 from cellcal.routines.drawing import axis_crossings
@@ -287,8 +292,10 @@ def _result(name, dataset, cell: Cell, options: TcfOptions, fit: pv.AxisFit, des
             sigma: float) -> Result:
     meta = dataset.meta
     planned = np.asarray(meta["planned_tool"], dtype=float)
-    tcp_m = options.tcp_mm / 1e3 if options.tcp_mm is not None else planned[:3]
-    frame = np.concatenate([tcp_m, se3.rotvec_from_z(fit.axis)])
+    ref = tool_frame.reference(meta.get("tool_frame_before"), planned,
+                               tip_m=None if options.tcp_mm is None else options.tcp_mm / 1e3,
+                               tip_option="tcp_mm of [tcf]")
+    frame, frame_notes = tool_frame.compose(tool_frame.AXIS_ONLY, ref, axis=fit.axis)
     n, dof = len(fit.residuals_mm), len(fit.residuals_mm) - len(fit.offsets) - 2
     expected = sigma * np.sqrt(dof / n)
     rms = float(np.sqrt(np.mean(fit.residuals_mm**2)))
@@ -302,26 +309,29 @@ def _result(name, dataset, cell: Cell, options: TcfOptions, fit: pv.AxisFit, des
                                                              f" (more than {CONTACT_TOLERANCE_MM:g} mm off): "
                                                              "something else was touched, or [tool] radius_m or "
                                                              "[stylus] radius_m is wrong"))
-    tilt_std_deg = np.rad2deg(fit.tilt_std)
+    # the tilts as tcp-laser counts them (toward flange x and y made perpendicular to the drawn axis), from the
+    # fit's, which are counted on solvers.pivot.across(drawn): the same plane, turned
+    e = np.stack(axis_pair(drawn))
+    turn = e @ pv.across(drawn).T
+    tilt_deg = [float(np.degrees(np.arctan2(fit.axis @ u, fit.axis @ drawn))) for u in e]
+    tilt_std_deg = np.rad2deg(np.sqrt(np.diag(turn @ fit.covariance[-2:, -2:] @ turn.T)))
     undetermined = [f"axis_tilt_{c}_deg" for c, s in zip("xy", tilt_std_deg) if not s <= MAX_TILT_STD_DEG]
     gate_list = [gates.residual(rms, expected), gates.conditioning(fit.condition), gates.identifiability(undetermined),
-                 contacts, gates.plausible_tool(frame, cell.tool),
-                 gates.agrees_with_previous(frame, meta.get("tool_frame_before"))]
-    e = pv.across(drawn)
-    tilt_deg = [float(np.degrees(np.arctan2(fit.axis @ u, fit.axis @ drawn))) for u in e]
+                 contacts, gates.plausible_tool(frame, cell.tool, determines=tool_frame.AXIS_ONLY),
+                 gates.agrees_with_previous(frame, meta.get("tool_frame_before"), determines=tool_frame.AXIS_ONLY)]
     params = [Parameter(f"axis_tilt_{c}_deg", tilt_deg[j], float(tilt_std_deg[j]), "deg") for j, c in enumerate("xy")]
     params += [Parameter(f"axis_{c}", float(fit.axis[j]), None, "1") for j, c in enumerate("xyz")]
     axis_std_deg = float(np.hypot(*tilt_std_deg))
-    source = "tcp_mm of [tcf]" if options.tcp_mm is not None else "the drawing ([tool] tcp_m)"
-    notes = [f"the tool frame's position is {source}: this routine measures the axis, not the TCP",
-             "the rotation of the tool frame about the tool axis is not measured (a round tool has none): it is "
-             "fixed by convention, the smallest turn from the flange's z (solvers.se3.rotvec_from_z)",
-             f"tilt axes: x along {np.round(e[0], 3).tolist()}, y along {np.round(e[1], 3).tolist()} (flange frame)"]
+    notes = [*frame_notes,
+             f"axis_tilt_x_deg / axis_tilt_y_deg: how far the found axis leans from the drawn axis toward "
+             f"{np.round(e[0], 3).tolist()} / {np.round(e[1], 3).tolist()} (flange frame; for a tool drawn along the "
+             "flange's z, toward x / toward y); the tool frame's rx, ry are a rotation vector's (a lean toward x is a "
+             "turn about y)"]
     extra = {"axis": fit.axis.tolist(), "axis_std_deg": axis_std_deg,
              "axis_off_drawing_deg": float(np.degrees(np.arccos(np.clip(fit.axis @ drawn, -1.0, 1.0)))),
              "expected_axis_error_deg": float(np.rad2deg(design.expected_error)),
              "design_condition": design.condition, "contact_reach_mm": reach_mm,
              "n_touches": int(len(dataset)), "n_crossings": n,
-             "rotation_about_axis": "convention: solvers.se3.rotvec_from_z(axis)"}
+             "rotation_about_axis": f"kept from {ref.source}", "position": f"kept from {ref.source}"}
     return Result(name, params, fit.residuals_mm, float(expected), fit.condition, gate_list, tool_frame=frame,
-                  notes=notes, extra=extra)
+                  notes=notes, extra=extra, determines=tool_frame.AXIS_ONLY)

@@ -14,7 +14,9 @@ Every edge is recorded with the flange pose and velocity interpolated in the rob
 state stream at the edge's device timestamp. The fit (:mod:`cellcal.solvers.tcp_laser`)
 finds the tip and the axis in the flange frame, where the beams really are, their
 widths, and the trigger latency: each sweep's return crosses the same place the other way,
-so the latency is measured, not assumed. Tilting the tool is what separates the height of
+so the latency is measured, not assumed. The tool frame written has the tip and the axis
+found; its turn about the axis (not measured: a round tool has none) is kept from the
+controller's frame before the run (:mod:`.tool_frame`). Tilting the tool is what separates the height of
 the beams from the length of the tool; turning it, the tool's offset from where the beams
 are. The arm's repeatability, drawn afresh for every motion, is what limits the result,
 so the plan spends its time on many short motions.
@@ -45,7 +47,7 @@ from cellcal.config.robot_files import load_robot
 from cellcal.solvers import se3
 from cellcal.solvers import tcp_laser as laser
 from cellcal.solvers.inverse import tcp_poses
-from cellcal.routines import gates
+from cellcal.routines import gates, tool_frame
 from cellcal.routines.base import Devices, Gate, Move, Parameter, Result, Routine, RoutineError, drawn_tool
 from cellcal.routines.drawing import beam_crossings
 from cellcal.routines.records import Dataset
@@ -86,6 +88,7 @@ class TcpLaser(Routine):
     selector = 1
     needs = ("robot", "trigger")
     text_columns = ("kind", "edge")
+    nan_columns = ("height_mm",)  # travel and approach moves are at no height along the tool
 
     @classmethod
     def read_options(cls, section: Section, cell: Cell) -> TcpLaserOptions:
@@ -328,7 +331,8 @@ class TcpLaser(Routine):
 
 
 def _result(name, fit: laser.LaserFit, geometry, beams, cell: Cell, options: TcpLaserOptions, meta) -> Result:
-    frame = fit.tool_frame
+    ref = tool_frame.reference(meta.get("tool_frame_before"), np.asarray(meta["planned_tool"], dtype=float))
+    frame, frame_notes = tool_frame.compose(tool_frame.TIP_AND_AXIS, ref, tip_m=fit.tip_mm / 1e3, axis=fit.axis)
     e1, e2 = laser.axis_pair(geometry.axis)
     tilt = [float(np.degrees(np.arctan2(fit.axis @ e, fit.axis @ geometry.axis))) for e in (e1, e2)]
     std = dict(zip(fit.names, fit.std))
@@ -355,13 +359,17 @@ def _result(name, fit: laser.LaserFit, geometry, beams, cell: Cell, options: Tcp
     gate_list = [
         gates.residual(float(np.sqrt(np.mean(fit.residuals_mm**2))), float(np.sqrt(np.mean(fit.sigma_mm**2)))),
         gates.conditioning(fit.condition), gates.identifiability(undetermined),
-        gates.plausible_tool(frame, cell.tool), gates.agrees_with_previous(frame, meta.get("tool_frame_before")),
+        gates.plausible_tool(frame, cell.tool, determines=tool_frame.TIP_AND_AXIS),
+        gates.agrees_with_previous(frame, meta.get("tool_frame_before"), determines=tool_frame.TIP_AND_AXIS),
         Gate("latency", latency_ok, latency_ms, options.max_latency_ms,
              f"trigger latency {latency_ms:.3f} +- {latency_std_ms:.3f} ms"
              + (f" is within 0..{options.max_latency_ms:g} ms" if latency_ok else
                 f" is outside 0..{options.max_latency_ms:g} ms: are the barrier's and the robot's clocks the same?"))]
-    notes = ["the rotation of the tool frame about the tool axis is not measured (a round tool has none): it is "
-             "fixed by convention, the smallest turn from the flange's z (solvers.se3.rotvec_from_z)",
+    notes = [*frame_notes,
+             f"axis_tilt_x_deg / axis_tilt_y_deg: how far the found axis leans from the drawn axis toward "
+             f"{np.round(e1, 3).tolist()} / {np.round(e2, 3).tolist()} (flange frame; for a tool drawn along the "
+             "flange's z, toward x / toward y); the tool frame's rx, ry are a rotation vector's (a lean toward x is a "
+             "turn about y)",
              f"the tool radius is taken from [tool] ({geometry.tool_radius_mm:g} mm): the barrier measures only "
              "the tool radius plus the beam's half width",
              "the beams' directions are taken from [beams]; their positions are fitted"]
@@ -370,6 +378,6 @@ def _result(name, fit: laser.LaserFit, geometry, beams, cell: Cell, options: Tcp
     extra = {"latency_ms": latency_ms, "latency_std_ms": latency_std_ms,
              "tcp_std_mm": float(np.linalg.norm(fit.tip_std_mm)), "axis_std_deg": fit.axis_std_deg,
              "speed_mm_s": float(meta.get("speed_mm_s", options.speed_mm_s)), "n_edges": int(len(fit.residuals_mm)),
-             "beams": beam_report, "rotation_about_axis": "convention: solvers.se3.rotvec_from_z(axis)"}
+             "beams": beam_report, "rotation_about_axis": f"kept from {ref.source}"}
     return Result(name, params, fit.residuals_mm, float(np.sqrt(np.mean(fit.sigma_mm**2))), fit.condition, gate_list,
-                  tool_frame=frame, notes=notes, extra=extra)
+                  tool_frame=frame, notes=notes, extra=extra, determines=tool_frame.TIP_AND_AXIS)

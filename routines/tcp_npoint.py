@@ -18,7 +18,11 @@ The pivot fixes the centre of the tip's rounding, not the tip: the fit
 (:func:`cellcal.solvers.pivot.fit_pivot`, linear least squares of ``R_i t + p_i = c``
 with seats that did not sit right rejected one at a time and named) finds that centre
 in the flange frame, and the TCP is that centre plus the tool radius along the tool
-axis (the drawn axis, or `tool_axis` from a ``tcf`` result). Before anything moves the
+axis. The routine determines the tip only: the tool frame it writes keeps the whole
+orientation of the controller's frame from before the run (:mod:`.tool_frame`), and the
+axis the radius is added along is that frame's z, so the TCP is the tip of the frame
+written (measure the axis first, with ``tcf`` or ``tcp-laser``). Only where no controller
+frame is known is it the drawn axis, or `tool_axis`. Before anything moves the
 planned orientations are judged by the TCP error they would leave at the arm's stated
 repeatability; a design that cannot reach `target_mm` is refused, saying how much
 spread it needs.
@@ -33,7 +37,7 @@ Section ``tcp_npoint`` of the cell file (all optional)::
     repeatability_mm: 0.03   # the arm's stated repeatability (RMS distance of a repeated pose)
     target_mm: 0.05          # refuse a design whose expected TCP error (1 sigma) is larger
     outlier_k: 4             # a seat off by more than k robust sigmas is rejected
-    tool_axis: [0, 0, 1]     # the tool axis in the flange frame (from tcf), else the drawing's
+    tool_axis: [0, 0, 1]     # the tool axis in the flange frame (from tcf) where no controller frame is known
 """
 from __future__ import annotations
 
@@ -48,7 +52,7 @@ from cellcal.solvers import pivot as pv
 from cellcal.solvers import se3
 from cellcal.solvers.inverse import inverse, tcp_frames
 from cellcal.solvers.robot_model import KinematicModel
-from cellcal.routines import gates
+from cellcal.routines import gates, tool_frame
 from cellcal.routines.base import (Design, Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError,
                                    StepRoutine, drawn_tool)
 from cellcal.routines.drawing import seats_about_pivot
@@ -271,11 +275,12 @@ class TcpNpoint(StepRoutine):
 def _result(name, dataset, cell: Cell, options: TcpNpointOptions, fit: pv.PivotFit, design: pv.Design) -> Result:
     meta = dataset.meta
     planned = np.asarray(meta["planned_tool"], dtype=float)
-    drawn_axis = se3.rotvec_to_matrix(planned[3:])[:, 2]
-    axis = options.tool_axis if options.tool_axis is not None else drawn_axis
+    ref = tool_frame.reference(meta.get("tool_frame_before"), planned, axis=options.tool_axis,
+                               axis_option="tool_axis of [tcp_npoint]")
+    axis = ref.axis  # the axis of the frame written: the TCP on any other would not be its frame's tip
     radius_mm = float(meta["tool_radius_m"]) * 1e3
     tcp_mm = fit.tool_point + radius_mm * axis
-    frame = np.concatenate([tcp_mm / 1e3, se3.rotvec_from_z(axis)])
+    frame, frame_notes = tool_frame.compose(tool_frame.TIP_ONLY, ref, tip_m=tcp_mm / 1e3)
     seats = dataset["seat"].astype(int) if "seat" in dataset.columns else np.arange(1, len(dataset) + 1)
     n_kept = int(fit.kept.sum())
     kept_residuals = fit.residuals_mm[fit.kept]
@@ -301,19 +306,20 @@ def _result(name, dataset, cell: Cell, options: TcpNpointOptions, fit: pv.PivotF
         if cell.pivot_m is not None else float("nan")
     undetermined = [f"tcp_{c}_mm" for c, s in zip("xyz", design.std) if not s <= MAX_STD_MM]
     gate_list = [gates.residual(rms, expected), gates.conditioning(fit.condition),
-                 gates.identifiability(undetermined), seating, gates.plausible_tool(frame, cell.tool),
-                 gates.agrees_with_previous(frame, meta.get("tool_frame_before"))]
+                 gates.identifiability(undetermined), seating,
+                 gates.plausible_tool(frame, cell.tool, determines=tool_frame.TIP_ONLY),
+                 gates.agrees_with_previous(frame, meta.get("tool_frame_before"), determines=tool_frame.TIP_ONLY)]
     params = [Parameter(f"tcp_{c}_mm", float(tcp_mm[j]), float(fit.std[j]), "mm") for j, c in enumerate("xyz")]
     params += [Parameter(f"pivot_{c}_mm", float(fit.pivot_point[j]), float(fit.pivot_std[j]), "mm")
                for j, c in enumerate("xyz")]
-    source = "tool_axis of [tcp_npoint]" if options.tool_axis is not None else "the drawing ([tool] axis)"
+    notes += frame_notes
     notes.append(f"the pivot holds the centre of the tip's rounding; the TCP is that centre plus the tool radius "
-                 f"{radius_mm:g} mm along the axis from {source}: 0.1 deg of axis error moves it "
-                 f"{radius_mm * np.deg2rad(0.1):.4f} mm")
+                 f"{radius_mm:g} mm along the axis of the frame written (the z of {ref.source}): 0.1 deg of axis "
+                 f"error moves it {radius_mm * np.deg2rad(0.1):.4f} mm; run tcf or tcp-laser first for a measured axis")
     extra = {"rejected_seats": rejected, "seat_residuals_mm": lengths.tolist(),
              "expected_tcp_error_mm": design.expected_error, "design_condition": design.condition,
              "tcp_std_mm": float(np.linalg.norm(fit.std)), "tip_centre_mm": fit.tool_point.tolist(),
              "pivot_off_cell_file_mm": offset_mm, "outlier_scale_mm": fit.scale,
-             "rotation_about_axis": "convention: solvers.se3.rotvec_from_z(axis)"}
+             "orientation": f"kept from {ref.source}"}
     return Result(name, params, kept_residuals, float(expected), fit.condition, gate_list, tool_frame=frame,
-                  notes=notes, extra=extra)
+                  notes=notes, extra=extra, determines=tool_frame.TIP_ONLY)

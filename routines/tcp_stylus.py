@@ -14,8 +14,10 @@ by at most ``touch_speed_m_s`` x 2 ms (4 um at 2 mm/s; the solver takes off the 
    side contact can see.
 
 Solving is one least-squares fit (:func:`cellcal.solvers.stylus.fit`) of the axis line (4),
-the stylus (3), the contact radius (1) and the end's place along the axis (1). The turn of
-the tool frame about its axis is a convention (the smallest turn from flange z). On a
+the stylus (3), the contact radius (1) and the end's place along the axis (1). The routine
+determines the tip and the axis; the turn of the tool frame about its axis is kept from the
+controller's frame before the run (:mod:`.tool_frame`), as is the TCP's place along the
+axis when no end-face touch fixes it. On a
 simulated cell ``sim_truth.position_error_mm`` is therefore the TCP's full 3-D error (its
 place along the axis measured by the end-face touches; with ``face_touches: 0`` it would
 hold the convention's error too) and ``axis_error_deg`` the angle between the axes.
@@ -33,8 +35,8 @@ from cellcal.solvers import se3
 from cellcal.solvers import stylus as fitting
 from cellcal.solvers import stylus_design as design
 from cellcal.solvers.inverse import inverse, tcp_frames
-from cellcal.routines import gates
-from cellcal.routines.base import Gate, Move, Parameter, Result, Routine, RoutineError, drawn_tool
+from cellcal.routines import gates, tool_frame
+from cellcal.routines.base import Gate, Move, Parameter, PlanRefused, Result, Routine, RoutineError, drawn_tool
 from cellcal.routines.drawing import contacts_on_cylinder
 from cellcal.routines.records import Dataset
 
@@ -205,8 +207,8 @@ class TcpStylus(Routine):
             if prev is None or prev[0] != probe.station:
                 q_above = inverse(self.model, above, q, self.cell.tool.tcp_pose)
                 if q_above is None:
-                    raise RoutineError(f"{label}: no joint solution for the pose above it "
-                                       f"{np.round(above[:3], 4).tolist()} m; reduce tilt_deg or sides_deg")
+                    raise PlanRefused(f"{label}: no joint solution for the pose above it "
+                                      f"{np.round(above[:3], 4).tolist()} m; reduce tilt_deg or sides_deg")
                 near = np.array(q, float)  # the last joint turns the tool: keep its sweep centred on home
                 near[-1] = self.cell.home_q_rad[-1] + np.deg2rad(probe.roll_deg)
                 q = design.nearest_turn(q_above, near, self.model.joint_limits)
@@ -249,8 +251,8 @@ class TcpStylus(Routine):
                                 tool.length_m, np.asarray(stylus["centre_m"]), stylus["radius_m"])
         for move, gap, need in zip(plan, gaps, clearance_mm):
             if gap < need / 2e3 and not move.label.endswith((": back off", ": retract")):
-                raise RoutineError(f"move '{move.label}' would pass the stylus {gap * 1e3:.1f} mm away; "
-                                   "change tilt_deg, sides_deg or retreat_mm")
+                raise PlanRefused(f"move '{move.label}' would pass the stylus {gap * 1e3:.1f} mm away; "
+                                  "change tilt_deg, sides_deg or retreat_mm")
 
     # -- measuring -----------------------------------------------------------------------
 
@@ -318,7 +320,10 @@ class TcpStylus(Routine):
                 progress(f"contact {n}: re-aimed on {len(rows)} contacts; the stylus is "
                          f"{np.linalg.norm(offset):.3f} mm from where [stylus] says")
             shift, approach = self._reaim(probe, estimate)
-            steps, prev, q = self._steps(n, probe, prev, shift, approach, q)
+            try:
+                steps, prev, q = self._steps(n, probe, prev, shift, approach, q)
+            except PlanRefused as exc:  # re-aimed on the stylus found, mid-run: the arm has moved already
+                raise RoutineError(f"re-aimed on the stylus: {exc}") from None
             for move in steps[:-5]:
                 robot.run(move)
             robot.run(steps[-5])
@@ -369,28 +374,35 @@ class TcpStylus(Routine):
             raise RoutineError(f"{where}: the contacts do not determine the tool: {exc}") from None
         seen = design.determined(fit)
         n_face = int(np.sum(data.kind == "face"))
-        tip = fit.tip_mm if fit.tip_mm is not None else fit.line.foot(drawn_tip)
-        frame = fitting.tool_frame(fit.line, tip)
+        ref = tool_frame.reference(meta.get("tool_frame_before"), np.asarray(meta["tool_drawn"], dtype=float))
+        tip = fit.tip_mm if fit.tip_mm is not None else fit.line.foot(ref.pose[:3] * 1e3)
+        frame, frame_notes = tool_frame.compose(tool_frame.TIP_AND_AXIS, ref, tip_m=tip / 1e3,
+                                                axis=fit.line.direction)
         shown = fitting.summary(fit, drawn_tip, seen.null_space)
         kept, left_out = fit.residuals_mm[fit.kept], int(np.sum(~fit.kept))
         share = left_out / len(fit.kept)
-        notes = ["the tool frame's z is the tool axis; its turn about the axis is the drawing's convention (the "
-                 "smallest turn from flange z): no contact on a round tool can measure it",
+        notes = ["the tool frame's z is the tool axis; no contact on a round tool can measure its turn about the axis",
+                 *frame_notes,
                  f"the TCP's place along the axis is fixed by {n_face} end-face touches" if n_face else
                  "no end-face touch: the TCP's place along the axis is not measured; it is the point of the found "
-                 "axis nearest the drawn tip (a convention)", *fit.notes]
+                 f"axis nearest the TCP of {ref.source} (a convention)",
+                 "tool.rx, tool.ry: the found axis as the rotation vector of the smallest turn from the flange's z (a "
+                 "description of the axis; the tool frame's own rx, ry also carry its kept turn about the axis)",
+                 *fit.notes]
         gate_list = [gates.residual(float(np.sqrt(np.mean(kept**2))), options.contact_noise_mm),
                      gates.conditioning(seen.condition), gates.identifiability(seen.undetermined),
                      Gate("outliers", share <= MAX_OUTLIER_SHARE, share, MAX_OUTLIER_SHARE,
                           f"{left_out} of {len(fit.kept)} contacts left out as outliers" +
                           ("" if share <= MAX_OUTLIER_SHARE else ": too many to trust the rest; is the stylus loose?")),
-                     gates.plausible_tool(frame, cell.tool),
-                     gates.agrees_with_previous(frame, meta.get("tool_frame_before"))]
+                     gates.plausible_tool(frame, cell.tool, determines=tool_frame.TIP_AND_AXIS),
+                     gates.agrees_with_previous(frame, meta.get("tool_frame_before"),
+                                                determines=tool_frame.TIP_AND_AXIS)]
         frame_known = all(ok for name, *_, ok in shown if name.startswith(("tcp", "axis", "tool")))
         extra = {"stylus_mm": fit.stylus_mm.tolist(), "contact_radius_mm": fit.radius_mm,
                  "contacts": {"made": len(dataset), "fitted": int(use.sum()), "end_face": n_face,
                               "coarse_end_face": int(np.sum(~use)), "left_out": left_out},
-                 "tcp_along_axis": "end-face touches" if n_face else "convention: nearest the drawn tip",
+                 "tcp_along_axis": "end-face touches" if n_face else f"convention: nearest the TCP of {ref.source}",
+                 "rotation_about_axis": f"kept from {ref.source}",
                  "rank": seen.rank, "fitted": list(fit.names)}
         if start is not None:  # how far Chang et al.'s coarse stage was from the fine result
             extra["coarse_off_fine_mm"] = float(np.linalg.norm(start.tip_mm - tip))
@@ -401,7 +413,8 @@ class TcpStylus(Routine):
                                        "side"), fit.kept, fit.line.point_mm, fit.line.direction, tip, fit.radius_mm)
         return Result(cls.name, [Parameter(n, v, sd, unit) for n, v, sd, unit, ok in shown if ok], kept,
                       options.contact_noise_mm, seen.condition, gate_list, tool_frame=frame if frame_known else None,
-                      notes=notes, extra=extra, drawing=drawing)
+                      notes=notes, extra=extra, drawing=drawing,
+                      determines=tool_frame.TIP_AND_AXIS if frame_known else tool_frame.NOTHING)
 
 
 def _drawn(tip_m, axis, stylus_m) -> fitting.Estimate:

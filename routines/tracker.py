@@ -39,7 +39,8 @@ from cellcal.solvers.identify import IdentificationError, IdentifyOptions, ident
 from cellcal.solvers.measurement_model import Observations
 from cellcal.solvers.pose_design import Sight, path_clear, select_poses, sighted_candidates, tour
 from cellcal.routines import gates
-from cellcal.routines.base import Gate, Move, Parameter, Result, Routine, RoutineError, frame_text
+from cellcal.routines.base import (Gate, Move, Parameter, PlanRefused, Result, Routine, RoutineError, drawn_tool,
+                                   frame_text)
 from cellcal.routines.drawing import errors_per_pose
 from cellcal.routines.records import Dataset
 
@@ -137,7 +138,7 @@ class TrackerCampaign(Routine):
         q = sighted_candidates(self.model, o.candidates, rng, target_mm=o.target_m * 1e3, normal=o.normal,
                                sight=o.sight, box_mm=box, tool_mm=self._tool()[:3] * 1e3, home_q=home)
         if len(q) < o.poses + o.validation_poses:
-            raise RoutineError(
+            raise PlanRefused(
                 f"{cell.path}: [tracker] only {len(q)} configurations put the target in the instrument's view "
                 f"inside the workspace box; {o.poses + o.validation_poses} poses are asked for: move the "
                 "instrument (instrument_m), widen view_half_angle_deg or target_acceptance_deg, or ask for fewer")
@@ -200,8 +201,13 @@ class TrackerCampaign(Routine):
         return [f"q{j}_rad" for j in range(1, self.model.n_joints + 1)]
 
     def measure(self, devices, robot, plan, progress) -> Dataset:
+        # the tool as drawn while it measures; the controller's frame from before given back
+        # afterwards, as every routine does (this one writes no tool frame)
+        with drawn_tool(robot, self._tool()):
+            return self._measure(devices, robot, plan, progress)
+
+    def _measure(self, devices, robot, plan, progress) -> Dataset:
         o = self.options
-        robot.set_tcp(self._tool())
         t_last = _clock(robot, None)
         n_stops = sum(1 for m in plan if m.label in self._stops)
         for move in plan:
@@ -400,7 +406,7 @@ def _frame(found, options: TrackerOptions) -> dict:
 
 
 def _frame_note(frame: dict) -> str:
-    return (f"robot base in the instrument frame: {frame_text(frame, angle_digits=5)}; for the cell file: "
+    return (f"robot base in the instrument frame: {frame_text(frame, angle_digits=5, lean=False)}; for the cell file: "
             + frame["cell_file"].replace("\n  ", " "))
 
 

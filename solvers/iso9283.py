@@ -34,6 +34,11 @@ from dataclasses import dataclass
 import numpy as np
 
 POSES = ("P1", "P2", "P3", "P4", "P5")
+# The standard's table of the number of cycles asks for 30 for pose accuracy and repeatability.
+STANDARD_CYCLES = 30
+# With two cycles both attained positions lie equally far from their barycentre (the midpoint), so
+# S_l is 0 by construction and RP_l says nothing: three is the least that measures a spread of l_j.
+MIN_CYCLES = 3
 DISTANCE_PAIR = ("P2", "P4")
 CORNER_FRACTION = 0.10  # clause 6.8: P2 .. P5 at 10 % of the diagonal from the corners
 
@@ -73,10 +78,10 @@ class DistanceCharacteristics:
 
 
 def pose_characteristics(pose: str, commanded_mm, attained_mm) -> PoseCharacteristics:
-    """AP and RP of one pose (clauses 7.2.1, 7.2.2); commanded (3,), attained (n, 3), n >= 2."""
+    """AP and RP of one pose (clauses 7.2.1, 7.2.2); commanded (3,), attained (n, 3), n >= MIN_CYCLES."""
     x = np.asarray(attained_mm, dtype=float)
-    if len(x) < 2:
-        raise ValueError(f"{pose}: {len(x)} attained positions; repeatability needs at least 2 cycles")
+    if len(x) < MIN_CYCLES:
+        raise ValueError(f"{pose}: {len(x)} attained positions; repeatability needs at least {MIN_CYCLES} cycles")
     bar = x.mean(axis=0)
     ap = bar - np.asarray(commanded_mm, dtype=float)
     l = np.linalg.norm(x - bar, axis=1)

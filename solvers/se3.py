@@ -115,3 +115,40 @@ def rotvec_from_z(axis) -> np.ndarray:
     if sin < 1e-12:
         return np.zeros(3) if cos > 0 else np.array([np.pi, 0.0, 0.0])
     return turn / sin * np.arctan2(sin, cos)
+
+
+def turn_between(a, b) -> np.ndarray:
+    """The rotation vector of the smallest turn that takes direction `a` onto direction `b`
+    (both normalised here). Opposite directions have no single smallest turn: half a turn
+    about the direction across `a` nearest the x axis (nearest y when `a` is along x), so
+    ``turn_between(z, axis)`` is :func:`rotvec_from_z`'s turn."""
+    a = np.asarray(a, dtype=float) / np.linalg.norm(a)
+    b = np.asarray(b, dtype=float) / np.linalg.norm(b)
+    turn = np.cross(a, b)
+    sin, cos = float(np.linalg.norm(turn)), float(a @ b)
+    if sin >= 1e-12:
+        return turn / sin * np.arctan2(sin, cos)
+    if cos > 0:
+        return np.zeros(3)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    across = helper - (helper @ a) * a
+    return np.pi * across / np.linalg.norm(across)
+
+
+def with_z_axis(rotvec, axis) -> np.ndarray:
+    """The orientation `rotvec` turned by the smallest rotation that takes its z axis onto
+    `axis` (same frame as the orientation's columns): the rotation vector of ``T @ R``.
+    What the orientation says about the turn about its z axis is kept: ``T`` turns about a
+    direction across both axes, never about either."""
+    rotation = rotvec_to_matrix(rotvec)
+    turn = rotvec_to_matrix(turn_between(rotation[:, 2], axis))
+    return matrix_to_rotvec(turn @ rotation)
+
+
+def z_axis_lean(rotvec) -> tuple[float, float]:
+    """How far the z axis of orientation `rotvec` leans from the z of the frame it is given
+    in toward that frame's x and toward its y (rad): ``atan2(z.x, z.z)``, ``atan2(z.y, z.z)``.
+    A lean toward x is a turn about y, so for small angles it is the rotation vector's ry,
+    and the lean toward y is minus its rx."""
+    z = rotvec_to_matrix(rotvec)[:, 2]
+    return float(np.arctan2(z[0], z[2])), float(np.arctan2(z[1], z[2]))

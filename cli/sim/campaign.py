@@ -23,9 +23,12 @@ from cellcal.solvers.identify import REGULARIZE, IdentifyOptions, identify
 from cellcal.solvers.measurement_model import Observations, predict
 from cellcal.solvers.pose_design import select_poses
 from cellcal.cli.sim import iso9283_campaign
-from cellcal.cli.common import UsageError, check_seed, output_folder, print_progress
+from cellcal.cli.common import SEED, UsageError, print_progress, whole, writable_folder
 from cellcal.reports.identification import error_stats
+from cellcal.solvers.iso9283 import MIN_CYCLES, STANDARD_CYCLES
 
+MAX_POSES = 10_000  # ten times the largest calibration campaign measured in practice
+MAX_CANDIDATES = 100_000  # the D-optimal choice holds a Jacobian per candidate
 
 
 def add_parser(sub):
@@ -37,27 +40,31 @@ def add_parser(sub):
                                    "against the simulation's hidden truth — which only this report reads, "
                                    "after the solver has finished.")
     p.add_argument("--robot", default="ur10e", help="robot model file or shipped name (default ur10e)")
-    p.add_argument("--poses", type=int, default=60, help="calibration poses to measure (default 60)")
-    p.add_argument("--candidates", type=int, default=600,
-                   help="random candidate configurations the poses are chosen from (default 600)")
-    p.add_argument("--validate-poses", type=int, default=300, help="fresh validation poses (default 300)")
+    p.add_argument("--poses", type=whole(10, MAX_POSES), default=60,
+                   help=f"calibration poses to measure, 10 .. {MAX_POSES} (default 60)")
+    p.add_argument("--candidates", type=whole(10, MAX_CANDIDATES), default=600,
+                   help=f"random candidate configurations the poses are chosen from, at least --poses, at most "
+                        f"{MAX_CANDIDATES} (default 600)")
+    p.add_argument("--validate-poses", type=whole(1, MAX_POSES), default=300,
+                   help=f"fresh validation poses, 1 .. {MAX_POSES} (default 300)")
     p.add_argument("--regularize", choices=REGULARIZE, default="cv",
                    help="as for cellcal identify (default cv)")
-    p.add_argument("--seed", type=int, default=1, help="seed of the simulated cell's hidden errors and noise")
+    p.add_argument("--seed", type=SEED, default=1,
+                   help=f"seed of the simulated cell's hidden errors and noise, 0 .. {SEED.high} (default 1)")
     p.add_argument("--out", default="out/sim-campaign", help="folder for cal.csv and val.csv")
     p.add_argument("--iso9283", action="store_true",
                    help="instead: hidden geometric errors and joint-2 compliance, calibrate with analyze, then an "
                         "ISO 9283 cube test before calibration, after, and after compensation, with a report in "
                         "OUT/report")
-    p.add_argument("--cycles", type=int, default=30, help="--iso9283: cycles over P1 .. P5 (default 30)")
+    p.add_argument("--cycles", type=whole(MIN_CYCLES, 1000), default=STANDARD_CYCLES,
+                   help=f"--iso9283: cycles over P1 .. P5, {MIN_CYCLES} .. 1000 (default {STANDARD_CYCLES}, "
+                        "as the standard asks)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 
 
 def _iso9283(args, out) -> int:
     """The ISO 9283 campaign (``iso9283_campaign``) on an arm with a hidden compliance."""
-    if args.cycles < 2:
-        raise UsageError(f"--cycles must be at least 2 (repeatability needs repeated cycles), got {args.cycles}")
     model = load_robot(args.robot)
     rng = np.random.default_rng(args.seed)
     arm = PhysicalArm(model, rng, [HiddenEffect("joint_compliance", 1, rms_mm=0.4)], target_offsets=[[0.0, 0.0, 100.0]])
@@ -71,10 +78,10 @@ def _truth_error(arm: SimulatedArm, layout, x, obs: Observations) -> np.ndarray:
 
 
 def run(args) -> int:
-    if args.poses < 10 or args.candidates < args.poses or args.validate_poses < 1:
-        raise UsageError("need --poses >= 10, --candidates >= --poses and --validate-poses >= 1")
-    check_seed(args.seed)
-    out = output_folder(args.out, "--out")
+    if args.candidates < args.poses:
+        raise UsageError(f"--candidates {args.candidates}: fewer than --poses {args.poses}; the poses are chosen "
+                         "from the candidates")
+    out = writable_folder(args.out, "--out")
     if args.iso9283:
         return _iso9283(args, out)
     t0 = time.perf_counter()

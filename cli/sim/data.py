@@ -8,13 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
-from cellcal.cli.common import UsageError, check_positive, check_seed, output_file, print_progress
+from cellcal.cli.common import SEED, UsageError, counted, number, print_progress, whole, writable_file
 from cellcal.config.robot_files import load_robot
 from cellcal.measurements.table import write_measurements
 from cellcal.sims.physics.physical_arm import CAUSE_IDS, HiddenEffect, PhysicalArm
 from cellcal.sims.physics.workspace import full_workspace
 
 # trigger latency needs joint velocities at the triggers, which a static pose campaign has not
+MAX_POSES = 100_000  # a campaign 100x larger than any measured (about 2 s to simulate)
 SIM_DATA_CAUSES = tuple(c for c in CAUSE_IDS if c != "trigger_latency")
 
 
@@ -25,12 +26,15 @@ def add_parser(sub) -> None:
                                    "(rows in measured order, approach directions implied). The effect's "
                                    "true size goes to a separate truth file, never into the CSV.")
     p.add_argument("--robot", default="ur10e", help="robot model file or shipped name (default ur10e)")
-    p.add_argument("--poses", type=int, default=300, help="random poses to measure (default 300)")
+    p.add_argument("--poses", type=whole(1, MAX_POSES), default=300,
+                   help=f"random poses to measure, 1 .. {MAX_POSES} (default 300)")
     p.add_argument("--effect", action="append", default=[], metavar="CAUSE[:JOINT]",
                    help="hidden effect, e.g. joint_compliance:2 or thermal_drift (joint 1-based); repeatable; "
                         f"causes: {', '.join(SIM_DATA_CAUSES)}")
-    p.add_argument("--rms-mm", type=float, default=0.3, help="TCP displacement of each effect, rms (default 0.3)")
-    p.add_argument("--seed", type=int, default=1, help="seed of the hidden sizes, poses and noise (default 1)")
+    p.add_argument("--rms-mm", type=number(0.0, 100.0, above=True, unit="mm"), default=0.3,
+                   help="TCP displacement of each effect, rms, above 0 and at most 100 (default 0.3)")
+    p.add_argument("--seed", type=SEED, default=1,
+                   help=f"seed of the hidden sizes, poses and noise, 0 .. {SEED.high} (default 1)")
     p.add_argument("-o", "--out", required=True, metavar="OUT.csv",
                    help="measurement CSV to write; the hidden truth goes beside it, to OUT.csv.truth.json")
     p.set_defaults(func=run)
@@ -51,11 +55,8 @@ def _hidden_effect(spec: str, rms_mm: float, n_joints: int) -> HiddenEffect:
 
 
 def run(args) -> int:
-    if args.poses < 1:
-        raise UsageError(f"--poses must be at least 1, got {args.poses}")
-    check_positive("--rms-mm", args.rms_mm)
-    check_seed(args.seed)
-    output_file(args.out, "-o")
+    writable_file(args.out, "-o")
+    writable_file(str(args.out) + ".truth.json", "-o (its truth file)")
     model = load_robot(args.robot)
     effects = [_hidden_effect(spec, args.rms_mm, model.n_joints) for spec in args.effect]
     rng = np.random.default_rng(args.seed)
@@ -66,5 +67,5 @@ def run(args) -> int:
     truth = {e.cause: {"joint": None if e.joint is None else e.joint + 1, "size": arm.hidden_size(e)}
              for e in effects}
     Path(str(args.out) + ".truth.json").write_text(json.dumps(truth, indent=1) + "\n")
-    print_progress(f"wrote {args.out} ({args.poses} rows); hidden truth in {args.out}.truth.json")
+    print_progress(f"wrote {args.out} ({counted(args.poses, 'row')}); hidden truth in {args.out}.truth.json")
     return 0

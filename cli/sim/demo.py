@@ -24,6 +24,7 @@ from pymodbus.client import ModbusTcpClient
 from cellcal.config.robot_files import load_robot
 from cellcal.drivers import registry as drivers_registry
 from cellcal.drivers.modbus.panel import PanelMap
+from cellcal.routines import registry
 from cellcal.routines.base import FRAME_KEYS, gate_line, tool_frame_json
 from cellcal.daemon.cells import load_cell
 from cellcal.cli.common import UsageError, print_progress
@@ -86,6 +87,11 @@ def cmd_demo(args) -> int:
     number = next((k for k, v in selectors.items() if v == args.routine), None)
     if number is None:
         raise UsageError(f"--routine {args.routine}: not on the panel's selector ({', '.join(selectors.values())})")
+    why_not = registry.unavailable(args.routine, cell)
+    if why_not is not None:
+        offered = [name for name in selectors.values() if registry.unavailable(name, cell) is None]
+        raise UsageError(f"--routine {args.routine}: this cell cannot run it ({why_not}); it can run: "
+                         f"{', '.join(offered) or 'none'}")
     panel = cell.drivers.get("panel")
     if panel is None or panel.name != "modbus":
         raise UsageError(f"{cell.path}: the demo presses start through a Modbus panel; this cell has none")
@@ -128,7 +134,7 @@ def cmd_demo(args) -> int:
             operator.close()
         shown = subprocess.run(_cellcal("runs", "list", "--json", "--limit", "1", "--state-dir",
                                         str(work / "state")), capture_output=True, text=True, check=True)
-        run_id = json.loads(shown.stdout)[0]["id"]
+        run_id = json.loads(shown.stdout)["runs"][0]["id"]
         detail = json.loads(subprocess.run(_cellcal("runs", "show", str(run_id), "--json", "--state-dir",
                                                     str(work / "state")), capture_output=True, text=True,
                                            check=True).stdout)

@@ -7,7 +7,11 @@ Tests and the simulated cell play the operator and the light barrier through
 the methods below: press buttons, read lamps, record edges.
 
 The tables are separate (coils, discrete inputs, holding and input registers,
-as on most IO modules); an address outside them gets exception response 2.
+as on most IO modules); an address outside them gets exception response 2. The module
+is one unit (``unit_id``): a request to another unit id gets exception response 0x0B
+(gateway target device failed to respond), as from a Modbus TCP gateway with nothing
+behind that id, and nothing is logged (pymodbus' simulator alone would log a KeyError
+traceback and answer 0x04, server device failure).
 
 Faults are injected per Modbus function, which on this module also tells the panel
 from the trigger ring (the ring is its only input registers, function 4):
@@ -20,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import threading
 
+from pymodbus.constants import ExcCodes
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
@@ -32,6 +37,29 @@ from cellcal.drivers.triggers.stream import EDGE_CODES
 
 READ_COILS, WRITE_COIL, READ_HOLDING, WRITE_REGISTER, READ_INPUT = 1, 5, 3, 6, 4
 SERVER_CALL_TIMEOUT_S = 5.0
+
+
+class _OneUnit:
+    """The server's datastore answering for one unit id only. pymodbus' simulator looks any
+    other id up as unit 0 (a KeyError when there is none, which the server logs with its
+    traceback); here such a request gets the exception code a datastore may return instead of
+    values, 0x0B, which the request turns into its exception response."""
+
+    def __init__(self, datastore, unit_id: int):
+        self._datastore, self._unit_id = datastore, unit_id
+
+    async def async_getValues(self, device_id: int, *args, **kwargs):  # noqa: N802 - pymodbus' name
+        if device_id != self._unit_id:
+            return ExcCodes.GATEWAY_NO_RESPONSE
+        return await self._datastore.async_getValues(device_id, *args, **kwargs)
+
+    async def async_setValues(self, device_id: int, *args, **kwargs):  # noqa: N802 - pymodbus' name
+        if device_id != self._unit_id:
+            return ExcCodes.GATEWAY_NO_RESPONSE
+        return await self._datastore.async_setValues(device_id, *args, **kwargs)
+
+    def __getattr__(self, name):  # device_ids() and whatever else the server asks of its datastore
+        return getattr(self._datastore, name)
 
 
 class ModbusCellServer:
@@ -87,6 +115,7 @@ class ModbusCellServer:
         async def listen():
             self._server = ModbusTcpServer([device], address=(self.host, self.port),
                                            trace_pdu=self._faulty_reply, trace_packet=self._withheld)
+            self._server.context = _OneUnit(self._server.context, self.unit_id)
             await self._server.serve_forever(background=True)
             self.port = self._server.transport.sockets[0].getsockname()[1]
 

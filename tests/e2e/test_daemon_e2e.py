@@ -195,6 +195,8 @@ def test_after_kill_9_mid_run_the_daemon_comes_up_idle_nothing_moves_and_the_run
         run = again.cli("runs", "show", "1")
         assert (run["state"], run["result_code"]) == ("interrupted", ResultCode.INTERRUPTED), run
         assert not net.panel.lamps()["busy"]
+        # the panel says it too, not the code of the run before: a PLC acts on the register
+        assert net.panel.result_code() == ResultCode.INTERRUPTED and net.panel.lamps()["fault"]
         frame = net.state()["tcp_offset"]  # the run had set the drawing; the old frame is given back
     finally:
         assert again.stop() == 0

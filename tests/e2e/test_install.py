@@ -197,7 +197,7 @@ def test_version_and_help_from_outside_the_repository(venv, outside):
 
 def test_a_routine_runs_on_the_simulated_cell_and_finds_the_frame(venv, outside):
     result = json.loads(cellcal(venv, outside, "run", "tcp-laser", "--cell", "sim", "--json", "--out", "runs").stdout)
-    assert result["routine"] == "tcp-laser" and result["write_back"] is True, result.get("reasons")
+    assert result["routine"] == "tcp-laser" and result["passed_gates"] is True, result.get("reasons")
     assert all(g["passed"] for g in result["gates"])
     frame = result["tool_frame"]
     assert abs(frame["z_mm"] - 150.0) < 5.0  # the drawn 150 mm pin, as found

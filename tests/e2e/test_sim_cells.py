@@ -418,6 +418,6 @@ def test_tcp_laser_through_sim_net_against_the_truth(tmp_path, capsys, loopback_
         proc.wait(timeout=10.0)
     score = result["sim_truth"]  # scored with the truth the run builds from the same file
     assert {k: score[k] for k in obeyed} == obeyed
-    assert result["write_back"] and score["position_error_mm"] <= tcp_mm and score["axis_error_deg"] <= axis_deg, score
+    assert result["passed_gates"] and score["position_error_mm"] <= tcp_mm and score["axis_error_deg"] <= axis_deg, score
     latency_ms = next(p["value"] for p in result["parameters"] if p["name"] == "latency_ms")
     assert late_ms[0] <= latency_ms - score["trigger_latency_ms"] <= late_ms[1], latency_ms

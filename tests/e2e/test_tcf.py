@@ -127,7 +127,7 @@ def sim_run(tmp_path_factory):
 
 def test_tcf_finds_the_axis_within_what_the_repeatability_allows(sim_run):
     code, result, dataset = sim_run
-    assert code == 0 and result["write_back"]
+    assert code == 0 and result["passed_gates"]
     expected = result["expected_axis_error_deg"]
     assert expected == pytest.approx(0.0116, abs=0.0005)
     assert result["sim_truth"]["axis_error_deg"] <= 3 * expected

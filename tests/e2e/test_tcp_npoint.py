@@ -141,7 +141,7 @@ def sim_run(tmp_path_factory):
 
 def test_npoint_finds_the_tcp_within_0_05_mm_of_the_hidden_truth(sim_run):
     code, result, dataset = sim_run
-    assert code == 0 and result["write_back"] and result["reasons"] == []
+    assert code == 0 and result["passed_gates"] and result["reasons"] == []
     assert result["sim_truth"]["position_error_mm"] <= 0.05
     assert result["expected_tcp_error_mm"] < 0.02 and result["design_condition"] < 10
     assert result["rejected_seats"] == [] and result["n_measurements"] == 8

@@ -3,7 +3,8 @@ hidden truth (the real tool is a capsule off its drawing, the ball off where the
 
 Errors against the truth: the axis line's distance from the true one at the true tip (mm),
 the angle between the axes (deg), and the TCP's full 3-D error (mm; its place along the axis
-comes from the end-face touches). The turn about the axis is a convention, not scored.
+comes from the end-face touches). The turn about the axis is not measured (the frame keeps the
+controller's), not scored.
 """
 from __future__ import annotations
 
@@ -123,7 +124,9 @@ def test_the_result_says_what_the_data_cannot_measure(default_run):
     _, result, *_ = default_run
     names = [p.name for p in result.parameters]
     assert "tcp.z" in names and not any("rz" in n for n in names)  # the turn about the axis is no result
-    assert any("turn about the axis is the drawing's convention" in n for n in result.notes)
+    assert any("can measure its turn about the axis" in n for n in result.notes)
+    assert any("turn of the tool frame about the tool axis is not measured" in n and "kept from" in n
+               for n in result.notes)
     assert any("fixed by 8 end-face touches" in n for n in result.notes)
     assert result.extra["rank"] == len(result.extra["fitted"]) == 9
 

@@ -78,6 +78,8 @@ def test_registers_held_by_another_client_are_refused_naming_them(ur):
 
 class _Cell:
     name = path = "test cell"
+    drivers: dict = {}  # no device another process could reach: nothing to claim
+    robots: dict = {}
 
 
 def test_rollback_restores_the_running_and_the_stored_frame_from_before_the_write(tmp_path, monkeypatch):
@@ -93,7 +95,7 @@ def test_rollback_restores_the_running_and_the_stored_frame_from_before_the_writ
     store.close()
     monkeypatch.setattr(tool_cmd, "load_cell", lambda path: _Cell())
     monkeypatch.setattr(tool_cmd, "open_drivers", lambda cell: CellDrivers(robot=robot))
-    args = argparse.Namespace(state_dir=str(tmp_path), run=None, cell="test cell")
+    args = argparse.Namespace(state_dir=str(tmp_path), run=None, cell="test cell", json=False)
     assert tool_cmd.cmd_tool_rollback(args) == 0
     robot._closed = False  # the drivers were closed on leaving; look at what the controller holds
     np.testing.assert_array_equal(robot.tcp(), FRAME_A)

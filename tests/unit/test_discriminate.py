@@ -87,12 +87,16 @@ def test_a_lead_beyond_the_margin_is_a_tie_when_the_data_do_not_separate_the_two
     (["--discriminate", "12"], "needs -o"),
     (["-o", "poses.csv"], "belong to --discriminate N"),
     (["--payload-kg", "5"], "belong to --discriminate N"),
-    (["--discriminate", "4", "-o", "poses.csv", "--payload-kg", "-1"], "--payload-kg must be a positive"),
-    (["--discriminate", "0", "-o", "poses.csv"], "at least 1"),
+    (["--discriminate", "4", "-o", "poses.csv", "--payload-kg", "-1"],
+     "argument --payload-kg: must be a number above 0"),
+    (["--discriminate", "0", "-o", "poses.csv"], "argument --discriminate: must be a whole number from 1"),
 ])
 def test_discriminate_refuses_bad_usage_before_computing(argv, message, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    code = main(["analyze", "--robot", SWEEP_ROBOT, "--data", "missing.csv", *argv])
+    try:
+        code = main(["analyze", "--robot", SWEEP_ROBOT, "--data", "missing.csv", *argv])
+    except SystemExit as refused:  # bounded numbers are refused by the argument parser
+        code = refused.code
     err = capsys.readouterr().err
     assert code == 2 and message in err and not (tmp_path / "poses.csv").exists()
 

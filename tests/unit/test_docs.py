@@ -183,6 +183,7 @@ def _exception_factories() -> dict:
     from cellcal.config.cells import CellFileError
     from cellcal.config.reader import ConfigError
     from cellcal.config.robot_files import ModelError
+    from cellcal.daemon.claims import Holder, InUseError
     from cellcal.drivers.interfaces import DeviceError
     from cellcal.drivers.registry import DriverConfigError
     from cellcal.measurements.table import DatasetError
@@ -191,6 +192,7 @@ def _exception_factories() -> dict:
 
     return {
         "DeviceError": lambda: DeviceError("robot", "connection lost"),
+        "InUseError": lambda: InUseError("robot 10.0.0.2", Holder(812, "cellcal daemon --cell cell.yaml")),
         "RoutineError": lambda: RoutineError("no edges seen"),
         "ValueError": lambda: ValueError("singular"),
         "IdentificationError": lambda: IdentificationError("degenerate data"),
@@ -205,6 +207,8 @@ def _exception_factories() -> dict:
         "ModelError": lambda: ModelError("unknown key", source="robot.yaml", key="y"),
         "CellFileError": lambda: CellFileError("unknown key", source="cell.yaml", key="z"),
         "DriverConfigError": lambda: DriverConfigError("unknown option", key="speed"),
+        "OSError": lambda: FileNotFoundError(2, "No such file or directory", "cal.csv"),
+        "Exception": lambda: KeyError("a defect"),  # any other kind
     }
 
 
@@ -282,7 +286,7 @@ def test_exit_status_table_matches_what_the_command_line_does(capsys):
 @pytest.mark.parametrize("old,new", [
     ("`DeviceError`, `RoutineError`", "`RoutineError`"),  # a kind dropped from the table
     ("| 2 | bad usage or bad input | `argparse`, `UsageError`", "| 1 | bad usage or bad input | `argparse`, `UsageError`"),
-    ("`MemoryError`, `KeyboardInterrupt` |", "`MemoryError`, `KeyboardInterrupt`, `DatasetError` |"),
+    ("`Exception` (any other: a defect) |", "`Exception` (any other: a defect), `DatasetError` |"),
 ])
 def test_exit_status_check_catches_a_wrong_table(tmp_path, capsys, old, new):
     text = (DOCS / "cli.md").read_text(encoding="utf-8")

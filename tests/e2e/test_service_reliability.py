@@ -1,0 +1,227 @@
+"""The service against a hostile operator and a bad morning, in process on the simulated cell.
+
+The operator plays the SimPanel; the store is a real one in the test's folder. What needs
+the networked cell and the daemon as a process (Ctrl-C, a restart with a stop still on,
+the Modbus coils written together) is in test_service_reliability_net.py.
+"""
+from __future__ import annotations
+
+import sqlite3
+import threading
+
+import numpy as np
+import pytest
+
+from cellcal.daemon import service as service_module
+from cellcal.daemon.cells import load_cell, open_drivers
+from cellcal.daemon.service import ResultCode, Service
+from cellcal.daemon.store import Store
+from cellcal.drivers.interfaces import RobotState
+from cellcal.routines import registry
+
+SELECT = {name: number for number, name in service_module.panel_routines().items()}
+CALIBRATED = np.array([0.0004, -0.0003, 0.1496, 0.004, -0.003, 0.0])  # a previous calibration's frame
+
+
+@pytest.fixture
+def cell():
+    return load_cell("sim")
+
+
+def service_on(cell, drivers, folder, store=None) -> Service:
+    return Service(cell, drivers, store or Store.open(folder / "state"), out_dir=folder / "state" / "datasets")
+
+
+def press(service: Service, panel, routine: str | int, *, abort: bool = False):
+    panel.select_routine(SELECT.get(routine, routine))
+    panel.press_start()
+    if abort:
+        panel.press_abort()
+    service.poll_panel()
+    return service.wait(120)
+
+
+def test_start_pressed_together_with_abort_starts_nothing(cell, tmp_path):
+    with open_drivers(cell) as drivers:
+        service = service_on(cell, drivers, tmp_path)
+        q = drivers.robot.actual_q()
+        press(service, drivers.panel, "tcp-laser", abort=True)
+        assert not service.busy() and service.store.runs() == []
+        np.testing.assert_array_equal(drivers.robot.actual_q(), q)
+        # the press is answered (counted, so a PLC sees it): abort won
+        assert drivers.panel.result_code == ResultCode.ABORTED and drivers.panel.run_counter == 1
+        assert not drivers.panel.lamps["busy"]
+        assert [kind for _, kind, _ in service.store.events()] == ["start_discarded"]
+
+
+def test_a_routine_the_cell_cannot_run_is_refused_at_once_with_the_lamps_right(cell, tmp_path):
+    """handshake (selector 4) on a one-robot cell: refused, not a traceback and a stuck busy lamp."""
+    assert registry.unavailable("handshake", cell) is not None
+    with open_drivers(cell) as drivers:
+        service = service_on(cell, drivers, tmp_path)
+        outcome = press(service, drivers.panel, "handshake")
+        assert (outcome.state, outcome.code) == ("refused", ResultCode.NO_SUCH_ROUTINE), outcome.reason
+        assert "two robots" in outcome.reason
+        assert drivers.panel.lamps == {"busy": False, "done": False, "fault": True}
+        assert drivers.panel.result_code == ResultCode.NO_SUCH_ROUTINE
+        assert service.store.run(outcome.run_id).state == "refused"
+
+
+def test_a_blocked_datasets_folder_is_refused_before_anything_moves(cell, tmp_path):
+    with open_drivers(cell) as drivers:
+        service = service_on(cell, drivers, tmp_path)
+        service.out_dir.parent.mkdir(parents=True, exist_ok=True)
+        service.out_dir.write_text("x")  # a file where the datasets folder belongs
+        q, frame = drivers.robot.actual_q(), drivers.robot.tcp()
+        outcome = press(service, drivers.panel, "tcp-npoint")
+        assert (outcome.state, outcome.code) == ("refused", ResultCode.SERVICE_FAULT), outcome.reason
+        assert str(service.out_dir) in outcome.reason
+        np.testing.assert_array_equal(drivers.robot.actual_q(), q)
+        np.testing.assert_array_equal(drivers.robot.tcp(), frame)
+        assert drivers.panel.lamps == {"busy": False, "done": False, "fault": True}
+        assert service.store.owed_frame() is None
+
+
+class FailingStore(Store):
+    """A store that stops taking writes once the run has measured (a disk that filled up, a
+    state folder someone made read-only under the running service)."""
+
+    def record_result(self, run_id, result):
+        raise sqlite3.OperationalError("attempt to write a readonly database")
+
+
+def test_the_service_s_own_fault_mid_run_ends_in_fault_with_its_code_and_the_old_frame(cell, tmp_path):
+    with open_drivers(cell) as drivers:
+        drivers.robot.set_tcp(CALIBRATED)
+        store = FailingStore(tmp_path / "state" / "cellcal.db")
+        service = service_on(cell, drivers, tmp_path, store)
+        outcome = press(service, drivers.panel, "tcp-npoint")
+        assert (outcome.state, outcome.code) == ("fault", ResultCode.SERVICE_FAULT), outcome.reason
+        assert "readonly database" in outcome.reason
+        assert drivers.panel.lamps == {"busy": False, "done": False, "fault": True}
+        assert drivers.panel.result_code == ResultCode.SERVICE_FAULT and not service.busy()
+        np.testing.assert_array_equal(drivers.robot.tcp(), CALIBRATED)  # never the drawing
+        assert store.run(outcome.run_id).state == "fault"  # not left open for the next start
+
+
+def test_the_done_lamp_means_a_frame_was_written_and_a_new_run_clears_the_lamps(cell, tmp_path):
+    with open_drivers(cell) as drivers:
+        service = service_on(cell, drivers, tmp_path)
+        panel = drivers.panel
+        outcome = press(service, panel, 99)  # no routine: refused, fault lamp
+        assert outcome.code == ResultCode.NO_SUCH_ROUTINE and panel.lamps["fault"]
+        seen = []
+        real = panel.set_lamps
+        panel.set_lamps = lambda **lamps: (seen.append(dict(lamps)), real(**lamps))[1]
+        outcome = press(service, panel, "tcp-npoint")
+        assert (outcome.state, outcome.code) == ("done", ResultCode.OK), outcome.reason
+        assert seen[0] == {"busy": True, "done": False, "fault": False}  # the start cleared the last run's lamps
+        assert panel.lamps == {"busy": False, "done": True, "fault": False}
+        assert len(service.store.tool_frames()) == 1
+
+
+def test_a_run_that_writes_no_frame_does_not_light_the_done_lamp(cell, tmp_path):
+    """A routine that determines no tool frame (tracker: the kinematics) ends OK, dark."""
+    with open_drivers(cell) as drivers:
+        service = service_on(cell, drivers, tmp_path)
+        drivers.panel.lamps["done"] = True  # left by an earlier run
+        outcome = service.run("tracker")
+        assert outcome.code in (ResultCode.OK, ResultCode.GATE_FAILED), outcome.reason
+        assert outcome.result is not None and outcome.result.tool_frame is None
+        assert drivers.panel.lamps["done"] is False
+        assert service.store.tool_frames() == []
+
+
+def test_a_start_during_a_run_answers_busy(cell, tmp_path):
+    with open_drivers(cell) as drivers:
+        service = service_on(cell, drivers, tmp_path)
+        release, moving = threading.Event(), threading.Event()
+        robot = drivers.robot
+        real_move = robot.move_j
+
+        def held_move(*args, **kwargs):
+            moving.set()
+            release.wait(30)
+            return real_move(*args, **kwargs)
+        robot.move_j = held_move
+        service.start("tcp-npoint")
+        assert moving.wait(30)
+        drivers.panel.press_start()
+        service.poll_panel()
+        assert drivers.panel.result_code == ResultCode.BUSY and drivers.panel.run_counter == 0
+        assert drivers.panel.lamps["busy"]
+        release.set()
+        robot.move_j = real_move
+        outcome = service.wait(120)
+        assert outcome.code == ResultCode.OK, outcome.reason
+        assert drivers.panel.result_code == ResultCode.OK and drivers.panel.run_counter == 1
+
+
+class LostRobot:
+    """A robot whose connection is gone: it answers nothing useful."""
+
+    def __init__(self, robot):
+        self.robot = robot
+
+    def state(self):
+        return RobotState.DISCONNECTED
+
+    def close(self):
+        pass
+
+    def __getattr__(self, name):
+        return getattr(self.robot, name)
+
+
+def test_a_reconnection_runs_off_the_main_loop_and_a_start_meanwhile_is_not_ready(cell, tmp_path, monkeypatch):
+    """The reconnection blocks (a controller that does not answer the connect): the panel is
+    still served, a start is refused NOT_READY, and the swap comes when the connect does."""
+    monkeypatch.setattr(service_module, "RECONNECT_AFTER_S", 0.0)
+    with open_drivers(cell) as drivers:
+        real = drivers.robot
+        drivers.robot = LostRobot(real)
+        drivers.robots = {"a": drivers.robot}
+        connecting, go_on = threading.Event(), threading.Event()
+
+        def reconnect():
+            connecting.set()
+            assert go_on.wait(30)
+            fresh = open_drivers(cell)
+            fresh.panel = drivers.panel  # the operator's panel in memory stays the same one
+            return fresh
+        service = Service(cell, drivers, Store.open(tmp_path / "state"), out_dir=tmp_path / "datasets",
+                          reconnect=reconnect)
+        service.poll_panel()  # the loss is seen
+        service.poll_panel()  # the reconnection starts
+        assert connecting.wait(10)
+        outcome = press(service, drivers.panel, "tcp-npoint")  # the main loop is not blocked by the connect
+        assert (outcome.state, outcome.code) == ("refused", ResultCode.NOT_READY), outcome.reason
+        assert "reconnecting" in outcome.reason
+        go_on.set()
+        service._reconnecting.join(30)
+        assert service.drivers is not drivers and service.drivers.robot.state() is RobotState.READY
+        service.drivers.close()
+
+
+def test_a_frame_owed_from_before_a_newer_write_never_comes_back(tmp_path):
+    store = Store.open(tmp_path)
+    one = store.begin_run("tcp-npoint", "sim.yaml")
+    store.owe_frame(one, [0.0, 0.0, 0.15, 0.0, 0.0, 0.0])
+    assert store.owed_frame() == (one, [0.0, 0.0, 0.15, 0.0, 0.0, 0.0])
+    two = store.begin_run("tcp-npoint", "sim.yaml")
+    store.owe_frame(two, [0.0, 0.0, 0.149, 0.0, 0.0, 0.0])
+    store.record_tool_frame(two, "write", [0.0, 0.0, 0.149, 0.0, 0.0, 0.0], [0.0, 0.0, 0.1491, 0.0, 0.0, 0.0])
+    assert store.owed_frame() is None  # run 2 wrote a newer frame: run 1's is stale, and so is run 2's
+    three = store.begin_run("tcp-npoint", "sim.yaml")
+    store.owe_frame(three, [0.0, 0.0, 0.1491, 0.0, 0.0, 0.0])
+    assert store.owed_frame() == (three, [0.0, 0.0, 0.1491, 0.0, 0.0, 0.0])
+    store.frame_settled(three)
+    assert store.owed_frame() is None
+    store.close()
+
+
+def test_demo_offers_only_what_the_cell_can_run(capsys):
+    from cellcal.cli.main import main
+    assert main(["demo", "--routine", "handshake"]) == 2  # at once: nothing was started
+    err = capsys.readouterr().err
+    assert "cannot run it" in err and "two robots" in err and "tcp-laser" in err
