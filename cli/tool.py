@@ -58,7 +58,7 @@ def cmd_tool_rollback(args) -> int:
         _print_restored(args, entry["run_id"], frame,
                         None if current.stored is None or target.stored is None else target.stored.generation)
         left = store.writes_not_undone()
-        print_progress(f"a rollback without RUN now undoes run {left[-1]['run_id']}'s write-back" if left else
+        print_progress(f"the next rollback without RUN undoes run {left[-1]['run_id']}'s write-back" if left else
                        "every recorded write-back is now undone: a rollback without RUN has nothing left to undo")
         return 0
     finally:
