@@ -23,6 +23,9 @@ import numpy as np
 import yaml
 
 
+_KEY_LIKE = re.compile(r"[A-Za-z_][A-Za-z0-9_.\-]{0,63}")  # what a key of ours, or a typo of one, looks like
+
+
 class ConfigError(ValueError):
     """A file or option that cannot be used; the message names file, section and key.
 
@@ -89,7 +92,7 @@ class Section:
         read, so a misspelt key is named as such rather than as a missing one)."""
         unknown = [k for k in self.mapping if k not in allowed]
         if unknown:
-            self.fail(unknown[0], f"unknown key (allowed: {', '.join(sorted(map(str, allowed)))})")
+            self._unknown(unknown[0], f"allowed: {', '.join(sorted(map(str, allowed)))}")
         for key in required:
             if key not in self.mapping:
                 self.fail(key, "missing (required)")
@@ -186,8 +189,15 @@ class Section:
         """Refuse keys that no read asked for."""
         unknown = [k for k in self.mapping if k not in self.used]
         if unknown:
-            known = ", ".join(sorted(map(str, self.used)))
-            self.fail(unknown[0], f"unknown key (keys here: {known})")
+            self._unknown(unknown[0], f"keys here: {', '.join(sorted(map(str, self.used)))}")
+
+    def _unknown(self, key, known: str):
+        """An unknown key, named when it looks like one (a typo is shown as typed); a "key"
+        that is no name is not echoed: the file is likely no file of this kind at all, and
+        its first line may be nobody's business (a password file given by mistake)."""
+        if isinstance(key, str) and _KEY_LIKE.fullmatch(key):
+            self.fail(key, f"unknown key ({known})")
+        self.fail(None, f"a key that is no name (not shown): is this the right file? ({known})")
 
 
 def _describe(value) -> str:

@@ -408,7 +408,9 @@ class Service:
                 return
             self._reconnecting = None
         state, now = self._robot_state(), time.monotonic()
-        if state is not RobotState.DISCONNECTED or self.reconnect is None:
+        lost = state is RobotState.DISCONNECTED or any(
+            _state_of(robot) is RobotState.DISCONNECTED for robot in self._other_robots().values())
+        if not lost or self.reconnect is None:
             self._reconnect_at = None
         elif self._reconnect_at is None:
             self._reconnect_at = now + RECONNECT_AFTER_S
@@ -514,6 +516,13 @@ class Service:
 
 def run_id_tag() -> str:
     return f"{threading.get_ident()}-{time.monotonic_ns()}"
+
+
+def _state_of(robot) -> RobotState:
+    try:
+        return robot.state()
+    except DeviceError:
+        return RobotState.DISCONNECTED
 
 
 def _device_code(drivers, exc: DeviceError) -> ResultCode:

@@ -310,3 +310,21 @@ def test_the_protocol_page_spans_the_selector_values():
     values = _selector_values()
     first, last = min(values), max(values)
     assert f"{first} {values[first]} … {last} {values[last]}" in row, row
+
+
+def test_a_file_of_another_kind_is_not_echoed_in_the_message(tmp_path, capsys):
+    """A password file given as a robot model by mistake: its first line is no key of ours and
+    is not printed; a typo of a key still is (the person needs to see what they typed)."""
+    secret = "root:$y$j9T$notahash:19000:0:99999:7:::"
+    shadow = tmp_path / "shadow"
+    shadow.write_text(secret + "\n")
+    typo = tmp_path / "typo.yaml"
+    typo.write_text("name: x\nlnks: []\n")
+    for path, shown in ((shadow, None), (typo, "[lnks]: unknown key")):
+        assert main(["identify", "--robot", str(path), "--data", str(tmp_path / "none.csv")]) == 2
+        err = capsys.readouterr().err
+        assert "notahash" not in err and "root:" not in err
+        if shown:
+            assert shown in err, err
+        else:
+            assert "a key that is no name (not shown)" in err, err
