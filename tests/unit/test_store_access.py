@@ -238,9 +238,9 @@ def test_repeated_rollbacks_walk_back_through_the_history_and_a_run_restores_its
     store_with_writes(tmp_path, sim_path).close()
     rollback = ["tool", "rollback", "--cell", "sim", "--state-dir", str(tmp_path)]
     code, _, err = run_cli(capsys, *rollback)  # undoes run 3: the frame from before it, F2
-    assert code == 0 and "now undoes run 2's write-back" in err
+    assert code == 0 and "next rollback without RUN undoes run 2's write-back" in err
     code, _, err = run_cli(capsys, *rollback)  # then run 2: F1, not F2 again
-    assert code == 0 and "now undoes run 1's write-back" in err
+    assert code == 0 and "next rollback without RUN undoes run 1's write-back" in err
     code, _, _ = run_cli(capsys, "tool", "rollback", "3", "--cell", "sim", "--state-dir", str(tmp_path))
     assert code == 0  # a named run: the frame from before its write, whatever came since
     code, _, err = run_cli(capsys, *rollback)  # run 1 is still in effect underneath: F0
