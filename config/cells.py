@@ -73,6 +73,22 @@ class DriverSpec:
     options: dict = field(default_factory=dict)
 
 
+PLAUSIBLE_MM = 10.0  # a real tool is within this of its drawing (the plausibility gate) ...
+PLAUSIBLE_DEG = 5.0  # ... and its axis within this of the drawn axis
+
+
+@dataclass(frozen=True)
+class Bands:
+    """A tool's tolerance bands for a check (``tcp-check``): within the inner band the tool is
+    fine (nothing written); within the outer one a well-determined shift is corrected (written
+    back); beyond it, an alarm (nothing written). Position in mm, axis in degrees."""
+
+    inner_mm: float = 0.1
+    inner_deg: float = 0.1
+    outer_mm: float = 1.0
+    outer_deg: float = 1.0
+
+
 @dataclass(frozen=True)
 class ToolSpec:
     """The mounted tool as drawn: a cylinder (a pin, a grinding tool) ending in its TCP."""
@@ -81,6 +97,7 @@ class ToolSpec:
     axis: np.ndarray  # unit, flange frame, from the flange toward the tip
     radius_m: float
     length_m: float  # of the cylinder behind the tip
+    bands: Bands = field(default_factory=Bands)
 
     @property
     def tcp_pose(self) -> np.ndarray:
@@ -179,9 +196,26 @@ def _unit(section: Section, key: str, default=None, *, required=False) -> np.nda
 def _read_tool(s: Section) -> ToolSpec:
     tool = ToolSpec(s.vector("tcp_m", 3, required=True), _unit(s, "axis", [0.0, 0.0, 1.0]),
                     s.number("radius_m", 0.003, above=0.0, high=0.1),
-                    s.number("length_m", 0.1, above=0.0, high=2.0))
+                    s.number("length_m", 0.1, above=0.0, high=2.0),
+                    _read_bands(s.section("bands")) if "bands" in s else Bands())
     s.done()
     return tool
+
+
+def _read_bands(s: Section) -> Bands:
+    """[tool.bands]: inner below outer, both above 0; the outer band at most the plausibility
+    gate's limits (a shift beyond those is never a correction)."""
+    d = Bands()
+    inner_mm = s.number("inner_mm", d.inner_mm, above=0.0, high=PLAUSIBLE_MM)
+    inner_deg = s.number("inner_deg", d.inner_deg, above=0.0, high=PLAUSIBLE_DEG)
+    outer_mm = s.number("outer_mm", max(d.outer_mm, inner_mm), above=0.0, high=PLAUSIBLE_MM)
+    outer_deg = s.number("outer_deg", max(d.outer_deg, inner_deg), above=0.0, high=PLAUSIBLE_DEG)
+    if outer_mm < inner_mm:
+        s.fail("outer_mm", f"{outer_mm:g} is inside the inner band {inner_mm:g} mm: the outer band must be wider")
+    if outer_deg < inner_deg:
+        s.fail("outer_deg", f"{outer_deg:g} is inside the inner band {inner_deg:g} deg: the outer band must be wider")
+    s.done()
+    return Bands(inner_mm, inner_deg, outer_mm, outer_deg)
 
 
 def _read_beams(top: Section) -> tuple[BeamSpec, ...]:

@@ -34,11 +34,12 @@ from pathlib import Path
 import numpy as np
 
 from cellcal.drivers.interfaces import DeviceError, DeviceTimeout, RobotState
-from cellcal.routines import registry, runner
+from cellcal.routines import registry, runner, tool_frame
 from cellcal.config.reader import ConfigError
 from cellcal.routines.base import PlanRefused, Result, RoutineAborted, RoutineError
 from cellcal.routines.frames_owed import FramesOwed
 from cellcal.routines.gates import frame_change
+from cellcal.daemon import outcome
 from cellcal.daemon.notify import Notifier
 from cellcal.daemon.store import Store
 from cellcal.daemon.write_back import TOLERANCE, write_back
@@ -63,6 +64,7 @@ class ResultCode(enum.IntEnum):
     COMPUTATION_FAILED = 30
     GATE_FAILED = 31
     WRITE_BACK_FAILED = 32
+    CHECK_ALARM = 33
     ABORTED = 40
     INTERRUPTED = 41
     SERVICE_FAULT = 50
@@ -80,6 +82,8 @@ RESULT_MEANINGS = {
     ResultCode.COMPUTATION_FAILED: "the measurements could not be solved (the routine says why)",
     ResultCode.GATE_FAILED: "the result failed a quality gate and was not written back",
     ResultCode.WRITE_BACK_FAILED: "the controller did not keep the written tool frame; the old one was restored",
+    ResultCode.CHECK_ALARM: "the tool check found the tool beyond its outer band, or could not tell: nothing "
+                            "written; calibrate it deliberately (or replace a bent tool)",
     ResultCode.ABORTED: "aborted by the operator or by a stop of the service; nothing written back",
     ResultCode.INTERRUPTED: "the service died during the run; found at the next start, nothing written back",
     ResultCode.SERVICE_FAULT: "the service could not keep its own records (state folder, datasets, store); "
@@ -281,6 +285,7 @@ class Service:
                   ResultCode.SERVICE_FAULT.name, reason)
         self._active = False
         self._panel("set_lamps", busy=False, done=False, fault=True)
+        self._panel("set_outcome", outcome.registers(None, self._tool_id(), None))
         self._panel("set_result", int(ResultCode.SERVICE_FAULT))
         self.state = "idle"
         return RunOutcome(run_id, "fault", ResultCode.SERVICE_FAULT, reason)
@@ -330,10 +335,16 @@ class Service:
             except OSError as exc:
                 log.warning("run %d: report not written: %s", run_id, exc)
         self._transition(run_id, "gates")
+        if result.verdict == "alarm":  # before the gates: an alarm is never corrected, whatever passed
+            saw = result.extra.get("saw") or "; ".join(result.reasons()) or "beyond the tool's outer band"
+            return self._end(run_id, "fault", ResultCode.CHECK_ALARM, f"tool check alarm: {saw}", result)
         if not result.write_back:
             return self._end(run_id, "fault", ResultCode.GATE_FAILED, "; ".join(result.reasons()), result)
         if self.abort.is_set():
             return self._end(run_id, "aborted", ResultCode.ABORTED, "abort pressed before write-back", result)
+        if result.verdict == "ok":
+            return self._end(run_id, "done", ResultCode.OK, "tool check ok: the tool is within its inner band; "
+                                                            "nothing written", result)
         if result.tool_frame is None:
             return self._end(run_id, "done", ResultCode.OK,
                              f"every gate passed; {routine} determines no tool frame, so nothing was written to "
@@ -509,9 +520,29 @@ class Service:
         self._transition(run_id, state, f"{reason} (code {int(code)} {code.name})")
         # the done lamp says a frame went to the controller; a run that wrote none lights neither
         self._panel("set_lamps", busy=False, done=wrote, fault=state in ("fault", "refused"))
+        self._panel("set_outcome", outcome.registers(None if result is None else result.verdict, self._tool_id(),
+                                                     self._change(result, wrote)))
         self._panel("set_result", int(code))
         self.state = "idle"
         return RunOutcome(run_id, state, code, reason, result)
+
+
+    def _tool_id(self) -> int:
+        """The tool the run was for: the cell's one tool is tool 1 (0: the cell describes none)."""
+        return 1 if getattr(self.cell, "tool", None) is not None else 0
+
+    @staticmethod
+    def _change(result: Result | None, wrote: bool) -> dict | None:
+        """What the outcome registers carry: a check's measured change, else the change of the
+        frame written (against the controller's before the run), else nothing."""
+        if result is None:
+            return None
+        if result.change is not None:
+            return result.change
+        before = result.extra.get("tool_frame_before")
+        if not wrote or result.tool_frame is None or before is None:
+            return None
+        return tool_frame.change(result.tool_frame, before, result.determines)
 
 
 def run_id_tag() -> str:

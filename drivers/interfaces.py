@@ -208,5 +208,10 @@ class OperatorPanel(abc.ABC):
     def set_result(self, code: int, increment_counter: bool = True) -> None:
         ...
 
+    def set_outcome(self, registers: dict[str, int]) -> None:
+        """What a run found, for a PLC or robot program to act on (docs/panel.md "Outcome
+        registers"): register name -> raw 16-bit value, written before the result code and the
+        run counter. A panel without such registers ignores it."""
+
     def close(self) -> None:
         """Release the connection; idempotent."""

@@ -146,6 +146,12 @@ class Result:
     cycle_time_s: float | None = None
     sim_truth: dict | None = None
     drawing: Drawing | None = None
+    # a check (tcp-check): "ok" (nothing to write), "corrected" (write tool_frame), "alarm"
+    # (never write; the service ends the run with CHECK_ALARM); None for a calibration
+    verdict: str | None = None
+    # the measured change of the tool against the frame it was compared with, as the panel
+    # carries it: {"x_mm", "y_mm", "z_mm", "tilt_x_deg", "tilt_y_deg"} (flange frame; None: not determined)
+    change: dict | None = None
 
     @property
     def write_back(self) -> bool:
@@ -176,6 +182,10 @@ class Result:
             out["frame"] = self.frame
         if self.cycle_time_s is not None:
             out["cycle_time_s"] = self.cycle_time_s
+        if self.verdict is not None:
+            out["verdict"] = self.verdict
+        if self.change is not None:
+            out["change"] = self.change
         out.update(self.extra)
         if self.sim_truth is not None:
             out["sim_truth"] = self.sim_truth

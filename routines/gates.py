@@ -7,15 +7,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from cellcal.config.cells import ToolSpec
+from cellcal.config.cells import PLAUSIBLE_DEG, PLAUSIBLE_MM, ToolSpec
 from cellcal.solvers import se3
 from cellcal.routines.base import Gate
 from cellcal.routines.tool_frame import AXIS_ONLY, TIP_AND_AXIS, TIP_ONLY, controller_frame
 
 RESIDUAL_FACTOR = 3.0  # residual RMS may be this many times the expected noise
 MAX_CONDITION = 1e6  # of the scaled normal equations: beyond, some direction is barely measured
-TOOL_PLAUSIBLE_MM = 10.0  # a real tool is within this of its drawing ...
-TOOL_PLAUSIBLE_DEG = 5.0  # ... and its axis within this of the drawn axis
+TOOL_PLAUSIBLE_MM = PLAUSIBLE_MM  # a real tool is within this of its drawing ...
+TOOL_PLAUSIBLE_DEG = PLAUSIBLE_DEG  # ... and its axis within this of the drawn axis (config.cells)
 PREVIOUS_MAX_MM = 2.0  # a recalibration moves the TCP by less than this unless the tool was changed ...
 PREVIOUS_MAX_DEG = 1.0  # ... or bent
 

@@ -138,3 +138,18 @@ def compose(determines, ref: Reference, *, tip_m=None, axis=None) -> tuple[np.nd
                 "measured axis")
     return np.concatenate([position, rotvec]), [kept, *ref.notes]
 
+
+
+def change(new, old, determines=TIP_AND_AXIS) -> dict:
+    """The change of a tool frame as the panel's outcome registers carry it: the tip's
+    x, y, z (mm) and the z axis' lean toward x and y (deg), both in the flange frame, new
+    minus old; None for what `determines` leaves out (daemon/outcome.py)."""
+    new, old = np.asarray(new, dtype=float), np.asarray(old, dtype=float)
+    tip = (new[:3] - old[:3]) * 1e3 if TIP in determines else [None] * 3
+    if AXIS in determines:
+        lean = np.degrees(np.subtract(se3.z_axis_lean(new[3:]), se3.z_axis_lean(old[3:])))
+    else:
+        lean = [None, None]
+    values = [*tip, *lean]
+    return {k: None if v is None else float(v)
+            for k, v in zip(("x_mm", "y_mm", "z_mm", "tilt_x_deg", "tilt_y_deg"), values)}

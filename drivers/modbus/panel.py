@@ -149,6 +149,14 @@ class PanelMap:
     routine_selector_register: int = 0
     result_code_register: int = 1
     run_counter_register: int = 2
+    # the outcome of the last run (written before the result code and the counter)
+    verdict_register: int = 3
+    tool_id_register: int = 4
+    change_x_register: int = 5
+    change_y_register: int = 6
+    change_z_register: int = 7
+    tilt_x_register: int = 8
+    tilt_y_register: int = 9
 
     @classmethod
     def of_options(cls, options) -> "PanelMap":
@@ -163,7 +171,14 @@ class PanelMap:
 
     def holding_registers(self) -> list[int]:
         return [self.routine_selector_register, self.result_code_register,
-                self.run_counter_register]
+                self.run_counter_register, *self.outcome_registers().values()]
+
+    def outcome_registers(self) -> dict[str, int]:
+        """The outcome registers by their name in :meth:`OperatorPanel.set_outcome` -> address."""
+        return {"verdict": self.verdict_register, "tool_id": self.tool_id_register,
+                "change_x": self.change_x_register, "change_y": self.change_y_register,
+                "change_z": self.change_z_register, "tilt_x": self.tilt_x_register,
+                "tilt_y": self.tilt_y_register}
 
 
 class ModbusPanel(OperatorPanel):
@@ -182,7 +197,8 @@ class ModbusPanel(OperatorPanel):
         o.timeout("timeout_s")
         addresses = {f.name: o.integer(f.name, low=0, high=REGISTER_MAX) for f in dataclasses.fields(PanelMap)}
         panel_map = PanelMap(**addresses)
-        if len(set(panel_map.coils())) < 5 or len(set(panel_map.holding_registers())) < 3:
+        if len(set(panel_map.coils())) < len(panel_map.coils()) or \
+                len(set(panel_map.holding_registers())) < len(panel_map.holding_registers()):
             o.fail(None, f"two panel signals share an address ({panel_map})")
 
     def __init__(self, host: str = "127.0.0.1", port: int = 502, *, unit_id: int = 1,
@@ -190,13 +206,11 @@ class ModbusPanel(OperatorPanel):
                  start_request_coil: int = 0, abort_request_coil: int = 1,
                  busy_lamp_coil: int = 8, done_lamp_coil: int = 9, fault_lamp_coil: int = 10,
                  routine_selector_register: int = 0, result_code_register: int = 1,
-                 run_counter_register: int = 2):
-        addresses = dict(start_request_coil=start_request_coil,
-                         abort_request_coil=abort_request_coil, busy_lamp_coil=busy_lamp_coil,
-                         done_lamp_coil=done_lamp_coil, fault_lamp_coil=fault_lamp_coil,
-                         routine_selector_register=routine_selector_register,
-                         result_code_register=result_code_register,
-                         run_counter_register=run_counter_register)
+                 run_counter_register: int = 2, verdict_register: int = 3, tool_id_register: int = 4,
+                 change_x_register: int = 5, change_y_register: int = 6, change_z_register: int = 7,
+                 tilt_x_register: int = 8, tilt_y_register: int = 9):
+        given = locals()
+        addresses = {f.name: given[f.name] for f in dataclasses.fields(PanelMap)}
         self.check_options(port=port, unit_id=unit_id, timeout_s=timeout_s, **addresses)
         self.map = PanelMap(**addresses)
         self.name = name
@@ -235,6 +249,13 @@ class ModbusPanel(OperatorPanel):
             # the daemon is the counter's only writer, so read-modify-write is safe
             counter = self._link.read_holding_registers(self.map.run_counter_register)[0]
             self._link.write_register(self.map.run_counter_register, (counter + 1) & REGISTER_MAX)
+
+    def set_outcome(self, registers: dict[str, int]) -> None:
+        where = self.map.outcome_registers()
+        for name, value in registers.items():
+            if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= REGISTER_MAX:
+                raise ValueError(f"{self.device}: outcome register {name} value {value!r} outside 0..65535")
+            self._link.write_register(where[name], value)
 
     def close(self) -> None:
         self._link.close()

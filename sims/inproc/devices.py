@@ -226,6 +226,7 @@ class SimPanel(OperatorPanel):
         self.lamps = {"busy": False, "done": False, "fault": False}
         self.result_code = 0
         self.run_counter = 0
+        self.outcome: dict[str, int] = {}  # the outcome registers' raw values (daemon/outcome.py)
 
     # the operator's side
     def press_start(self) -> None:
@@ -254,6 +255,9 @@ class SimPanel(OperatorPanel):
         for name, value in (("busy", busy), ("done", done), ("fault", fault)):
             if value is not None:
                 self.lamps[name] = bool(value)
+
+    def set_outcome(self, registers: dict[str, int]) -> None:
+        self.outcome = dict(registers)
 
     def set_result(self, code: int, increment_counter: bool = True) -> None:
         self.result_code = int(code) & 0xFFFF

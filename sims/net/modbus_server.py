@@ -210,6 +210,11 @@ class ModbusCellServer:
     def result_code(self) -> int:
         return self._get(READ_HOLDING, self.panel_map.result_code_register)[0]
 
+    def outcome(self) -> dict[str, int]:
+        """The outcome registers' raw values by name (daemon/outcome.py decodes them)."""
+        return {name: self._get(READ_HOLDING, address)[0]
+                for name, address in self.panel_map.outcome_registers().items()}
+
     def run_counter(self) -> int:
         return self._get(READ_HOLDING, self.panel_map.run_counter_register)[0]
 

@@ -225,3 +225,28 @@ def test_demo_offers_only_what_the_cell_can_run(capsys):
     assert main(["demo", "--routine", "handshake"]) == 2  # at once: nothing was started
     err = capsys.readouterr().err
     assert "cannot run it" in err and "two robots" in err and "tcp-laser" in err
+
+
+def test_the_outcome_registers_carry_the_change_written_before_the_result(cell, tmp_path):
+    """A tcp-npoint run (it determines the tip only): verdict 0, tool 1, the tip's change as
+    written, the tilt not determined; written before the result code and the counter."""
+    from cellcal.daemon import outcome
+
+    with open_drivers(cell) as drivers:
+        drivers.robot.set_tcp(CALIBRATED)
+        service = service_on(cell, drivers, tmp_path)
+        order = []
+        panel = drivers.panel
+        real_outcome, real_result = panel.set_outcome, panel.set_result
+        panel.set_outcome = lambda registers: (order.append("outcome"), real_outcome(registers))[1]
+        panel.set_result = lambda *a, **k: (order.append("result"), real_result(*a, **k))[1]
+        result = press(service, panel, "tcp-npoint")
+        assert result.code == ResultCode.OK, result.reason
+        assert order[-2:] == ["outcome", "result"]
+        seen = outcome.decoded(panel.outcome)
+        written = drivers.robot.tcp()
+        assert seen["verdict"] is None  # 0: a calibration, no check verdict
+        assert seen["tool_id"] == 1 and seen["tilt_x_deg"] is None and seen["tilt_y_deg"] is None
+        for k, key in enumerate(("x_mm", "y_mm", "z_mm")):
+            # the register holds whole thousandths of a mm: within half of one of the frame's change
+            assert seen[key] == pytest.approx((written[k] - CALIBRATED[k]) * 1e3, abs=5e-4)

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from pymodbus.client import ModbusTcpClient
 
+from cellcal.daemon import outcome
 from cellcal.daemon.service import ResultCode
 from cellcal.daemon.store import Store
 from daemon_harness import RUN_TIMEOUT_S, SELECT, Net, press_start, until_the_run_ends
@@ -134,6 +135,15 @@ def test_a_blocked_datasets_folder_then_a_good_run_and_a_restart_keep_the_newest
     assert net.panel.result_code() == ResultCode.OK, daemon.log()
     assert net.panel.lamps() == {"busy": False, "done": True, "fault": False}
     written = frame_on_controller(net)
+    # what a PLC reads with a plain Modbus client: registers 3..9, the outcome (docs/panel.md)
+    with ModbusTcpClient(net.host, port=net.sim.addresses.modbus[1]) as client:
+        raw = client.read_holding_registers(3, count=7, device_id=net.sim.addresses.unit_id).registers
+    seen = outcome.decoded(dict(zip(("verdict", "tool_id", "change_x", "change_y", "change_z", "tilt_x", "tilt_y"),
+                                    raw)))
+    assert seen["verdict"] is None and seen["tool_id"] == 1
+    assert seen["tilt_x_deg"] is None and seen["tilt_y_deg"] is None  # tcp-npoint determines the tip only
+    for k, key in enumerate(("x_mm", "y_mm", "z_mm")):  # whole thousandths: within half of one
+        assert seen[key] == pytest.approx((written[k] - net.previous[k]) * 1e3, abs=5e-4), seen
     assert daemon.stop() == 0
     again = cellcal_daemon(net)
     time.sleep(1.0)  # a second of the idle loop: nothing may come back over run 2's frame
