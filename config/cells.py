@@ -18,7 +18,9 @@ Sections (all lengths in metres, base frame unless said otherwise)::
                 contact_travel_m (the longest a contact search may move), tool_clearance_m
                 (two robots: how close their tools may come anywhere but a planned meeting)
     tool:       the mounted tool as drawn: tcp_m (flange frame), axis (flange frame, from
-                the flange toward the tip), radius_m, length_m
+                the flange toward the tip), radius_m, length_m, and bands (optional: a check's
+                tolerance bands, inner_mm/inner_deg (0.1/0.1) and outer_mm/outer_deg (1/1), the
+                outer at most the plausibility gate's 10 mm / 5 deg)
     beams:      the light barrier's beams as installed: a list of
                 {point_m, direction, radius_m (half the beam width), channel, level_when_blocked}
     stylus:     a fixed stylus tip: centre_m, radius_m

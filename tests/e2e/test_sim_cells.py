@@ -99,6 +99,12 @@ def test_shipped_cells_load():
     ({"tool": {"radius": 0.003}}, "tool", "radius", "unknown key"),
     ({"drivers": {"trigger": {"driver": "laser"}}}, "drivers.trigger", "driver", "no trigger driver named 'laser'"),
     ({"sim_truth": {"trigger_jitter_s": True}}, "sim_truth", "trigger_jitter_s", "is not a number"),  # `yes`
+    # a tool's tolerance bands (tcp-check): negative, inverted, wider than the plausibility gate
+    ({"tool": {"bands": {"inner_mm": -0.1}}}, "tool.bands", "inner_mm", "out of range"),
+    ({"tool": {"bands": {"inner_mm": 0.5, "outer_mm": 0.2}}}, "tool.bands", "outer_mm", "must be wider"),
+    ({"tool": {"bands": {"outer_deg": 6.0}}}, "tool.bands", "outer_deg", "out of range"),
+    ({"tool": {"bands": {"outer_mm": 11.0}}}, "tool.bands", "outer_mm", "out of range"),
+    ({"tool": {"bands": {"inner": 0.1}}}, "tool.bands", "inner", "unknown key"),
 ])
 def test_load_cell_names_file_section_and_key(tmp_path, changes, section, key, what):
     path = edited_cell(tmp_path, "sim", changes)
