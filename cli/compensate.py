@@ -1,11 +1,12 @@
 """``cellcal compensate``: corrected joint values and Cartesian targets from a calibrated model.
 
-TARGETS.csv: ``x_mm, y_mm, z_mm`` of the tool point in the robot base frame, optionally
+TARGETS.csv: ``x_mm, y_mm, z_mm`` of the tool point in the frame ``--frame`` names (the
+controller's base frame by default; ``solvers.compensate.FRAMES``), optionally
 ``qw, qx, qy, qz`` (its orientation), ``q1_deg .. qN_deg`` (or ``_rad``: the program's
 joints, i.e. the branch each target is reached in), ``payload_kg``; other columns are
 copied through. OUT.csv: the input columns, the corrected joints, the corrected
-Cartesian target (nominal forward kinematics of the corrected joints), the correction
-and a status per row (``solvers.compensate``).
+Cartesian target (nominal forward kinematics of the corrected joints, controller frame),
+the correction and a status per row (``solvers.compensate``).
 """
 from __future__ import annotations
 
@@ -19,7 +20,8 @@ from scipy.spatial.transform import Rotation
 from cellcal.config.model_files import load_calibrated, source_model
 from cellcal.config.robot_files import load_robot
 from cellcal.measurements.table import MAX_JOINT, MAX_POSITION_MM, MAX_PAYLOAD_KG
-from cellcal.solvers.compensate import OK, compensate
+from cellcal.solvers.compensate import (FRAMES, JOINT_LIMITS, OK, SINGULAR, SINGULAR_MM_PER_RAD, UNREACHABLE,
+                                        compensate, controller_frame, targets_in_model_frame)
 from cellcal.solvers.effects import Context, approach_directions
 from cellcal.cli.common import UsageError, counted, number, print_progress, writable_file
 
@@ -31,16 +33,31 @@ MAX_TOOL_MM = 5000.0  # a tool point 5 m from the flange is beyond any tool an a
 def add_parser(sub):
     p = sub.add_parser(
         "compensate", help="correct targets with a calibrated model: joints and Cartesian targets",
-        description="For desired tool positions (and orientations) in the robot base frame, compute the joints "
-                    "at which the calibrated model (geometry and effects) reaches them, starting from the nominal "
-                    "inverse of the same branch; write them and the corrected Cartesian targets (nominal forward "
-                    "kinematics of the corrected joints). Rows out of reach, outside the joint limits or near a "
-                    "singularity are reported by row, never clipped.")
+        description="For desired tool positions (and orientations) in the frame --frame names, compute the "
+                    "joints at which the calibrated model (geometry and effects) reaches them, starting from the "
+                    "nominal inverse of the same branch; write them and the corrected Cartesian targets (nominal "
+                    "forward kinematics of the corrected joints, in the controller's base frame). Rows out of reach, "
+                    "outside the joint limits or at a singular configuration (judged by the Jacobian) are reported "
+                    "by row, never clipped.")
     p.add_argument("--robot", required=True, metavar="CALIBRATED.yaml",
                    help="calibrated robot model file (cellcal identify/analyze --write-model)")
-    p.add_argument("--targets", required=True, metavar="TARGETS.csv",
-                   help="x_mm, y_mm, z_mm [, qw, qx, qy, qz] [, q1_deg .. qN_deg (branch)] [, payload_kg]")
-    p.add_argument("-o", "--out", required=True, metavar="OUT.csv", help="corrected targets to write")
+    given = p.add_mutually_exclusive_group(required=True)  # what the targets come in: a table or a program
+    given.add_argument("--targets", metavar="TARGETS.csv",
+                       help="x_mm, y_mm, z_mm [, qw, qx, qy, qz] [, q1_deg .. qN_deg (branch)] [, payload_kg]")
+    given.add_argument("--program", metavar="PROG.script",
+                       help="a URScript program instead: every movej/movel/movep/movec target written as a literal "
+                            "pose p[...] or joint list [...] is compensated as the controller reads it (a pose is the "
+                            "TCP of the set_tcp in force, else --tcp-mm or the calibrated target, in the controller's "
+                            "base frame, solved from the previous target's joints or --seed-deg); -o gets the same "
+                            "program with only those numbers changed. Targets computed at run time are listed, not "
+                            "guessed (docs/programs.md)")
+    p.add_argument("-o", "--out", required=True, metavar="OUT",
+                   help="corrected targets to write (OUT.csv; with --program the compensated program, not the "
+                        "program itself)")
+    p.add_argument("--allow-partial", action="store_true",
+                   help="with --program: write the program even when some literal targets could not be compensated "
+                        "(out of reach, outside the joint limits, at a singularity; left as written and listed); "
+                        "without it such a program ends with status 1 and nothing is written")
     p.add_argument("--nominal", metavar="ROBOT",
                    help="the controller's nominal model (default: the model the calibration started from)")
     p.add_argument("--target", metavar="ID", help="which calibrated target offset is the tool point (default: the first)")
@@ -52,9 +69,19 @@ def add_parser(sub):
                                      "has no joint columns")
     p.add_argument("--unit", choices=("deg", "rad"), help="unit of the joint columns written (default: as TARGETS, "
                                                           "else deg)")
+    p.add_argument("--frame", choices=FRAMES,
+                   help="the frame TARGETS is in. base (default): the controller's base frame, as its nominal "
+                        "kinematics realise it on this robot: poses from a robot program, the teach pendant or an "
+                        "offline programming system (the frame in which the nominal kinematics are right on "
+                        "average: a least-squares fit over the joint space). instrument: the measuring "
+                        "instrument's frame, e.g. a workpiece measured by the tracker the calibration used "
+                        "(mapped with the model file's calibration.base). model: the calibrated model's own base "
+                        "frame, a convention of the calibration: only for targets computed with this model file")
     p.add_argument("--max-correction-deg", type=number(0.0, 180.0, above=True, unit="deg"), default=1.0,
-                   help="a row whose correction exceeds this is reported as near a singularity (above 0, at "
-                        "most 180; default 1)")
+                   help="warn of rows whose joints move by more than this (above 0, at most 180; default 1). Such "
+                        "rows are compensated: a large correction is not a singularity (near one, a small "
+                        "Cartesian correction needs large joint moves); singular configurations are judged by the "
+                        "Jacobian and reported as near_singularity")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
 
@@ -126,6 +153,11 @@ def read_targets(path, n_joints: int) -> dict:
 
 
 def run(args) -> int:
+    if args.allow_partial and args.program is None:
+        raise UsageError("--allow-partial: only with --program (a CSV reports the rows it could not solve by row)")
+    if args.program is not None and args.frame not in (None, "base"):
+        raise UsageError(f"--frame {args.frame}: a URScript program's poses are in the controller's base frame; "
+                         "--frame is for --targets")
     writable_file(args.out, "-o")
     calibrated = load_calibrated(args.robot)
     model = calibrated.model
@@ -142,6 +174,8 @@ def run(args) -> int:
             raise UsageError(f"--target {name}: not a target of {args.robot} "
                              f"({', '.join(calibrated.target_names)})")
         offset = calibrated.offsets[calibrated.target_names.index(name)]
+    if args.program is not None:  # a URScript program in, the same program compensated out
+        return run_program(args, calibrated, nominal, offset)
     t = read_targets(args.targets, model.n_joints)
     n = len(t["xyz"])
     if t["q"] is not None:
@@ -160,31 +194,68 @@ def run(args) -> int:
     def ctx_at(q, rows):
         return Context(direction=direction[rows], payload_kg=None if payload is None else payload[rows])
 
+    frame = args.frame or "base"
     started = time.perf_counter()
-    result = compensate(nominal, calibrated, t["xyz"], rot, seed, offset_mm=offset, ctx_at=ctx_at,
-                        max_correction_rad=np.deg2rad(args.max_correction_deg))
+    controller = controller_frame(calibrated, nominal, offset_mm=offset)
+    xyz, rot_model = targets_in_model_frame(calibrated, nominal, t["xyz"], rot, frame, controller=controller)
+    result = compensate(nominal, calibrated, xyz, rot_model, seed, offset_mm=offset, ctx_at=ctx_at,
+                        controller=controller)
     seconds = time.perf_counter() - started
     unit = args.unit or t["unit"] or "deg"
     _write(args.out, t, result, unit, rot is not None)
     bad = np.flatnonzero(result.status != OK)
+    reasons = {int(i): _reason(result, i, nominal) for i in bad}
     for i in bad[:SHOWN_ROWS]:
-        print_progress(f"{args.targets}:{t['lines'][i]}: {result.status[i]}"
-                       + (f" (correction {np.rad2deg(result.correction_rad[i]):.3g} deg)" if result.status[i] != "unreachable" else ""))
+        print_progress(f"{args.targets}:{t['lines'][i]}: {result.status[i]}: {reasons[int(i)]}")
     if len(bad) > SHOWN_ROWS:
         print_progress(f"... {counted(len(bad) - SHOWN_ROWS, 'more row')} not ok (column status in {args.out})")
     ok = result.status == OK
-    summary = {"rows": n, "ok": int(ok.sum()),
-               "not_ok": [{"line": int(t["lines"][i]), "status": str(result.status[i])} for i in bad],
-               "correction_deg": {"max": float(np.rad2deg(result.correction_rad[ok].max(initial=0.0))),
-                                  "mean": float(np.rad2deg(result.correction_rad[ok].mean())) if ok.any() else 0.0},
+    corrections = np.rad2deg(result.correction_rad[ok & np.isfinite(result.correction_rad)])
+    large = np.flatnonzero(ok & (result.correction_rad > np.deg2rad(args.max_correction_deg)))
+    for i in large[:SHOWN_ROWS]:
+        print_progress(f"{args.targets}:{t['lines'][i]}: warning: compensated, but the joints move by "
+                       f"{np.rad2deg(result.correction_rad[i]):.3g} deg (above --max-correction-deg "
+                       f"{args.max_correction_deg:g}): near a singular configuration a small correction needs large "
+                       "joint moves; check the motion into this target")
+    if len(large) > SHOWN_ROWS:
+        print_progress(f"... {counted(len(large) - SHOWN_ROWS, 'more row')} with a correction above "
+                       f"{args.max_correction_deg:g} deg (column correction_deg in {args.out})")
+    summary = {"rows": n, "ok": int(ok.sum()), "frame": frame,
+               "not_ok": [{"line": int(t["lines"][i]), "status": str(result.status[i]), "reason": reasons[int(i)]}
+                          for i in bad],
+               "correction_deg": {"max": float(corrections.max(initial=0.0)),
+                                  "mean": float(corrections.mean()) if corrections.size else 0.0},
+               "large_correction": [{"line": int(t["lines"][i]),
+                                     "correction_deg": float(np.rad2deg(result.correction_rad[i]))} for i in large],
+               "max_correction_deg": args.max_correction_deg,
                "nominal_model": nominal.name, "out": str(args.out), "seconds": seconds}
     if args.json:
         print(json.dumps(summary))
     else:
-        print(f"compensated {summary['ok']} of {counted(n, 'target')} with {args.robot} (nominal: {nominal.name}) in "
-              f"{seconds:.2f} s; joint corrections mean {summary['correction_deg']['mean']:.4f} deg, max "
-              f"{summary['correction_deg']['max']:.4f} deg; {counted(len(bad), 'row')} not ok; written to {args.out}")
+        print(f"compensated {summary['ok']} of {counted(n, 'target')} ({frame} frame) with {args.robot} (nominal: "
+              f"{nominal.name}) in {seconds:.2f} s; joint corrections mean {summary['correction_deg']['mean']:.4f} "
+              f"deg, max {summary['correction_deg']['max']:.4f} deg; {counted(len(bad), 'row')} not ok"
+              + (f", {len(large)} above {args.max_correction_deg:g} deg (warned)" if len(large) else "")
+              + f"; written to {args.out}")
     return 0
+
+
+def _reason(result, i: int, nominal) -> str:
+    """Why row i was not compensated, in words and numbers."""
+    status = result.status[i]
+    if status == UNREACHABLE:
+        return (f"out of reach on this branch: the calibrated model's closest approach from the row's joints ends "
+                f"{result.miss_mm[i]:.4g} mm from the target")
+    if status == JOINT_LIMITS:
+        q, limits = np.rad2deg(result.q[i]), np.rad2deg(nominal.joint_limits)
+        j = int(np.argmax(np.maximum(limits[:, 0] - q, q - limits[:, 1])))
+        return (f"the solution puts joint {j + 1} at {q[j]:.4g} deg, outside its limits {limits[j, 0]:g} .. "
+                f"{limits[j, 1]:g} deg (not clipped)")
+    if status == SINGULAR:
+        return (f"at a singular configuration: the smallest singular value of the Jacobian there is "
+                f"{result.sigma_min[i]:.3g} mm/rad (below {SINGULAR_MM_PER_RAD:g}: some joint motion of a radian "
+                "barely moves the tool, so the joints are not determined)")
+    return status
 
 
 def _write(path, t, result, unit: str, with_rotation: bool) -> None:
@@ -201,13 +272,89 @@ def _write(path, t, result, unit: str, with_rotation: bool) -> None:
             keep = [k for k, h in enumerate(t["header"]) if h not in added]
             for i, row in enumerate(t["rows"]):
                 values = []
-                if result.status[i] == OK:
+                if result.status[i] == OK:  # q_nominal is NaN where the nominal model itself misses: left empty
                     values = [*scale(result.q[i]), *scale(result.q_nominal[i]), *result.position_mm[i],
                               *(quat[i] if with_rotation else ())]
-                    values = [f"{v:.10g}" for v in values]
+                    values = [f"{v:.10g}" if np.isfinite(v) else "" for v in values]
                 else:
                     values = [""] * (len(added) - 2)
-                w.writerow([row[k] for k in keep] + values + [f"{np.rad2deg(result.correction_rad[i]):.6g}",
+                correction = np.rad2deg(result.correction_rad[i])
+                w.writerow([row[k] for k in keep] + values + [f"{correction:.6g}" if np.isfinite(correction) else "",
                                                               result.status[i]])
     except OSError as exc:
         raise UsageError(f"-o {path}: cannot write: {exc.strerror or exc}") from None
+
+
+def run_program(args, calibrated, nominal, tcp_mm) -> int:
+    """``--program``: the URScript program with its literal targets compensated (programs/apply.py) and a
+    report per target. Status 1, nothing written, when a literal target could not be compensated, unless
+    ``--allow-partial``; a program that cannot be read is a UsageError before anything is computed."""
+    import os
+    from collections import Counter
+
+    from cellcal.programs.apply import OK as COMPENSATED, compensate_program
+    from cellcal.programs.urscript import ProgramError, encode, read_program, rewrite
+
+    if args.unit is not None:
+        raise UsageError("--unit: the joint unit of a CSV's columns; a URScript program keeps its radians")
+    if os.path.exists(args.out) and os.path.exists(args.program) and os.path.samefile(args.out, args.program):
+        raise UsageError(f"-o {args.out}: is the program itself; write the compensated program to another file "
+                         "(the original is what a later calibration compensates again)")
+    seed = None
+    if args.seed_deg is not None:
+        if len(args.seed_deg) != nominal.n_joints:
+            raise UsageError(f"--seed-deg: give {nominal.n_joints} joint values, got {len(args.seed_deg)}")
+        seed = np.deg2rad(args.seed_deg)
+    try:
+        program = read_program(args.program)
+        result = compensate_program(program, nominal, calibrated, default_tcp_mm=tcp_mm, seed_rad=seed)
+    except ProgramError as exc:
+        raise UsageError(str(exc)) from None
+    failed = result.failed
+    written = not failed or args.allow_partial
+    if written:
+        try:
+            with open(args.out, "wb") as f:
+                f.write(encode(rewrite(program.text, result.replacements)))
+        except OSError as exc:
+            raise UsageError(f"-o {args.out}: cannot write: {exc.strerror or exc}") from None
+    counts = Counter(o.status for o in result.outcomes)
+    n, done = len(result.outcomes), counts.pop(COMPENSATED, 0)
+    left = ", ".join(f"{k} {s}" for s, k in sorted(counts.items()))
+    error = None
+    if not written:
+        error = (f"{counted(len(failed), 'literal target')} could not be compensated (listed); nothing written to "
+                 f"{args.out}: --allow-partial writes the program with them left as written")
+    if args.json:
+        doc = {"program": str(args.program), "out": str(args.out), "written": written, "targets": n,
+               "compensated": done, "not_compensated": dict(sorted(counts.items())),
+               "nominal_model": nominal.name, "seconds": result.seconds,
+               "report": [o.as_dict() for o in result.outcomes]}
+        if error:
+            doc["error"] = {"code": 1, "message": error}
+        print(json.dumps(doc))
+    else:
+        for o in result.outcomes:
+            t = o.target
+            which = " " + t.role.removeprefix("pose_") if t.call == "movec" else ""  # movec's via and to
+            where = f"{args.program}:{t.line}: {t.call}{which} ({t.kind})"
+            if o.status == COMPENSATED:
+                print(f"{where}: ok, moved {o.shift_mm:.4f} mm and {o.turn_deg:.4f} deg, joints by up to "
+                      f"{o.joint_deg:.4f} deg")
+            else:
+                print(f"{where}: {o.status}: {o.reason}")
+        print(f"compensated {done} of {counted(n, 'target')} of {args.program} with {args.robot} (nominal: "
+              f"{nominal.name}) in {result.seconds:.2f} s" + (f"; not compensated: {left}" if left else "")
+              + (f"; written to {args.out}" if written else "; nothing written"))
+    large = [o for o in result.outcomes if o.status == COMPENSATED and o.joint_deg > args.max_correction_deg]
+    for o in large[:SHOWN_ROWS]:
+        print_progress(f"{args.program}:{o.target.line}: warning: compensated, but the joints move by "
+                       f"{o.joint_deg:.3g} deg (above --max-correction-deg {args.max_correction_deg:g}): check the "
+                       "motion into this target")
+    if len(large) > SHOWN_ROWS:
+        print_progress(f"... {counted(len(large) - SHOWN_ROWS, 'more target')} with a correction above "
+                       f"{args.max_correction_deg:g} deg (joint_deg in the report)")
+    if error:
+        print_progress(f"error: {error}")
+        return 1
+    return 0

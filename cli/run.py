@@ -79,6 +79,8 @@ def _score_kinematics(result: Result, truth, model) -> dict:
 def _text(result: Result) -> str:
     lines = [f"{result.routine}: " + ("PASSED every gate: may be written back" if result.write_back else
                                       "NOT to be written back")]
+    if result.verdict is not None:  # a check (tcp-check): its verdict, and the first note says why
+        lines.append(f"  verdict {result.verdict.upper()}: {result.notes[0] if result.notes else ''}")
     if result.tool_frame is not None:
         lines.append(f"  tool frame  {frame_text(result.tool_frame)}")
     for p in result.parameters:
@@ -171,7 +173,7 @@ def cmd_run(args) -> int:
         print(_text(result))
         if result.tool_frame is not None:
             print("  nothing written to the controller (cellcal run never writes; the daemon writes back)")
-    return 0 if result.write_back else 1
+    return 0 if result.write_back and result.verdict != "alarm" else 1  # a check's alarm is a cell failure
 
 
 def add_parser(sub) -> None:

@@ -36,7 +36,7 @@ import numpy as np
 from cellcal.drivers.interfaces import DeviceError, DeviceTimeout, RobotState
 from cellcal.routines import registry, runner, tool_frame
 from cellcal.config.reader import ConfigError
-from cellcal.routines.base import PlanRefused, Result, RoutineAborted, RoutineError
+from cellcal.routines.base import CheckAlarm, PlanRefused, Result, RoutineAborted, RoutineError
 from cellcal.routines.frames_owed import FramesOwed
 from cellcal.routines.gates import frame_change
 from cellcal.daemon import outcome
@@ -300,7 +300,8 @@ class Service:
         """The whole state machine for one run, in the calling thread."""
         run_id = self._run_id = self.store.begin_run(routine, self.cell.path)
         self._transition(run_id, "checking", routine)
-        prepared, frame_before, refusal = self._check(routine)
+        cell = self._cell_for(run_id, routine)
+        prepared, frame_before, refusal = self._check(routine, cell)
         if refusal is None and self.abort.is_set():
             refusal = (ResultCode.ABORTED, "abort pressed before anything moved")
         if refusal is not None:
@@ -315,6 +316,8 @@ class Service:
                                      lambda message: log.info("run %d: %s", run_id, message), abort=self.abort)
         except RoutineAborted as exc:
             return self._end(run_id, "aborted", ResultCode.ABORTED, str(exc))
+        except CheckAlarm as exc:
+            return self._end(run_id, "fault", ResultCode.CHECK_ALARM, f"tool check alarm: {exc}")
         except DeviceError as exc:
             if self.abort.is_set():
                 return self._end(run_id, "aborted", ResultCode.ABORTED, f"stopped by abort ({exc.what})")
@@ -325,7 +328,9 @@ class Service:
             return self._end(run_id, "fault", ResultCode.SERVICE_FAULT, f"the dataset could not be written: {exc}")
         self._transition(run_id, "solving", dataset.path)
         try:
-            result = runner.solve(routine, self.cell, dataset)
+            result = runner.solve(routine, cell, dataset)
+        except CheckAlarm as exc:
+            return self._end(run_id, "fault", ResultCode.CHECK_ALARM, f"tool check alarm: {exc}")
         except (RoutineError, ValueError, np.linalg.LinAlgError) as exc:
             return self._end(run_id, "fault", ResultCode.COMPUTATION_FAILED, str(exc))
         self.store.record_result(run_id, result)
@@ -359,9 +364,24 @@ class Service:
         return self._end(run_id, "done", ResultCode.OK, f"tool frame written back ({mm:.3f} mm, {deg:.3f} deg "
                                                          "from the previous one)", result, wrote=True)
 
-    def _check(self, routine: str):
+    def _cell_for(self, run_id: int, routine: str):
+        """The cell as this run sees it: a routine may take what earlier runs in this store
+        found (:meth:`Routine.with_history`: tcp-check, the beams of the last tcp-laser)."""
+        if routine not in registry.available():
+            return self.cell
+        try:
+            cell, note = registry.routine_class(routine).with_history(self.cell, self.store.last_passed_result)
+        except Exception as exc:  # the past is a help, never a reason not to run
+            log.warning("run %d: earlier results not used: %s", run_id, exc)
+            return self.cell
+        if note:
+            log.info("run %d: %s", run_id, note)
+        return cell
+
+    def _check(self, routine: str, cell=None):
         """(the prepared routine, the controller's tool frame, None) when it may run, else
         (None, None, (code, why))."""
+        cell = self.cell if cell is None else cell
         if routine not in registry.available():
             return None, None, (ResultCode.NO_SUCH_ROUTINE,
                                 f"no routine {routine!r} (routines: {', '.join(registry.available())})")
@@ -388,7 +408,7 @@ class Service:
         if state is not RobotState.READY:
             return None, None, (ResultCode.NOT_READY, f"the robot is not ready: {state.value}")
         try:
-            prepared = runner.prepare(routine, self.cell)
+            prepared = runner.prepare(routine, cell)
         except PlanRefused as exc:
             return None, None, (ResultCode.LIMITS, f"plan refused, nothing moved: {exc}")
         except (RoutineError, ConfigError) as exc:

@@ -340,6 +340,14 @@ class Store:
                             "the daemon stopped during this run (killed or crashed); nothing was written back")
         return open_runs
 
+    def last_passed_result(self, routine: str) -> tuple[int, dict] | None:
+        """(run id, result JSON) of the newest run of `routine` that passed every gate and
+        ended done, or None."""
+        row = self.db.execute("SELECT id, result_json FROM runs WHERE routine = ? AND state = 'done' AND "
+                              "write_back = 1 AND result_json IS NOT NULL ORDER BY id DESC LIMIT 1",
+                              (routine,)).fetchone()
+        return None if row is None else (int(row[0]), json.loads(row[1]))
+
     def runs(self, limit: int = 50) -> list[RunRow]:
         rows = self.db.execute("SELECT * FROM runs ORDER BY id DESC LIMIT ?", (limit,)).fetchall()
         return [_run(r) for r in rows]

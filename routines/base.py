@@ -37,6 +37,11 @@ class NotForThisCell(RoutineError):
     needs is missing): refused before anything moves, exit 2, panel result code 11."""
 
 
+class CheckAlarm(RoutineError):
+    """A check saw the tool too far from its stored frame to measure it (a sweep missed a
+    beam, or blocked it where it should not): verdict alarm, nothing written (panel code 33)."""
+
+
 class RoutineAborted(RuntimeError):
     """The run was aborted (operator, service stopping): no further command is sent."""
 
@@ -328,6 +333,14 @@ class Routine(abc.ABC):
         """What the plan can give, judged before anything moves; None for a routine that
         judges no design before it moves."""
         return None
+
+    @classmethod
+    def with_history(cls, cell: Cell, last_result) -> tuple[Cell, str | None]:
+        """The cell as the service runs this routine, given what earlier runs found
+        (`last_result(routine)`: (run id, result JSON) of the newest run of that routine that
+        passed every gate, or None), and a note saying what was taken from them; the cell
+        unchanged and None for a routine that needs nothing of the past."""
+        return cell, None
 
 
 class StepRoutine(Routine):

@@ -208,8 +208,9 @@ class TcpLaser(Routine):
         if [m.label for m in plan] != [m.label for m, _ in planned]:
             raise RoutineError("the plan given is not this routine's plan for this cell file")
         if devices.trigger is None:
-            raise RoutineError(f"{self.cell.path}: tcp-laser needs a trigger in [drivers]")
-        with drawn_tool(robot, self.cell.tool.tcp_pose):
+            raise RoutineError(f"{self.cell.path}: {self.name} needs a trigger in [drivers]")
+        tool = self.measuring_tool(robot)
+        with drawn_tool(robot, tool):
             devices.trigger.events(0.0)  # edges from before the routine are not its own
             samples = list(robot.samples())[-1:]
             t0 = samples[0].t_s
@@ -230,7 +231,12 @@ class TcpLaser(Routine):
             samples += robot.samples(samples[-1].t_s)
             for i in range(checked, len(steps)):
                 rows += self._edges_of(i, events, starts, steps, plan)
-        return self._dataset(rows, samples, t0)
+        return self._dataset(rows, samples, t0, tool)
+
+    def measuring_tool(self, robot) -> np.ndarray:
+        """The tool frame the controller is set to while measuring: the tool as drawn (the
+        plan's). A check (``tcp-check``) measures at the controller's own frame instead."""
+        return self.cell.tool.tcp_pose
 
     def _edges_of(self, i, events, starts, steps, plan) -> list[tuple]:
         """(motion index, event) of the edges motion `i` saw, checked against what each beam
@@ -252,12 +258,13 @@ class TcpLaser(Routine):
                                    "beam, or the barrier not where [beams] says?")
         return [(i, e) for e in seen]
 
-    def _dataset(self, rows, samples, t0) -> Dataset:
+    def _dataset(self, rows, samples, t0, tool) -> Dataset:
+        """The edges with the flange at each (from the TCP samples of the controller set to `tool`)."""
         steps = [step for _, step in self.steps()]
         t = np.array([s.t_s for s in samples])
         tcp = np.array([s.tcp_pose for s in samples])
         q = np.array([s.q_rad for s in samples])
-        tool = self.cell.tool.tcp_pose
+        tool = np.asarray(tool, dtype=float)
         r_tool = se3.rotvec_to_matrix(tool[3:])
         cols: dict[str, list] = {k: [] for k in ("move", "orientation", "kind", "height_mm", "direction",
                                                  "speed_m_s", "channel", "edge", "t_s", "flange_x_m", "flange_y_m",

@@ -93,8 +93,16 @@ class ControlPort:
                 self._blocked = {id(b): beam_blocked(b, self._body, self._tool_radius_m) for b in self.truth.beams}
                 self.sensors.reset({b.channel: self._blocked[id(b)] for b in self.truth.beams})
                 return {"ok": True}
+            if cmd == "set_tcp":  # the controller's tool frame changed behind the service's back (a test's bent tool)
+                if self.arm.moving:
+                    return {"ok": False, "error": "the arm is moving"}
+                tcp = np.asarray(request.get("tcp"), dtype=float)
+                if tcp.shape != (6,) or not np.all(np.isfinite(tcp)):
+                    return {"ok": False, "error": "tcp must be 6 finite numbers (m, rad)"}
+                self.arm.set_tcp(tcp)
+                return {"ok": True}
         return {"ok": False, "error": f"unknown command {cmd!r} (state, truth, tool, edges, inputs, "
-                                          "program_start, fault, add_model, set_q)"}
+                                          "program_start, fault, add_model, set_q, set_tcp)"}
 
     def _fire_faults(self) -> None:
         for fault in list(self.faults):

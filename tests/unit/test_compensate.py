@@ -109,8 +109,9 @@ def test_cli_writes_corrected_joints_and_cartesian_targets(files, capsys):
     captured = capsys.readouterr()
     assert code == 0
     summary = json.loads(captured.out)
-    assert summary["rows"] == 20 and {"line": 5, "status": "unreachable"} in summary["not_ok"]
-    assert "targets.csv:5: unreachable" in captured.err
+    assert summary["rows"] == 20 and summary["frame"] == "base"  # nominal forward kinematics: controller poses
+    assert [(r["line"], r["status"]) for r in summary["not_ok"]] == [(5, "unreachable")]
+    assert "targets.csv:5: unreachable: out of reach on this branch" in captured.err
     rows = list(csv.DictReader(open(out)))
     assert [r["name"] for r in rows] == [f"t{i}" for i in range(20)]
     assert rows[3]["status"] == "unreachable" and rows[3]["q1_deg"] == ""

@@ -21,7 +21,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = ROOT / "docs"
-PACKAGE_ROOMS = ("cli", "config", "daemon", "drivers", "measurements", "reports", "routines", "sims", "solvers")
+PACKAGE_ROOMS = ("cli", "config", "daemon", "drivers", "measurements", "programs", "reports", "routines", "sims", "solvers")
 
 
 # -- reading markdown tables ------------------------------------------------------------------------------

@@ -22,7 +22,8 @@ from cellcal.routines.base import Design, Routine, RoutineError
 from cellcal.routines.registry import RoutineDeclarationError
 
 # the operator panel's routine selector (docs/panel.md), as it has always been
-PANEL = {1: "tcp-laser", 2: "tcp-stylus", 3: "tcp-npoint", 4: "handshake", 5: "tracker", 6: "tcf"}
+PANEL = {1: "tcp-laser", 2: "tcp-stylus", 3: "tcp-npoint", 4: "handshake", 5: "tracker", 6: "tcf",
+         7: "tcp-check"}
 
 
 class ProbeRoutine(Routine):
@@ -160,7 +161,8 @@ def test_the_registry_imports_no_routine_until_it_is_asked():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     loaded_before, homes, names = json.loads(proc.stdout)
     assert loaded_before == []
-    assert len(homes) == 6 and set(names) >= {"tcp-laser", "tcp-stylus", "tcp-npoint", "tcf", "tracker", "handshake"}
+    assert len(homes) == 7 and set(names) >= {"tcp-laser", "tcp-stylus", "tcp-npoint", "tcf", "tracker", "handshake",
+                                              "tcp-check"}
 
 
 def _camel(name: str) -> str:
