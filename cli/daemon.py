@@ -20,6 +20,7 @@ from cellcal.daemon.notify import Notifier
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.drivers.interfaces import DeviceError
 from cellcal.reports.run import write_run_report
+from cellcal.reports.trend import write_trend_page
 from cellcal.routines import registry
 
 log = logging.getLogger("cellcal.daemon")
@@ -64,7 +65,9 @@ def cmd_daemon(args) -> int:
                 return 1
             service = Service(cell, drivers, store, out_dir=folder / "datasets", notifier=notifier,
                               report=lambda run_id, result, st: write_run_report(folder / "reports", run_id, result),
-                              reconnect=lambda: open_drivers(cell))
+                              reconnect=lambda: open_drivers(cell),
+                              trend=lambda tool_id, trend: write_trend_page(folder / "reports" / f"tool-{tool_id}",
+                                                                            trend))
             service._panel("set_lamps", busy=False)
             service.discard_requests("pending when the service started")
             service.announce_interrupted(interrupted)

@@ -1,4 +1,5 @@
-"""``cellcal tool history|rollback``: the tool frames written to the controller, and putting one back."""
+"""``cellcal tool history|rollback|trend``: the tool frames written to the controller, putting one
+back, and a tool's drift history."""
 from __future__ import annotations
 
 import json
@@ -7,11 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from cellcal.cli.common import RECORD_ID, STATE_HELP, UsageError, open_store
+from cellcal.cli.common import RECORD_ID, STATE_HELP, UsageError, open_store, whole
 from cellcal.cli.common import print_progress
 from cellcal.config.reader import ConfigError
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.claims import devices, held
+from cellcal.daemon.drift import trend
 from cellcal.daemon.write_back import ControllerFrames, replace_frames, stored_from_json
 from cellcal.drivers.interfaces import DeviceError, RobotState
 from cellcal.routines.base import frame_text, tool_frame_json
@@ -34,6 +36,62 @@ def cmd_tool_history(args) -> int:
         return 0
     finally:
         store.close()
+
+
+def cmd_tool_trend(args) -> int:
+    """A tool's drift history (read-only): one JSON object with --json, else a few lines; with
+    --report DIR also its trend page (DIR/trend.html)."""
+    store = open_store(args)
+    try:
+        rows = store.measured_frames(args.tool)
+        if not rows:
+            known = store.measured_tools()
+            raise UsageError(f"no measured frame of tool {args.tool} in {store.path.parent}"
+                             + (f" (tools measured there: {', '.join(map(str, known))})" if known else
+                                " (no run there has measured a tool yet)"))
+        history = trend(rows, args.tool)
+    finally:
+        store.close()
+    if args.report is not None:
+        from cellcal.reports.trend import write_trend_page  # matplotlib loads only when a page is asked for
+        try:
+            page = write_trend_page(args.report, history)
+        except OSError as exc:
+            raise UsageError(f"{args.report}: cannot write the trend page there ({exc.strerror or exc})") from None
+        print_progress(f"trend page: {page}")
+    if args.json:
+        print(json.dumps(history))
+        return 0
+    _print_trend(history)
+    return 0
+
+
+def _print_trend(history: dict) -> None:
+    def mm(v):
+        return "-" if v is None else f"{v:.4f}"
+
+    first, last, rate, latest = (history["first_calibration"], history["last_calibration"], history["rate"],
+                                 history["latest"])
+    print(f"tool {history['tool_id']}: {len(history['points'])} measured frames")
+    if first is None:
+        print("never calibrated here: every check was against the controller's frame")
+    else:
+        print(f"first full calibration: run {first['run_id']}; last: run {last['run_id']}")
+    when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(latest["at"]))
+    print(f"latest: run {latest['run_id']} ({latest['kind']}, {when}): since the first calibration tip "
+          f"{mm(latest['since_first_calibration']['tip_mm'])} mm, axis "
+          f"{mm(latest['since_first_calibration']['axis_deg'])} deg; since the last: tip "
+          f"{mm(latest['since_last_calibration']['tip_mm'])} mm, axis "
+          f"{mm(latest['since_last_calibration']['axis_deg'])} deg")
+    print(f"rate since the last full calibration ({rate['points']} points, least squares): tip "
+          f"{mm(rate['tip_mm_per_week'])} mm/week, {mm(rate['tip_mm_per_1000_runs'])} mm/1000 runs; axis "
+          f"{mm(rate['axis_deg_per_week'])} deg/week, {mm(rate['axis_deg_per_1000_runs'])} deg/1000 runs"
+          + (f" ({rate['why_none']})" if rate["why_none"] else ""))
+    for p in history["points"]:
+        since = p["since_last_calibration"]
+        print(f"  run {p['run_id']:5d}  {time.strftime('%Y-%m-%d %H:%M', time.localtime(p['at']))}  "
+              f"{p['kind']:<11} {p['routine']:<10} {'written' if p['written'] else '       '}  "
+              f"tip {mm(since['tip_mm'])} mm  axis {mm(since['axis_deg'])} deg")
 
 
 def cmd_tool_rollback(args) -> int:
@@ -148,3 +206,16 @@ def add_parser(sub) -> None:
     p.add_argument("--state-dir", metavar="DIR", help=STATE_HELP)
     p.add_argument("--json", action="store_true", help='print one JSON object on stdout: {"restored": {...}}')
     p.set_defaults(func=cmd_tool_rollback)
+    p = tool.add_parser("trend", help="a tool's drift history: its change since the first and the last full "
+                                      "calibration, and the rate",
+                        description="Every tool frame measured for the tool (full calibrations and checks), as "
+                                    "the change of the tip (mm) and of the axis (deg) against the first and "
+                                    "against the last full calibration, with the drift rate since the last one "
+                                    "(least squares straight line: mm and deg per week and per 1000 runs). "
+                                    "Read-only: never makes a store.")
+    p.add_argument("--tool", type=whole(1, 65535), default=1, metavar="ID",
+                   help="the tool's id (default 1: the cell's one tool)")
+    p.add_argument("--state-dir", metavar="DIR", help=STATE_HELP)
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout: the whole trend")
+    p.add_argument("--report", metavar="DIR", help="also write the tool's trend page (DIR/trend.html and its plot)")
+    p.set_defaults(func=cmd_tool_trend)

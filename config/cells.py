@@ -20,7 +20,8 @@ Sections (all lengths in metres, base frame unless said otherwise)::
     tool:       the mounted tool as drawn: tcp_m (flange frame), axis (flange frame, from
                 the flange toward the tip), radius_m, length_m, and bands (optional: a check's
                 tolerance bands, inner_mm/inner_deg (0.1/0.1) and outer_mm/outer_deg (1/1), the
-                outer at most the plausibility gate's 10 mm / 5 deg)
+                outer at most the plausibility gate's 10 mm / 5 deg; drift_mm/drift_deg, off
+                unless given: a check's drift alarm, the change since the last full calibration)
     beams:      the light barrier's beams as installed: a list of
                 {point_m, direction, radius_m (half the beam width), channel, level_when_blocked}
     stylus:     a fixed stylus tip: centre_m, radius_m
@@ -89,6 +90,10 @@ class Bands:
     inner_deg: float = 0.1
     outer_mm: float = 1.0
     outer_deg: float = 1.0
+    # the drift alarm (off when None): a check whose measured frame is this far from the last
+    # full calibration's (tip mm, axis deg) ends in verdict "drift" (daemon/drift.py)
+    drift_mm: float | None = None
+    drift_deg: float | None = None
 
 
 @dataclass(frozen=True)
@@ -216,8 +221,12 @@ def _read_bands(s: Section) -> Bands:
         s.fail("outer_mm", f"{outer_mm:g} is inside the inner band {inner_mm:g} mm: the outer band must be wider")
     if outer_deg < inner_deg:
         s.fail("outer_deg", f"{outer_deg:g} is inside the inner band {inner_deg:g} deg: the outer band must be wider")
+    # the drift alarm: optional, above 0, bounded like the bands (beyond the plausibility limit no
+    # frame is ever written, so no drift that large can build up)
+    drift_mm = s.number("drift_mm", above=0.0, high=PLAUSIBLE_MM) if "drift_mm" in s else None
+    drift_deg = s.number("drift_deg", above=0.0, high=PLAUSIBLE_DEG) if "drift_deg" in s else None
     s.done()
-    return Bands(inner_mm, inner_deg, outer_mm, outer_deg)
+    return Bands(inner_mm, inner_deg, outer_mm, outer_deg, drift_mm, drift_deg)
 
 
 def _read_beams(top: Section) -> tuple[BeamSpec, ...]:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 
-VERDICTS = {None: 0, "ok": 1, "corrected": 2, "alarm": 3}  # register value of each verdict
+VERDICTS = {None: 0, "ok": 1, "corrected": 2, "alarm": 3, "drift": 4}  # register value of each verdict
 CHANGE_KEYS = {"change_x": "x_mm", "change_y": "y_mm", "change_z": "z_mm",
                "tilt_x": "tilt_x_deg", "tilt_y": "tilt_y_deg"}
 SCALE = 1000  # register counts per mm, and per degree
@@ -31,7 +31,7 @@ def _signed16(value: float | None) -> int:
 
 def registers(verdict: str | None, tool_id: int, change: dict | None) -> dict[str, int]:
     """The outcome registers' raw values: verdict (0 a calibration or no result, 1 ok, 2
-    corrected, 3 alarm), the tool's id, and the change (``change``: keys of CHANGE_KEYS'
+    corrected, 3 alarm, 4 drift alarm), the tool's id, and the change (``change``: keys of CHANGE_KEYS'
     values, None where not determined; None altogether when nothing was measured)."""
     change = change or {}
     out = {"verdict": VERDICTS[verdict], "tool_id": int(tool_id) & 0xFFFF}

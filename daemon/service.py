@@ -9,7 +9,10 @@ tool frame, and everything that may go wrong on the way.
   cell's limits, the sensors it needs answer. A failure here is *refused*: nothing moved.
 * running: the routine moves and records (in a worker thread: the main loop keeps serving
   the panel and the signals); the dataset is on disk before solving.
-* gates: a result that fails any gate is never written (state fault, code GATE_FAILED).
+* gates: a result that fails any gate is never written (state fault, code GATE_FAILED);
+  nor is a check's (tcp-check) in alarm (CHECK_ALARM), or one whose measured frame has
+  drifted beyond the tool's drift alarm since the last full calibration (DRIFT_ALARM,
+  :mod:`.drift`). Every measured tool frame goes into the tool's drift history.
 * writing back: the tool frame goes to the controller, is read back and compared; the
   frame before is kept in the store, so ``cellcal tool rollback`` can restore it.
 
@@ -39,7 +42,7 @@ from cellcal.config.reader import ConfigError
 from cellcal.routines.base import CheckAlarm, PlanRefused, Result, RoutineAborted, RoutineError
 from cellcal.routines.frames_owed import FramesOwed
 from cellcal.routines.gates import frame_change
-from cellcal.daemon import outcome
+from cellcal.daemon import drift, outcome
 from cellcal.daemon.notify import Notifier
 from cellcal.daemon.store import Store
 from cellcal.daemon.write_back import TOLERANCE, write_back
@@ -65,6 +68,7 @@ class ResultCode(enum.IntEnum):
     GATE_FAILED = 31
     WRITE_BACK_FAILED = 32
     CHECK_ALARM = 33
+    DRIFT_ALARM = 34
     ABORTED = 40
     INTERRUPTED = 41
     SERVICE_FAULT = 50
@@ -84,6 +88,8 @@ RESULT_MEANINGS = {
     ResultCode.WRITE_BACK_FAILED: "the controller did not keep the written tool frame; the old one was restored",
     ResultCode.CHECK_ALARM: "the tool check found the tool beyond its outer band, or could not tell: nothing "
                             "written; calibrate it deliberately (or replace a bent tool)",
+    ResultCode.DRIFT_ALARM: "the tool check found the tool drifted beyond its drift alarm since the last full "
+                            "calibration (the reason gives the numbers): nothing written; calibrate it",
     ResultCode.ABORTED: "aborted by the operator or by a stop of the service; nothing written back",
     ResultCode.INTERRUPTED: "the service died during the run; found at the next start, nothing written back",
     ResultCode.SERVICE_FAULT: "the service could not keep its own records (state folder, datasets, store); "
@@ -110,12 +116,14 @@ class Service:
     """The daemon's core, independent of how it is started (CLI, tests)."""
 
     def __init__(self, cell, drivers, store: Store, *, out_dir: str | Path, notifier: Notifier | None = None,
-                 routines: dict[int, str] | None = None, report=None, reconnect=None):
+                 routines: dict[int, str] | None = None, report=None, reconnect=None, trend=None):
         self.cell, self.drivers, self.store = cell, drivers, store
         self.out_dir = Path(out_dir)
         self.notifier = notifier or Notifier({})
         self.routines = dict(panel_routines() if routines is None else routines)
         self.report = report  # callable(run_id, result, store) -> path, or None
+        self.trend = trend  # callable(tool_id, trend dict) -> path of the tool's trend page, or None
+        self._history_note: str | None = None  # said at the end of the run under way (a check's history)
         self.reconnect = reconnect  # callable() -> a fresh set of the cell's drivers, or None
         self._reconnect_at: float | None = None  # when the robot is to be reconnected (it is unusable)
         self._reconnecting: threading.Thread | None = None  # the reconnection under way, off the main loop
@@ -299,6 +307,7 @@ class Service:
     def run(self, routine: str) -> RunOutcome:
         """The whole state machine for one run, in the calling thread."""
         run_id = self._run_id = self.store.begin_run(routine, self.cell.path)
+        self._history_note = None
         self._transition(run_id, "checking", routine)
         cell = self._cell_for(run_id, routine)
         prepared, frame_before, refusal = self._check(routine, cell)
@@ -333,7 +342,9 @@ class Service:
             return self._end(run_id, "fault", ResultCode.CHECK_ALARM, f"tool check alarm: {exc}")
         except (RoutineError, ValueError, np.linalg.LinAlgError) as exc:
             return self._end(run_id, "fault", ResultCode.COMPUTATION_FAILED, str(exc))
+        drifted = self._judge_drift(run_id, routine, result)
         self.store.record_result(run_id, result)
+        self._record_measured(run_id, routine, result)
         if self.report is not None:
             try:
                 self.store.record_report(run_id, str(self.report(run_id, result, self.store)))
@@ -343,6 +354,9 @@ class Service:
         if result.verdict == "alarm":  # before the gates: an alarm is never corrected, whatever passed
             saw = result.extra.get("saw") or "; ".join(result.reasons()) or "beyond the tool's outer band"
             return self._end(run_id, "fault", ResultCode.CHECK_ALARM, f"tool check alarm: {saw}", result)
+        if drifted is not None:
+            return self._end(run_id, "fault", ResultCode.DRIFT_ALARM, f"tool drift alarm: {drifted}; nothing "
+                                                                      "written: calibrate the tool", result)
         if not result.write_back:
             return self._end(run_id, "fault", ResultCode.GATE_FAILED, "; ".join(result.reasons()), result)
         if self.abort.is_set():
@@ -360,9 +374,55 @@ class Service:
             return self._end(run_id, "fault", ResultCode.WRITE_BACK_FAILED, failure, result)
         self._frame_owed = None  # the new frame is the controller's now
         self.store.frame_settled(run_id)
+        self.store.measured_frame_written(run_id)
+        self._write_trend()
         mm, deg = frame_change(result.tool_frame, dataset.meta.get("tool_frame_before", np.zeros(6)))
         return self._end(run_id, "done", ResultCode.OK, f"tool frame written back ({mm:.3f} mm, {deg:.3f} deg "
                                                          "from the previous one)", result, wrote=True)
+
+    def _judge_drift(self, run_id: int, routine: str, result: Result) -> str | None:
+        """A check's drift alarm, decided after its own verdict (an alarm stays an alarm): why its
+        measured frame is beyond the tool's drift alarm since the last full calibration, with
+        the verdict turned to ``drift``; else None. A check of a tool no full calibration in this
+        store has written says so (``self._history_note``)."""
+        if result.verdict is None or getattr(self.cell, "tool", None) is None:
+            return None
+        rows = self.store.measured_frames(self._tool_id())
+        # a calibration written before the store kept measured frames (schema 6) counts too
+        if not any(r["kind"] == "calibration" and r["written"] for r in rows) and not any(
+                self.store.last_passed_result(name) for name in drift.CALIBRATION_ROUTINES):
+            self._history_note = drift.NEVER_CALIBRATED
+            result.notes.insert(0, drift.NEVER_CALIBRATED)
+            result.extra["never_calibrated"] = True
+            return None
+        frame = drift.measured_frame(result)
+        if result.verdict not in ("ok", "corrected") or frame is None:
+            return None
+        why = drift.drift_alarm(frame, result.determines, rows, self.cell.tool.bands)
+        if why is not None:
+            result.verdict = "drift"
+            result.notes.insert(0, f"drift alarm: {why}; nothing written")
+            log.warning("run %d: %s: drift alarm: %s", run_id, routine, why)
+        return why
+
+    def _record_measured(self, run_id: int, routine: str, result: Result) -> None:
+        """The tool frame the run measured, in the tool's drift history (whatever the verdict;
+        marked written after a write-back), and the tool's trend page brought up to date."""
+        frame = drift.measured_frame(result)
+        if frame is None or self._tool_id() == 0:
+            return
+        self.store.record_measured_frame(run_id, self._tool_id(), drift.kind_of(result), routine, frame,
+                                         result.determines)
+        self._write_trend()
+
+    def _write_trend(self) -> None:
+        if self.trend is None or self._tool_id() == 0:
+            return
+        tool_id = self._tool_id()
+        try:
+            self.trend(tool_id, drift.trend(self.store.measured_frames(tool_id), tool_id))
+        except OSError as exc:
+            log.warning("the trend page of tool %d was not written: %s", tool_id, exc)
 
     def _cell_for(self, run_id: int, routine: str):
         """The cell as this run sees it: a routine may take what earlier runs in this store
@@ -535,6 +595,8 @@ class Service:
              wrote: bool = False) -> RunOutcome:
         if self._frame_owed is not None and self._frame_owed[0] == run_id:
             self.recover()
+        if self._history_note is not None and self._run_id == run_id:
+            reason = f"{reason} ({self._history_note})"
         self.store.finish_run(run_id, state, int(code), reason)
         self._active = False  # the panel shows the end next: a press after it starts the next run
         self._transition(run_id, state, f"{reason} (code {int(code)} {code.name})")

@@ -1,5 +1,5 @@
-"""The results store: every run, its states, dataset, parameters, gates, and the tool frames
-written to the controller. SQLite in WAL mode (standard library ``sqlite3``).
+"""The results store: every run, its states, dataset, parameters, gates, the tool frames
+written to the controller, and every tool frame a run measured, per tool (the drift history). SQLite in WAL mode (standard library ``sqlite3``).
 
 The schema is versioned (``PRAGMA user_version``) and brought up to date by the
 migrations below, one transaction each, when the store is opened. Every write is one
@@ -82,7 +82,24 @@ MIGRATIONS = (
     # 5: a run that may have left the controller on another tool frame than the one it had
     # before, until that frame is back (or a newer one was written): owed across restarts
     "ALTER TABLE runs ADD COLUMN frame_owed INTEGER NOT NULL DEFAULT 0;",
+    # 6: every tool frame a run measured, per tool (calibrations and checks alike, written or
+    # not): the tool's drift history (daemon/drift.py, ``cellcal tool trend``)
+    """
+    CREATE TABLE measured_frames (
+        id INTEGER PRIMARY KEY AUTOINCREMENT,
+        run_id INTEGER NOT NULL REFERENCES runs(id),
+        tool_id INTEGER NOT NULL,
+        at REAL NOT NULL,
+        kind TEXT NOT NULL,
+        routine TEXT NOT NULL,
+        frame TEXT NOT NULL,
+        determines TEXT NOT NULL,
+        written INTEGER NOT NULL DEFAULT 0
+    );
+    CREATE INDEX measured_frames_by_tool ON measured_frames(tool_id, id);
+    """,
 )
+MEASURED_KINDS = ("calibration", "check")  # a full calibration's frame, or a check's
 SCHEMA_VERSION = len(MIGRATIONS)
 OPEN_STATES = ("checking", "running", "solving", "gates", "writing back")
 
@@ -406,6 +423,40 @@ class Store:
                 if undone is not None:
                     del active[undone:]
         return active
+
+    # -- measured tool frames (the drift history) -------------------------------------------
+
+    def record_measured_frame(self, run_id: int, tool_id: int, kind: str, routine: str, frame, determines,
+                              written: bool = False, at: float | None = None) -> None:
+        """The tool frame run `run_id` measured for tool `tool_id` ([x, y, z, rx, ry, rz], m and
+        rad, flange frame): `kind` "calibration" or "check", what of it was `determines`d
+        ("tip", "axis"), whether it was written to the controller (:meth:`measured_frame_written`
+        marks it later)."""
+        if kind not in MEASURED_KINDS:
+            raise ValueError(f"kind {kind!r} is none of {', '.join(MEASURED_KINDS)}")
+        with self._tx() as db:
+            db.execute("INSERT INTO measured_frames (run_id, tool_id, at, kind, routine, frame, determines, written) "
+                       "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                       (run_id, int(tool_id), time.time() if at is None else float(at), kind, routine,
+                        json.dumps([float(v) for v in frame]), json.dumps(sorted(determines)), int(written)))
+
+    def measured_frame_written(self, run_id: int) -> None:
+        """Run `run_id`'s measured frame went to the controller (its write-back passed)."""
+        with self._tx() as db:
+            db.execute("UPDATE measured_frames SET written = 1 WHERE run_id = ?", (run_id,))
+
+    def measured_frames(self, tool_id: int) -> list[dict]:
+        """Every tool frame measured for `tool_id`, oldest first: {"run_id", "tool_id", "at",
+        "kind", "routine", "frame" (m, rad), "determines" (list), "written" (bool)}."""
+        return [{"run_id": r, "tool_id": t, "at": at, "kind": k, "routine": rt, "frame": json.loads(f),
+                 "determines": json.loads(d), "written": bool(w)}
+                for r, t, at, k, rt, f, d, w in self.db.execute(
+                    "SELECT run_id, tool_id, at, kind, routine, frame, determines, written FROM measured_frames "
+                    "WHERE tool_id = ? ORDER BY id", (int(tool_id),))]
+
+    def measured_tools(self) -> list[int]:
+        """The tool ids with at least one measured frame."""
+        return [int(r[0]) for r in self.db.execute("SELECT DISTINCT tool_id FROM measured_frames ORDER BY tool_id")]
 
     # -- events ---------------------------------------------------------------------------
 

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cellcal.reports.page import plt, write_page
+from cellcal.reports.page import figure_html, plt, write_page
+from cellcal.reports.trend import TREND_IMAGE, TREND_PAGE
 from cellcal.solvers import se3
 from cellcal.routines import tool_frame
 from cellcal.routines.base import FRAME_KEYS, Result, tool_frame_json
@@ -55,7 +56,20 @@ def _draw(drawing: Drawing, path: Path) -> None:
     plt.close(fig)
 
 
-def write_run_report(folder: str | Path, run_id: int, result: Result) -> Path:
+def _trend_link(folder: Path, result: Result, tool_id: int) -> str:
+    """The tool's trend plot and a link to its page (the service's STATE/reports/tool-ID/, beside
+    this run's folder), when the run measured the tool and the page is there."""
+    page = folder / f"tool-{tool_id}" / TREND_PAGE
+    if result.tool_frame is None or not page.is_file():
+        return ""
+    where = f"../tool-{tool_id}/"
+    return (f"<h2>Drift history of tool {tool_id}</h2>"
+            + figure_html(where + TREND_IMAGE, f"tool {tool_id}: change against the last full calibration")
+            + f"<p><a href='{where}{TREND_PAGE}'>the tool's trend page</a></p>")
+
+
+def write_run_report(folder: str | Path, run_id: int, result: Result, tool_id: int = 1) -> Path:
+    """The run's page into FOLDER/run-RUN_ID/ (with the trend of tool `tool_id` where FOLDER has it)."""
     out = Path(folder) / f"run-{run_id}"
     out.mkdir(parents=True, exist_ok=True)
     residuals = np.asarray(result.residuals_mm, dtype=float)
@@ -105,6 +119,7 @@ def write_run_report(folder: str | Path, run_id: int, result: Result) -> Path:
         f"<h2>Gates</h2><table border=1 cellpadding=4>{gates}</table>"
         f"<h2>Parameters</h2><table border=1 cellpadding=4>{params}</table>"
         "<h2>Residuals</h2><img src='residuals.png' alt='residual of every measurement'>"
+        + _trend_link(Path(folder), result, tool_id)
         + "".join(f"<p>{html.escape(n)}</p>" for n in result.notes)
         + f"<h2>Everything</h2><pre>{html.escape(json.dumps(result.as_json(), indent=1, default=_plain))}</pre>"
         f"<p>dataset: {html.escape(str(result.dataset))}</p>")

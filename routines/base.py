@@ -151,8 +151,9 @@ class Result:
     cycle_time_s: float | None = None
     sim_truth: dict | None = None
     drawing: Drawing | None = None
-    # a check (tcp-check): "ok" (nothing to write), "corrected" (write tool_frame), "alarm"
-    # (never write; the service ends the run with CHECK_ALARM); None for a calibration
+    # a check (tcp-check): "ok" (nothing to write), "corrected" (write tool_frame), "alarm" or "drift"
+    # (never write; the service ends the run with CHECK_ALARM or, for drift, which the service
+    # decides from the store, DRIFT_ALARM); None for a calibration
     verdict: str | None = None
     # the measured change of the tool against the frame it was compared with, as the panel
     # carries it: {"x_mm", "y_mm", "z_mm", "tilt_x_deg", "tilt_y_deg"} (flange frame; None: not determined)

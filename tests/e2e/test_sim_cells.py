@@ -105,6 +105,11 @@ def test_shipped_cells_load():
     ({"tool": {"bands": {"outer_deg": 6.0}}}, "tool.bands", "outer_deg", "out of range"),
     ({"tool": {"bands": {"outer_mm": 11.0}}}, "tool.bands", "outer_mm", "out of range"),
     ({"tool": {"bands": {"inner": 0.1}}}, "tool.bands", "inner", "unknown key"),
+    # the drift alarm (optional): above 0, no wider than the plausibility gate
+    ({"tool": {"bands": {"drift_mm": -0.2}}}, "tool.bands", "drift_mm", "out of range"),
+    ({"tool": {"bands": {"drift_mm": 0}}}, "tool.bands", "drift_mm", "out of range"),
+    ({"tool": {"bands": {"drift_deg": 6.0}}}, "tool.bands", "drift_deg", "out of range"),
+    ({"tool": {"bands": {"drift_mm": "0.2mm"}}}, "tool.bands", "drift_mm", "not a number"),
 ])
 def test_load_cell_names_file_section_and_key(tmp_path, changes, section, key, what):
     path = edited_cell(tmp_path, "sim", changes)

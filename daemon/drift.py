@@ -1,0 +1,145 @@
+"""A tool's drift history: every tool frame measured for it (the store's ``measured_frames``,
+full calibrations and checks alike), as changes of the tip (mm) and of the axis (deg)
+against the first full calibration and against the last full calibration before each point,
+and the rate at which it drifts; and the drift alarm a check ends in when its measured frame
+is further from the last full calibration's than the tool's ``drift_mm`` / ``drift_deg``.
+
+A *full calibration* is a calibration whose frame was written to the controller. A point
+compares only what it determined (a check that saw the tip only has no axis change).
+
+The rates are fitted by least squares (a straight line, :func:`numpy.polyfit`) to the
+changes against the last full calibration of the points since it (that calibration, at
+change 0, included), once against time (per week) and once against the run ids (per 1000
+runs: every run of the store counts, whatever its routine); fewer than two such points, or
+all at one time, give no rate (None) and say why.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from cellcal.routines import tool_frame
+from cellcal.routines.base import Result
+from cellcal.solvers import se3
+from cellcal.solvers.tcp_laser import axis_pair
+
+SECONDS_PER_WEEK = 7 * 24 * 3600.0
+CALIBRATION_ROUTINES = ("tcp-laser", "tcp-npoint", "tcf", "tcp-stylus")  # a full calibration of the tool
+NEVER_CALIBRATED = "never calibrated here: checked against the controller's frame"
+RATE_FIT = ("least squares straight line through the changes against the last full calibration of the points "
+            "since it (that calibration included, at 0), against time and against run ids")
+
+
+def kind_of(result: Result) -> str:
+    """``check`` for a check's result (it has a verdict), else ``calibration``."""
+    return "check" if result.verdict is not None else "calibration"
+
+
+def measured_frame(result: Result) -> np.ndarray | None:
+    """The tool frame a result measured (m, rad), or None when it measured none. A check whose
+    verdict is ``ok`` carries the frame it was compared with (nothing to write); its measured
+    frame is that frame moved by the measured change: the tip by x, y, z; the axis tilted by
+    the check's tilts, counted as it counts them (toward the flange's x and y made
+    perpendicular to the compared axis, :func:`cellcal.solvers.tcp_laser.axis_pair`)."""
+    if result.tool_frame is None or not result.determines:
+        return None
+    frame = np.asarray(result.tool_frame, dtype=float)
+    if result.verdict != "ok" or result.change is None:
+        return frame
+    change, determines = result.change, frozenset(result.determines)
+    tip = axis = None
+    if tool_frame.TIP in determines:
+        tip = frame[:3] + np.array([change["x_mm"], change["y_mm"], change["z_mm"]], dtype=float) / 1e3
+    if tool_frame.AXIS in determines:
+        compared = se3.rotvec_to_matrix(frame[3:])[:, 2]
+        across_x, across_y = axis_pair(compared)
+        axis = (compared + math.tan(math.radians(change["tilt_x_deg"])) * across_x
+                + math.tan(math.radians(change["tilt_y_deg"])) * across_y)
+        axis /= np.linalg.norm(axis)
+    ref = tool_frame.Reference(frame, "the frame the check compared with", True)
+    return tool_frame.compose(determines, ref, tip_m=tip, axis=axis)[0]
+
+
+def change_between(frame, determines, base) -> dict:
+    """{"tip_mm", "axis_deg"}: how far `frame`'s tip and axis are from `base`'s (None for what
+    `determines` leaves out, or without a base)."""
+    if base is None:
+        return {"tip_mm": None, "axis_deg": None}
+    frame, base = np.asarray(frame, dtype=float), np.asarray(base, dtype=float)
+    tip = float(np.linalg.norm(frame[:3] - base[:3]) * 1e3) if tool_frame.TIP in determines else None
+    axis = None
+    if tool_frame.AXIS in determines:
+        cos = se3.rotvec_to_matrix(frame[3:])[:, 2] @ se3.rotvec_to_matrix(base[3:])[:, 2]
+        axis = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return {"tip_mm": tip, "axis_deg": axis}
+
+
+def _slope(x, y) -> float | None:
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    if len(x) < 2 or np.ptp(x) == 0.0:
+        return None
+    return float(np.polyfit(x - x[0], y, 1)[0])
+
+
+def trend(rows: list[dict], tool_id: int) -> dict:
+    """The drift history of a tool from its measured frames (``Store.measured_frames``, oldest
+    first): one JSON-able object (docs/cli.md ``tool trend``)."""
+    full = [r for r in rows if r["kind"] == "calibration" and r["written"]]
+    first = full[0] if full else None
+    points, last = [], None
+    for r in rows:
+        determines = frozenset(r["determines"])
+        since_first = change_between(r["frame"], determines, None if first is None else first["frame"])
+        since_last = change_between(r["frame"], determines, None if last is None else last["frame"])
+        if any(r is f for f in full):
+            last = r
+            since_last = change_between(r["frame"], determines, r["frame"])
+        points.append({"run_id": r["run_id"], "at": r["at"], "kind": r["kind"], "routine": r["routine"],
+                       "written": r["written"], "determines": sorted(determines),
+                       "tip_mm": [v * 1e3 for v in r["frame"][:3]],
+                       "since_first_calibration": since_first, "since_last_calibration": since_last,
+                       "last_calibration_run": None if last is None else last["run_id"]})
+    rate = {"fitted": RATE_FIT, "points": 0, "tip_mm_per_week": None, "tip_mm_per_1000_runs": None,
+            "axis_deg_per_week": None, "axis_deg_per_1000_runs": None,
+            "why_none": "no full calibration of this tool recorded" if last is None else None}
+    if last is not None:
+        since = [p for p in points if p["last_calibration_run"] == last["run_id"]]
+        rate["points"] = len(since)
+        for key, name in (("tip_mm", "tip_mm"), ("axis_deg", "axis_deg")):
+            used = [p for p in since if p["since_last_calibration"][key] is not None]
+            weeks = [(p["at"] - last["at"]) / SECONDS_PER_WEEK for p in used]
+            runs = [p["run_id"] for p in used]
+            values = [p["since_last_calibration"][key] for p in used]
+            per_week, per_run = _slope(weeks, values), _slope(runs, values)
+            rate[f"{name}_per_week"] = per_week
+            rate[f"{name}_per_1000_runs"] = None if per_run is None else per_run * 1000.0
+        if all(rate[k] is None for k in ("tip_mm_per_week", "axis_deg_per_week")):
+            rate["why_none"] = (f"fewer than two points (at different times) since the last full calibration "
+                                f"(run {last['run_id']})")
+    latest = points[-1] if points else None
+    return {"tool_id": int(tool_id), "never_calibrated": first is None,
+            "first_calibration": None if first is None else {"run_id": first["run_id"], "at": first["at"]},
+            "last_calibration": None if last is None else {"run_id": last["run_id"], "at": last["at"]},
+            "latest": latest, "rate": rate, "points": points}
+
+
+def drift_alarm(frame, determines, rows: list[dict], bands) -> str | None:
+    """Why a check's measured `frame` ends in the drift alarm (its change since the last full
+    calibration in `rows` beyond the tool's ``drift_mm`` / ``drift_deg``), or None: within them,
+    the alarm off, or no full calibration to compare with."""
+    if bands.drift_mm is None and bands.drift_deg is None:
+        return None
+    full = [r for r in rows if r["kind"] == "calibration" and r["written"]]
+    if not full:
+        return None
+    last = full[-1]
+    change = change_between(frame, frozenset(determines), last["frame"])
+    beyond = []
+    if bands.drift_mm is not None and change["tip_mm"] is not None and change["tip_mm"] > bands.drift_mm:
+        beyond.append(f"tip {change['tip_mm']:.3f} mm from the last full calibration's (run {last['run_id']}), "
+                      f"beyond the drift alarm {bands.drift_mm:g} mm")
+    if bands.drift_deg is not None and change["axis_deg"] is not None and change["axis_deg"] > bands.drift_deg:
+        beyond.append(f"axis {change['axis_deg']:.3f} deg from the last full calibration's (run {last['run_id']}), "
+                      f"beyond the drift alarm {bands.drift_deg:g} deg")
+    return "; ".join(beyond) or None
