@@ -206,9 +206,7 @@ class Service:
             return
         unconfirmed, self._unconfirmed = self._unconfirmed, False
         if pressed and aborted:
-            self._discarded("pressed together with abort (abort wins)")
-            self._panel("set_lamps", done=False, fault=False)
-            self._panel("set_result", int(ResultCode.ABORTED))  # counted: the PLC sees an answer to the press
+            self._abort_wins("pressed together with abort (abort wins)")
         elif pressed and unconfirmed:
             self._discarded("pending when the panel came back")
         elif pressed:
@@ -216,8 +214,8 @@ class Service:
             if selector is None:  # the request cannot be confirmed: never start from it
                 log.warning("start request seen but the routine selector could not be read: not started")
                 return
-            if self._panel("abort_requested"):  # abort pressed meanwhile: it wins
-                self._discarded("followed by abort before it was taken (abort wins)")
+            if self._panel("abort_requested"):  # abort pressed meanwhile (or with it, read apart): it wins
+                self._abort_wins("followed by abort before it was taken (abort wins)")
                 return
             self.start(self.routines.get(int(selector), f"selector {selector}"))
 
@@ -227,6 +225,13 @@ class Service:
         if self._panel("start_requested"):
             self._discarded(why)
         self._panel("abort_requested")
+
+    def _abort_wins(self, why: str) -> None:
+        """A start the abort button overrules: nothing starts, and the press is answered
+        (result code 40, counted, so a PLC waiting on the counter sees it)."""
+        self._discarded(why)
+        self._panel("set_lamps", done=False, fault=False)
+        self._panel("set_result", int(ResultCode.ABORTED))
 
     def _discarded(self, why: str) -> None:
         log.warning("a start request %s: cleared, not started (press start again)", why)

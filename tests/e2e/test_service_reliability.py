@@ -250,3 +250,20 @@ def test_the_outcome_registers_carry_the_change_written_before_the_result(cell, 
         for k, key in enumerate(("x_mm", "y_mm", "z_mm")):
             # the register holds whole thousandths of a mm: within half of one of the frame's change
             assert seen[key] == pytest.approx((written[k] - CALIBRATED[k]) * 1e3, abs=5e-4)
+
+
+def test_an_abort_read_just_after_the_start_still_wins_and_the_press_is_answered(cell, tmp_path):
+    """The two coils are read one after the other: an abort that lands between the reads (or
+    coils written together and read apart) still starts nothing, and the press is answered."""
+    with open_drivers(cell) as drivers:
+        service = service_on(cell, drivers, tmp_path)
+        panel = drivers.panel
+        real = panel.routine_selector
+
+        def selector_then_abort():
+            panel.press_abort()  # the operator's abort arrives while the start is being confirmed
+            return real()
+        panel.routine_selector = selector_then_abort
+        press(service, panel, "tcp-npoint")
+        assert not service.busy() and service.store.runs() == []
+        assert panel.result_code == ResultCode.ABORTED and panel.run_counter == 1
