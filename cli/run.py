@@ -1,10 +1,12 @@
-"""``cellcal run ROUTINE --cell CELL.yaml [--dry-run] [--json] [--from DATASET]``.
+"""``cellcal run ROUTINE --cell CELL.yaml [--tool ID] [--dry-run] [--json] [--from DATASET]``.
 
 Plans the routine from the cell file, checks every motion against the cell's limits
 (``--dry-run`` stops there), moves and records, writes the dataset, solves and gates.
 ``--from DATASET`` re-solves a recorded dataset offline with the same code;
 ``--resume DATASET`` continues a campaign a fault stopped (routines that can). On a
 simulated cell the result also carries ``sim_truth``: the error against the hidden truth.
+``--tool ID`` runs with that tool of the cell's tool table mounted (its drawing, bands and
+routine sections; on an in-process simulated cell, its real frame); the JSON says ``tool_id``.
 
 Nothing is written to the controller here (the daemon writes results back): the JSON says
 ``passed_gates`` (every quality gate passed, so the result may be written back) and
@@ -25,6 +27,7 @@ import os
 
 import numpy as np
 
+from cellcal.config.cells import TOOL_IDS
 from cellcal.config.robot_files import load_robot
 from cellcal.drivers import registry as drivers_registry
 from cellcal.routines import registry, runner
@@ -34,7 +37,7 @@ from cellcal.solvers.measurement_model import Layout, Observations, predict
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.claims import held
 from cellcal.daemon.store import Store, StoreError, file_sha256, state_dir as store_folder
-from cellcal.cli.common import STATE_HELP, UsageError, counted, print_progress, writable_folder
+from cellcal.cli.common import STATE_HELP, UsageError, counted, print_progress, whole, writable_folder
 
 
 def _score(result: Result, cell) -> None:
@@ -138,6 +141,9 @@ def _say_if_edited(path, state_dir: str | None) -> None:
 def cmd_run(args) -> int:
     try:
         cell = load_cell(args.cell)
+        if args.tool is not None:  # another tool of the table mounted: its sections read as the file's are
+            cell = cell.with_tool(args.tool)
+            registry.check_sections(cell)
         if args.routine not in registry.available():
             raise UsageError(f"no routine named {args.routine!r} (routines: {', '.join(registry.available())})")
         if args.from_dataset and args.resume:
@@ -148,7 +154,8 @@ def cmd_run(args) -> int:
         else:
             prepared = runner.prepare(args.routine, cell, resume=args.resume)
             if args.dry_run:
-                summary = {"routine": args.routine, "cell": cell.path, "moves": len(prepared.plan),
+                summary = {"routine": args.routine, "cell": cell.path, "tool_id": _tool_id(cell),
+                           "moves": len(prepared.plan),
                            "within_limits": True,
                            "plan": [{"kind": m.kind, "label": m.label} for m in prepared.plan]}
                 if args.json:
@@ -168,12 +175,19 @@ def cmd_run(args) -> int:
         raise UsageError(f"{exc}; nothing moved") from None
     _score(result, cell)
     if args.json:
-        print(json.dumps({**result.as_json(), "written_back": False}, default=jsonable))
+        print(json.dumps({**result.as_json(), "tool_id": _tool_id(cell), "written_back": False}, default=jsonable))
     else:
+        if len(cell.tools) > 1:
+            print(f"tool {cell.tool.id} ({cell.tool.name}) mounted")
         print(_text(result))
         if result.tool_frame is not None:
             print("  nothing written to the controller (cellcal run never writes; the daemon writes back)")
     return 0 if result.write_back and result.verdict != "alarm" else 1  # a check's alarm is a cell failure
+
+
+def _tool_id(cell) -> int | None:
+    """The mounted tool's id in the cell's tool table (None: a cell without a tool)."""
+    return cell.tool.id if cell.tool is not None else None
 
 
 def add_parser(sub) -> None:
@@ -184,6 +198,8 @@ def add_parser(sub) -> None:
     p.add_argument("routine", metavar="ROUTINE", help="one of: " + ", ".join(registry.available()))
     p.add_argument("--cell", default="sim", metavar="CELL.yaml",
                    help="cell file, or the name of a shipped cell (default: sim, the simulated cell)")
+    p.add_argument("--tool", type=whole(*TOOL_IDS), metavar="ID",
+                   help="the tool of the cell's tool table that is mounted (default: the file's `mounted`)")
     p.add_argument("--dry-run", action="store_true", help="plan and check every motion; move nothing")
     p.add_argument("--from", dest="from_dataset", metavar="DATASET",
                    help="re-solve a recorded dataset instead of measuring")

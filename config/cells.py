@@ -21,13 +21,23 @@ Sections (all lengths in metres, base frame unless said otherwise)::
                 the flange toward the tip), radius_m, length_m, and bands (optional: a check's
                 tolerance bands, inner_mm/inner_deg (0.1/0.1) and outer_mm/outer_deg (1/1), the
                 outer at most the plausibility gate's 10 mm / 5 deg; drift_mm/drift_deg, off
-                unless given: a check's drift alarm, the change since the last full calibration)
+                unless given: a check's drift alarm, the change since the last full calibration).
+                A file with ``tool`` has a table of one tool: id 1, name "tool".
+    tools:      several tools instead of ``tool`` (a tool changer, a spare torch): a list of
+                {id (1..255, unique), name, tcp_m, axis, radius_m, length_m, bands (as in
+                ``tool``), sections (optional: routine sections that differ for this tool,
+                ``{tcp_laser: {heights_mm: [...]}}``, merged key by key over the file's own
+                section of that routine when the tool is mounted)}. ``tool`` and ``tools``
+                together are refused; a two-robot cell has one tool per robot, no table.
+    mounted:    with ``tools``: the id of the tool on the flange when the file is loaded
+                (default: the table's first). :meth:`Cell.with_tool` mounts another.
     beams:      the light barrier's beams as installed: a list of
                 {point_m, direction, radius_m (half the beam width), channel, level_when_blocked}
     stylus:     a fixed stylus tip: centre_m, radius_m
     pivot:      a fixed point the tool tip is seated at: point_m
     sim_truth:  what a simulated cell really has (see :class:`SimTruthSpec`); real cells
-                have none
+                have none. Its tool_tcp_m / tool_axis state tool 1's real frame; every other
+                tool of a table is drawn, from the seed and its id
     ROUTINE:    one section per routine (``tcp_laser``, ``tcp_stylus``, ...), read by the
                 routine itself (``cellcal.routines``), kept here as written. Which sections
                 are routines' is the routines' to say: the caller passes their names to
@@ -37,7 +47,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -48,8 +58,9 @@ from cellcal.config.robot_files import ModelError, load_robot
 
 DEVICE_KINDS = ("robot", "trigger", "tracker", "panel")
 # the cell file's own sections; every other one is a routine's
-CELL_SECTIONS = frozenset({"cell", "drivers", "robots", "workspace", "limits", "tool", "beams", "stylus", "pivot",
-                           "sim_truth"})
+CELL_SECTIONS = frozenset({"cell", "drivers", "robots", "workspace", "limits", "tool", "tools", "mounted", "beams",
+                           "stylus", "pivot", "sim_truth"})
+TOOL_IDS = (1, 255)  # a tool table's ids (the panel's tool register holds one)
 _REQUIRED = ("cell", "workspace", "limits")
 ROBOT_NAMES = ("a", "b")  # the robots of a two-robot cell; a's base is the cell frame
 
@@ -98,13 +109,16 @@ class Bands:
 
 @dataclass(frozen=True)
 class ToolSpec:
-    """The mounted tool as drawn: a cylinder (a pin, a grinding tool) ending in its TCP."""
+    """A tool as drawn: a cylinder (a pin, a grinding tool) ending in its TCP."""
 
     tcp_m: np.ndarray  # the tip in the flange frame
     axis: np.ndarray  # unit, flange frame, from the flange toward the tip
     radius_m: float
     length_m: float  # of the cylinder behind the tip
     bands: Bands = field(default_factory=Bands)
+    id: int = 1  # its id in the cell's tool table (a file's ``tool`` is tool 1)
+    name: str = "tool"
+    sections: dict = field(default_factory=dict)  # routine section -> its keys that differ for this tool
 
     @property
     def tcp_pose(self) -> np.ndarray:
@@ -179,8 +193,24 @@ class Cell:
     stylus: dict | None = None  # {"centre_m": (3,), "radius_m": r}
     pivot_m: np.ndarray | None = None
     sim_truth: SimTruthSpec | None = None
-    routines: dict = field(default_factory=dict)  # section name -> mapping as written
+    routines: dict = field(default_factory=dict)  # section name -> mapping (the mounted tool's merged in)
     robots: dict = field(default_factory=dict)  # name -> RobotSpec; {"a"} alone in a one-robot cell
+    tools: dict = field(default_factory=dict)  # id -> ToolSpec: the tool table (robot a's; `tool` is the mounted one)
+    file_routines: dict = field(default_factory=dict)  # the routine sections as written, no tool's merged in
+
+    def with_tool(self, tool_id: int) -> "Cell":
+        """The same cell with tool `tool_id` of its table mounted: `tool` (and robot a's tool)
+        is that tool, and its routine sections are merged over the file's own. Raises
+        CellFileError for an id the table does not have."""
+        if tool_id not in self.tools:
+            have = ", ".join(map(str, self.tools)) or "none"
+            raise CellFileError(f"no tool {tool_id} in this cell (its tools: {have})", source=self.path,
+                                section="tools" if len(self.tools) > 1 else "tool")
+        other = copy.deepcopy(self)
+        other.tool = other.tools[tool_id]
+        other.routines = _merged_sections(other.file_routines, other.tool)
+        other.robots["a"] = replace(other.robots["a"], tool=other.tool)
+        return other
 
     def on_host(self, host: str) -> "Cell":
         """The same cell with every networked driver pointed at another address (parallel test cells)."""
@@ -200,6 +230,14 @@ def _unit(section: Section, key: str, default=None, *, required=False) -> np.nda
     return v / np.linalg.norm(v)
 
 
+def _merged_sections(file_routines: dict, tool: ToolSpec | None) -> dict:
+    """The routine sections with `tool`'s own keys merged over the file's (key by key)."""
+    merged = copy.deepcopy(file_routines)
+    for section, keys in (tool.sections if tool is not None else {}).items():
+        merged[section] = {**merged.get(section, {}), **copy.deepcopy(keys)}
+    return merged
+
+
 def _read_tool(s: Section) -> ToolSpec:
     tool = ToolSpec(s.vector("tcp_m", 3, required=True), _unit(s, "axis", [0.0, 0.0, 1.0]),
                     s.number("radius_m", 0.003, above=0.0, high=0.1),
@@ -207,6 +245,29 @@ def _read_tool(s: Section) -> ToolSpec:
                     _read_bands(s.section("bands")) if "bands" in s else Bands())
     s.done()
     return tool
+
+
+def _read_tools(top: Section, routine_sections: tuple | None) -> dict[int, ToolSpec]:
+    """[tools]: the tool table, each row a [tool] with its id, name and routine sections."""
+    tools: dict[int, ToolSpec] = {}
+    for row in top.items_of("tools", nonempty=True):
+        tool_id = row.integer("id", required=True, low=TOOL_IDS[0], high=TOOL_IDS[1])
+        if tool_id in tools:
+            row.fail("id", f"tool {tool_id} is already in the table (each tool's id once)")
+        name = row.text("name", f"tool {tool_id}")
+        sections = row.section("sections")
+        for section in sections.mapping:
+            if section in CELL_SECTIONS or (routine_sections is not None and section not in routine_sections):
+                known = "any routine's" if routine_sections is None else ", ".join(sorted(routine_sections))
+                sections.fail(section, f"no routine's section (routine sections: {known})")
+            sections.section(section)  # a mapping, else refused here
+        own = {str(k): dict(v) for k, v in sections.mapping.items()}
+        body = Section(row.source, row.name, {k: v for k, v in row.mapping.items()
+                                              if k not in ("id", "name", "sections")}, row.error)
+        tool = _read_tool(body)
+        tools[tool_id] = ToolSpec(tool.tcp_m, tool.axis, tool.radius_m, tool.length_m, tool.bands,
+                                  tool_id, name, own)
+    return tools
 
 
 def _read_bands(s: Section) -> Bands:
@@ -334,8 +395,10 @@ def read_cell(name_or_path: str | Path, routine_sections: Iterable[str] | None =
         for key in ("robot", "home_q_rad"):
             if key in s:
                 s.fail(key, "a two-robot cell gives each robot's model and home in [robots.a] and [robots.b]")
-        if "tool" in doc:
-            top.fail("tool", "a two-robot cell gives each robot's tool in [robots.a.tool] and [robots.b.tool]")
+        for key in ("tool", "tools", "mounted"):
+            if key in doc:
+                top.fail(key, "a two-robot cell gives each robot's one tool in [robots.a.tool] and "
+                              "[robots.b.tool] (no tool table there)")
         robots = _read_robots(top, path)
     else:
         robot, home_q = _read_arm(s, path)
@@ -371,8 +434,9 @@ def read_cell(name_or_path: str | Path, routine_sections: Iterable[str] | None =
 
     if two:
         tool = robots["a"].tool
+        tools = {tool.id: tool} if tool is not None else {}
     else:
-        tool = _read_tool(top.section("tool")) if "tool" in doc else None
+        tools, tool = _read_tool_table(top, doc, routine_sections)
         robots = {"a": RobotSpec("a", robot, tuple(home_q.tolist()), drivers["robot"], tool)}
     beams = _read_beams(top) if "beams" in doc else ()
     stylus = None
@@ -387,10 +451,33 @@ def read_cell(name_or_path: str | Path, routine_sections: Iterable[str] | None =
         pivot = pv.vector("point_m", 3, required=True)
         pv.done()
     truth = _read_sim_truth(top.section("sim_truth")) if "sim_truth" in doc else None
+    if truth is not None and tools and 1 not in tools:
+        for key in ("tool_tcp_m", "tool_axis"):
+            if key in doc["sim_truth"]:
+                Section(where, "sim_truth", doc["sim_truth"], CellFileError).fail(
+                    key, f"states tool 1's real frame, and [tools] has no tool 1 (its tools: "
+                         f"{', '.join(map(str, tools))}); leave it out to draw each tool's")
     routines = {}
     for section in doc if routine_sections is None else routine_sections:
         if section in doc and section not in CELL_SECTIONS:
             routines[section] = top.section(section).mapping
     a = robots["a"]
     return Cell(where, name, a.robot, a.home_q_rad, drivers, low, high, limits, tool, beams, stylus,
-                pivot, truth, routines, robots)
+                pivot, truth, _merged_sections(routines, tool), robots, tools, routines)
+
+
+def _read_tool_table(top: Section, doc: dict, routine_sections) -> tuple[dict[int, ToolSpec], ToolSpec | None]:
+    """A one-robot cell's tools (``tool``: a table of one, id 1; ``tools``: the table) and
+    the mounted one (``mounted``, default the table's first)."""
+    if "tool" in doc and "tools" in doc:
+        top.fail("tools", "give either one tool ([tool]) or a tool table ([tools]), not both")
+    if "mounted" in doc and "tools" not in doc:
+        top.fail("mounted", "names a tool of the tool table [tools], and this file has none")
+    if "tools" in doc:
+        tools = _read_tools(top, routine_sections)
+        mounted = top.integer("mounted", next(iter(tools)), low=TOOL_IDS[0], high=TOOL_IDS[1])
+        if mounted not in tools:
+            top.fail("mounted", f"no tool {mounted} in [tools] (its tools: {', '.join(map(str, tools))})")
+        return tools, tools[mounted]
+    tool = _read_tool(top.section("tool")) if "tool" in doc else None
+    return ({tool.id: tool} if tool is not None else {}), tool

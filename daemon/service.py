@@ -615,8 +615,10 @@ class Service:
 
 
     def _tool_id(self) -> int:
-        """The tool the run was for: the cell's one tool is tool 1 (0: the cell describes none)."""
-        return 1 if getattr(self.cell, "tool", None) is not None else 0
+        """The tool the run was for: the cell's mounted tool's id in its tool table (a file's one
+        ``tool`` is tool 1; 0: the cell describes none)."""
+        tool = getattr(self.cell, "tool", None)
+        return 0 if tool is None else int(getattr(tool, "id", 1))
 
     @staticmethod
     def _change(result: Result | None, wrote: bool) -> dict | None:

@@ -68,12 +68,14 @@ class FakeUrController(ControlPort):
     def __init__(self, host: str = "127.0.0.1", *, robot: str | None = None, q0=HOME_Q, cell: dict | None = None,
                  cell_file: str | None = None, version=(5, 15, 0, 11908), serial: str = "20235500001",
                  control_port: int = CONTROL_PORT, frequency_hz: float = 500.0, seed: int = 0,
-                 verbose: bool = False, arm: str = "a"):
+                 verbose: bool = False, arm: str = "a", tool: int | None = None):
         self.host, self.version, self.serial = host, tuple(version), serial
         self.control_port, self.frequency_hz, self.verbose = control_port, frequency_hz, verbose
         self.lock = threading.RLock()
         self.cell = scene_from_spec(cell)
         cell_spec = read_cell(cell_file) if cell_file is not None else None
+        if cell_spec is not None and tool is not None:  # another tool of the table mounted (CellFileError if none)
+            cell_spec = cell_spec.with_tool(tool)
         robot = robot or (cell_spec.robots[arm].robot if cell_spec is not None else "ur10e")
         model = load_robot(robot)
         self.truth = truth_of_cell(cell_spec, load_robot(cell_spec.robot)) if cell_spec is not None else \

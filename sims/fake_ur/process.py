@@ -64,7 +64,7 @@ class FakeUrProcess:
 
     def __init__(self, host: str, *, robot: str | None = None, q0=None, cell: dict | None = None,
                  cell_file: str | None = None, plugins=(), control_port: int = CONTROL_PORT,
-                 verbose: bool = False, arm: str | None = None):
+                 verbose: bool = False, arm: str | None = None, tool: int | None = None):
         self.host, self.control_port = host, control_port
         self.args = [sys.executable, "-m", "cellcal.sims.fake_ur.process", "--host", host,
                      "--control-port", str(control_port), "--parent-pid", str(os.getpid())]
@@ -82,6 +82,8 @@ class FakeUrProcess:
             self.args.append("--verbose")
         if arm is not None:  # which robot of a two-robot cell file this controller is
             self.args += ["--arm", arm]
+        if tool is not None:  # which tool of the cell file's tool table is mounted (default: its `mounted`)
+            self.args += ["--tool", str(tool)]
         self.proc: subprocess.Popen | None = None
         self._stderr = None
 
@@ -178,6 +180,8 @@ def main(argv=None) -> int:
                         help=f"inject a fault at once or after the arm moved that long ({', '.join(FAULT_KINDS)})")
     parser.add_argument("--arm", default="a", choices=("a", "b"),
                         help="which robot of a two-robot cell file this controller is (default a)")
+    parser.add_argument("--tool", type=int, help="with --cell-file: the id of the tool of its table that is "
+                                                  "mounted (default: the file's `mounted`)")
     parser.add_argument("--control-port", type=int, default=CONTROL_PORT)
     parser.add_argument("--verbose", action="store_true", help="log controller messages to stderr")
     parser.add_argument("--parent-pid", type=int, help="exit when this process ends (no orphans after a crash)")
@@ -185,7 +189,7 @@ def main(argv=None) -> int:
     q0 = HOME_Q if args.q0 is None else [float(v) for v in args.q0.split(",")]
     controller = FakeUrController(args.host, robot=args.robot, q0=q0, cell=json.loads(args.cell or "{}"),
                                   cell_file=args.cell_file, control_port=args.control_port, verbose=args.verbose,
-                                  arm=args.arm)
+                                  arm=args.arm, tool=args.tool)
     for plugin in args.plugin:
         module, _, attr = plugin.partition(":")
         getattr(importlib.import_module(module), attr)(controller)

@@ -170,7 +170,8 @@ class SimCell:
                 check_free(*address)
         try:
             self.fake_ur = FakeUrProcess(a.ur_host, robot=self.cell.robot, q0=self.cell.home_q_rad,
-                                         cell_file=self.cell.path)
+                                         cell_file=self.cell.path,  # the tool the cell has mounted (with_tool)
+                                         tool=self.cell.tool.id if self.cell.tool is not None else None)
             try:
                 self.fake_ur.start()
             except RuntimeError as exc:

@@ -8,7 +8,10 @@ reality is from that, or states reality outright, and a seed draws the rest. Fro
   the drawing, so its reported TCP is where it *believes* the tool is);
 * the mounted tool as it really is: its tip (the TCP a perfect calibration finds), its
   axis (runout tilt), its radius and length, as a capsule that blocks beams and touches
-  things with its whole body, not just a point;
+  things with its whole body, not just a point; in a cell with a tool table, every tool
+  of it as it really is (``tools``), tool 1 drawn as the one tool of a one-tool cell is and
+  every other from its own stream of the seed and its id, so mounting another tool
+  (:meth:`Cell.with_tool`) changes nothing else of the truth;
 * the fixtures where they really are, the sensors' real latency and jitter, and the
   arm's repeatability (each motion ends a little off, drawn afresh per motion);
 * in a two-robot cell, robot b as it really is (:class:`SecondArm`): its arm, its real
@@ -82,6 +85,7 @@ class CellTruth:
     seed: int = 0
     drawn: dict = field(default_factory=dict)  # how far each part is from the cell file, for reports
     second: SecondArm | None = None  # robot b of a two-robot cell
+    tools: dict = field(default_factory=dict)  # tool id -> ToolBody: every tool of the table as it really is
 
     def for_second(self) -> "CellTruth":
         """The truth robot b's own world obeys: its arm and tool, no fixtures, the same
@@ -153,14 +157,21 @@ def truth_of_cell(cell: Cell, model: KinematicModel) -> CellTruth:
     errors = np.where(model.param_is_angle, np.deg2rad(spec.arm_angle_error_deg), spec.arm_length_error_mm)
     params += rng.uniform(-1.0, 1.0, len(params)) * errors
     drawn: dict = {}
-    tool = None
-    if cell.tool is not None:
+    tools = {}
+    table = cell.tools or ({cell.tool.id: cell.tool} if cell.tool is not None else {})
+    if 1 in table:  # tool 1 from the main stream, as a one-tool cell's tool: the fixtures' draws follow
+        spec_1 = table[1]
         tcp = spec.tool_tcp_m if spec.tool_tcp_m is not None else \
-            cell.tool.tcp_m + _random_unit(rng) * spec.tool_tcp_error_mm / 1e3
+            spec_1.tcp_m + _random_unit(rng) * spec.tool_tcp_error_mm / 1e3
         axis = spec.tool_axis if spec.tool_axis is not None else \
-            _tilted(cell.tool.axis, np.deg2rad(spec.tool_tilt_deg), rng)
-        tool = ToolBody(np.asarray(tcp, float), np.asarray(axis, float) / np.linalg.norm(axis),
-                        cell.tool.radius_m, cell.tool.length_m)
+            _tilted(spec_1.axis, np.deg2rad(spec.tool_tilt_deg), rng)
+        tools[1] = ToolBody(np.asarray(tcp, float), np.asarray(axis, float) / np.linalg.norm(axis),
+                            spec_1.radius_m, spec_1.length_m)
+    for tool_id, drawn_tool in table.items():  # every other tool from its own stream: (seed, 3, id)
+        if tool_id != 1:
+            tools[tool_id] = _real_tool(drawn_tool, spec, np.random.default_rng([spec.seed, 3, tool_id]))
+    tool = tools[cell.tool.id] if cell.tool is not None else None
+    if tool is not None:
         drawn["tool_tcp_off_drawing_mm"] = float(np.linalg.norm(tool.tcp_m - cell.tool.tcp_m) * 1e3)
         drawn["tool_axis_off_drawing_deg"] = float(np.rad2deg(np.arccos(np.clip(tool.axis @ cell.tool.axis, -1, 1))))
 
@@ -175,7 +186,7 @@ def truth_of_cell(cell: Cell, model: KinematicModel) -> CellTruth:
     pivot = placed(cell.pivot_m) if cell.pivot_m is not None else None
     second = _second_arm(cell, spec, drawn) if "b" in cell.robots else None
     return CellTruth(params, tool, beams, stylus, pivot, (), spec.repeatability_mm, spec.trigger_latency_s,
-                     spec.trigger_jitter_s, spec.seed, drawn, second)
+                     spec.trigger_jitter_s, spec.seed, drawn, second, tools)
 
 
 def _real_tool(drawn_tool, spec: SimTruthSpec, rng: np.random.Generator) -> ToolBody | None:
