@@ -61,6 +61,7 @@ class ResultCode(enum.IntEnum):
     NO_SUCH_ROUTINE = 11
     LIMITS = 12
     BUSY = 13
+    TOOL_NOT_MOUNTED = 14
     SENSOR_FAULT = 20
     ROBOT_FAULT = 21
     DEVICE_TIMEOUT = 22
@@ -80,6 +81,8 @@ RESULT_MEANINGS = {
     ResultCode.NO_SUCH_ROUTINE: "start refused: the routine selector names no routine this cell can run",
     ResultCode.LIMITS: "start refused: the routine's plan would leave the cell's limits; nothing moved",
     ResultCode.BUSY: "start refused: a routine is already running (the press is ignored)",
+    ResultCode.TOOL_NOT_MOUNTED: "start refused: the tool selector names a tool the cell does not have, or not the "
+                                 "one mounted; nothing moved",
     ResultCode.SENSOR_FAULT: "the trigger or the tracker failed or went silent; motion stopped",
     ResultCode.ROBOT_FAULT: "the robot faulted (connection lost, protective or emergency stop); motion stopped",
     ResultCode.DEVICE_TIMEOUT: "the robot controller did not answer in time (stalled); motion stopped",
@@ -214,10 +217,14 @@ class Service:
             if selector is None:  # the request cannot be confirmed: never start from it
                 log.warning("start request seen but the routine selector could not be read: not started")
                 return
+            tool = self._panel("tool_selector")
+            if tool is None:
+                log.warning("start request seen but the tool selector could not be read: not started")
+                return
             if self._panel("abort_requested"):  # abort pressed meanwhile (or with it, read apart): it wins
                 self._abort_wins("followed by abort before it was taken (abort wins)")
                 return
-            self.start(self.routines.get(int(selector), f"selector {selector}"))
+            self.start(self.routines.get(int(selector), f"selector {selector}"), tool=int(tool))
 
     def discard_requests(self, why: str) -> None:
         """Clear the panel's requests without acting on them (those pending when the service
@@ -244,8 +251,9 @@ class Service:
             self._panel("set_lamps", busy=False, done=False, fault=True)
             self._panel("set_result", int(ResultCode.INTERRUPTED), increment_counter=False)
 
-    def start(self, routine: str) -> None:
-        """Start a run in the worker thread (returns at once)."""
+    def start(self, routine: str, tool: int = 0) -> None:
+        """Start a run in the worker thread (returns at once); `tool`: the tool the operator
+        selected (0: whichever is mounted)."""
         if self.busy():
             raise RuntimeError("a run is already going on")
         if self._worker is not None:  # the last run's final panel writes
@@ -253,7 +261,8 @@ class Service:
         self.abort.clear()
         self._active = True
         self._run_id = None
-        self._worker = threading.Thread(target=self._run_safely, args=(routine,), name="cellcal-run", daemon=True)
+        self._worker = threading.Thread(target=self._run_safely, args=(routine, tool), name="cellcal-run",
+                                        daemon=True)
         self._worker.start()
 
     def wait(self, timeout_s: float | None = None) -> RunOutcome | None:
@@ -272,9 +281,9 @@ class Service:
         except DeviceError as exc:
             log.warning("stop after abort failed: %s", exc)
 
-    def _run_safely(self, routine: str) -> None:
+    def _run_safely(self, routine: str, tool: int = 0) -> None:
         try:
-            self.last = self.run(routine)
+            self.last = self.run(routine, tool)
         except Exception as exc:
             # the service's own bookkeeping failed (store, state folder) or a bug: the run still
             # ends, in fault, with the lamps and the result register right and nothing written back
@@ -309,11 +318,15 @@ class Service:
         except Exception as exc:
             log.error("giving the tool frame back failed: %s", exc)
 
-    def run(self, routine: str) -> RunOutcome:
-        """The whole state machine for one run, in the calling thread."""
+    def run(self, routine: str, tool: int = 0) -> RunOutcome:
+        """The whole state machine for one run, in the calling thread; `tool`: the tool the
+        operator selected (0: whichever is mounted)."""
         run_id = self._run_id = self.store.begin_run(routine, self.cell.path)
         self._history_note = None
         self._transition(run_id, "checking", routine)
+        wrong_tool = self._wrong_tool(tool)
+        if wrong_tool is not None:
+            return self._end(run_id, "refused", ResultCode.TOOL_NOT_MOUNTED, wrong_tool)
         cell = self._cell_for(run_id, routine)
         prepared, frame_before, refusal = self._check(routine, cell)
         if refusal is None and self.abort.is_set():
@@ -613,6 +626,19 @@ class Service:
         self.state = "idle"
         return RunOutcome(run_id, state, code, reason, result)
 
+
+    def _wrong_tool(self, tool: int) -> str | None:
+        """Why a start for tool `tool` (0: the mounted one) may not run, or None."""
+        if tool == 0:
+            return None
+        tools = getattr(self.cell, "tools", None) or {}
+        if tool not in tools:
+            have = ", ".join(f"{t.id} {t.name}" for t in tools.values()) or "none"
+            return f"the tool selector names tool {tool}; this cell has no such tool (its tools: {have}); nothing moved"
+        if tool != self._tool_id():
+            return (f"the tool selector names tool {tool} ({tools[tool].name}) but tool {self._tool_id()} "
+                    f"({tools[self._tool_id()].name}) is mounted (the cell file's `mounted`); nothing moved")
+        return None
 
     def _tool_id(self) -> int:
         """The tool the run was for: the cell's mounted tool's id in its tool table (a file's one

@@ -208,6 +208,11 @@ class OperatorPanel(abc.ABC):
     def set_result(self, code: int, increment_counter: bool = True) -> None:
         ...
 
+    def tool_selector(self) -> int:
+        """The tool the operator means (its id in the cell's tool table); 0: whichever tool is
+        mounted. A panel without a tool selector returns 0."""
+        return 0
+
     def set_outcome(self, registers: dict[str, int]) -> None:
         """What a run found, for a PLC or robot program to act on (docs/panel.md "Outcome
         registers"): register name -> raw 16-bit value, written before the result code and the

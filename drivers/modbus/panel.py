@@ -150,13 +150,14 @@ class PanelMap:
     result_code_register: int = 1
     run_counter_register: int = 2
     # the outcome of the last run (written before the result code and the counter)
-    verdict_register: int = 3
-    tool_id_register: int = 4
-    change_x_register: int = 5
-    change_y_register: int = 6
-    change_z_register: int = 7
-    tilt_x_register: int = 8
-    tilt_y_register: int = 9
+    verdict_register: int = 20
+    tool_id_register: int = 21
+    change_x_register: int = 22
+    change_y_register: int = 23
+    change_z_register: int = 24
+    tilt_x_register: int = 25
+    tilt_y_register: int = 26
+    tool_selector_register: int = 27  # written by the panel: the tool the start is for (0: the mounted one)
 
     @classmethod
     def of_options(cls, options) -> "PanelMap":
@@ -171,7 +172,7 @@ class PanelMap:
 
     def holding_registers(self) -> list[int]:
         return [self.routine_selector_register, self.result_code_register,
-                self.run_counter_register, *self.outcome_registers().values()]
+                self.run_counter_register, *self.outcome_registers().values(), self.tool_selector_register]
 
     def outcome_registers(self) -> dict[str, int]:
         """The outcome registers by their name in :meth:`OperatorPanel.set_outcome` -> address."""
@@ -206,9 +207,9 @@ class ModbusPanel(OperatorPanel):
                  start_request_coil: int = 0, abort_request_coil: int = 1,
                  busy_lamp_coil: int = 8, done_lamp_coil: int = 9, fault_lamp_coil: int = 10,
                  routine_selector_register: int = 0, result_code_register: int = 1,
-                 run_counter_register: int = 2, verdict_register: int = 3, tool_id_register: int = 4,
-                 change_x_register: int = 5, change_y_register: int = 6, change_z_register: int = 7,
-                 tilt_x_register: int = 8, tilt_y_register: int = 9):
+                 run_counter_register: int = 2, verdict_register: int = 20, tool_id_register: int = 21,
+                 change_x_register: int = 22, change_y_register: int = 23, change_z_register: int = 24,
+                 tilt_x_register: int = 25, tilt_y_register: int = 26, tool_selector_register: int = 27):
         given = locals()
         addresses = {f.name: given[f.name] for f in dataclasses.fields(PanelMap)}
         self.check_options(port=port, unit_id=unit_id, timeout_s=timeout_s, **addresses)
@@ -233,6 +234,9 @@ class ModbusPanel(OperatorPanel):
 
     def routine_selector(self) -> int:
         return self._link.read_holding_registers(self.map.routine_selector_register)[0]
+
+    def tool_selector(self) -> int:
+        return self._link.read_holding_registers(self.map.tool_selector_register)[0]
 
     def set_lamps(self, *, busy: bool | None = None, done: bool | None = None,
                   fault: bool | None = None) -> None:

@@ -223,6 +223,7 @@ class SimPanel(OperatorPanel):
         self.name = "sim panel"
         self._start = self._abort = False
         self.routine = int(routine)
+        self.tool = 0  # the tool selector: 0, whichever is mounted
         self.lamps = {"busy": False, "done": False, "fault": False}
         self.result_code = 0
         self.run_counter = 0
@@ -238,6 +239,9 @@ class SimPanel(OperatorPanel):
     def select_routine(self, routine: int) -> None:
         self.routine = int(routine)
 
+    def select_tool(self, tool: int) -> None:
+        self.tool = int(tool)
+
     # the daemon's side
     def start_requested(self) -> bool:
         pressed, self._start = self._start, False
@@ -249,6 +253,9 @@ class SimPanel(OperatorPanel):
 
     def routine_selector(self) -> int:
         return self.routine
+
+    def tool_selector(self) -> int:
+        return self.tool
 
     def set_lamps(self, *, busy: bool | None = None, done: bool | None = None,
                   fault: bool | None = None) -> None:

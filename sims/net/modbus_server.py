@@ -195,6 +195,9 @@ class ModbusCellServer:
     def select_routine(self, routine: int) -> None:
         self._set(WRITE_REGISTER, self.panel_map.routine_selector_register, [routine])
 
+    def select_tool(self, tool: int) -> None:
+        self._set(WRITE_REGISTER, self.panel_map.tool_selector_register, [tool])
+
     def start_request_pending(self) -> bool:
         return bool(self._get(READ_COILS, self.panel_map.start_request_coil)[0])
 

@@ -267,3 +267,30 @@ def test_an_abort_read_just_after_the_start_still_wins_and_the_press_is_answered
         press(service, panel, "tcp-npoint")
         assert not service.busy() and service.store.runs() == []
         assert panel.result_code == ResultCode.ABORTED and panel.run_counter == 1
+
+
+def test_a_start_for_a_tool_that_is_not_mounted_is_refused_and_nothing_moves(tmp_path):
+    """A cell of two tools, tool 1 mounted: the tool selector naming tool 2, or a tool the cell
+    lacks, refuses the start (code 14); 0 or tool 1 runs with tool 1."""
+    from cell_edits import edited_cell  # tests/cell_edits.py
+
+    def two_tools(doc):
+        tool = doc.pop("tool")
+        doc["tools"] = [{"id": 1, "name": "torch", **tool},
+                        {"id": 2, "name": "spare", **tool, "tcp_m": [0.0, 0.0, 0.17]}]
+        doc["mounted"] = 1
+    cell = load_cell(edited_cell(tmp_path, "sim", two_tools, name="two-tools.yaml"))
+    with open_drivers(cell) as drivers:
+        service = service_on(cell, drivers, tmp_path)
+        q = drivers.robot.actual_q()
+        for tool, words in ((2, "names tool 2 (spare) but tool 1 (torch) is mounted"), (9, "no such tool")):
+            drivers.panel.select_tool(tool)
+            outcome = press(service, drivers.panel, "tcp-npoint")
+            assert (outcome.state, outcome.code) == ("refused", ResultCode.TOOL_NOT_MOUNTED), outcome.reason
+            assert words in outcome.reason
+            assert drivers.panel.result_code == ResultCode.TOOL_NOT_MOUNTED and drivers.panel.lamps["fault"]
+            np.testing.assert_array_equal(drivers.robot.actual_q(), q)
+        drivers.panel.select_tool(1)
+        outcome = press(service, drivers.panel, "tcp-npoint")
+        assert outcome.code == ResultCode.OK, outcome.reason
+        assert service_module.outcome.decoded(drivers.panel.outcome)["tool_id"] == 1

@@ -135,9 +135,9 @@ def test_a_blocked_datasets_folder_then_a_good_run_and_a_restart_keep_the_newest
     assert net.panel.result_code() == ResultCode.OK, daemon.log()
     assert net.panel.lamps() == {"busy": False, "done": True, "fault": False}
     written = frame_on_controller(net)
-    # what a PLC reads with a plain Modbus client: registers 3..9, the outcome (docs/panel.md)
+    # what a PLC reads with a plain Modbus client: registers 20..26, the outcome (docs/panel.md)
     with ModbusTcpClient(net.host, port=net.sim.addresses.modbus[1]) as client:
-        raw = client.read_holding_registers(3, count=7, device_id=net.sim.addresses.unit_id).registers
+        raw = client.read_holding_registers(20, count=7, device_id=net.sim.addresses.unit_id).registers
     seen = outcome.decoded(dict(zip(("verdict", "tool_id", "change_x", "change_y", "change_z", "tilt_x", "tilt_y"),
                                     raw)))
     assert seen["verdict"] is None and seen["tool_id"] == 1

@@ -49,7 +49,7 @@ def press(net: Net, routine: str) -> dict:
     with ModbusTcpClient(net.host, port=net.sim.addresses.modbus[1]) as client:
         unit = net.sim.addresses.unit_id
         code = client.read_holding_registers(1, count=1, device_id=unit).registers[0]
-        raw = client.read_holding_registers(3, count=7, device_id=unit).registers
+        raw = client.read_holding_registers(20, count=7, device_id=unit).registers
         lamps = client.read_coils(8, count=3, device_id=unit).bits[:3]
     return {"code": code, "lamps": dict(zip(("busy", "done", "fault"), lamps)),
             **outcome.decoded(dict(zip(OUTCOME, raw)))}

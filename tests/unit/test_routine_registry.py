@@ -64,12 +64,12 @@ def probe_cell_file(tmp_path):
 
 def _selected_by_panel(cell, selector: int) -> list[str]:
     """What the service starts when the panel's start is pressed with `selector` set."""
-    panel = SimpleNamespace(start_requested=lambda: True, abort_requested=lambda: False,
+    panel = SimpleNamespace(start_requested=lambda: True, abort_requested=lambda: False, tool_selector=lambda: 0,
                             routine_selector=lambda: selector, set_lamps=lambda **kw: None)
     robot = SimpleNamespace(state=lambda: RobotState.READY)
     service = Service(cell, SimpleNamespace(panel=panel, robot=robot), store=None, out_dir="unused")
     started = []
-    service.start = started.append
+    service.start = lambda routine, tool=0: started.append(routine)
     service.poll_panel()
     return started
 
