@@ -72,7 +72,9 @@ def test_a_second_daemon_on_the_same_store_is_refused_and_the_live_run_goes_on_t
     line = refusal(second)
     assert holder(daemon) in line and f"holds the state folder {daemon.state_dir}" in line, line
     assert "systemctl stop cellcal" in line
-    assert net.state()["moving"] or net.panel.run_counter() == counter + 1  # the first's run was not stopped
+    # The first's run goes on: it ends as its own gates decide (checked on the store below). Not
+    # asserted from the arm's "moving" flag here: between two sweeps and while it solves the
+    # arm stands still, so a snapshot of the flag says nothing about the run.
     until_the_run_ends(net, counter)
     assert daemon.proc.poll() is None, daemon.log()  # the first daemon serves on
     store = Store.open(daemon.state_dir, create=False)
