@@ -64,7 +64,8 @@ def cmd_daemon(args) -> int:
                 log.error("the robot does not answer: %s", exc)
                 return 1
             service = Service(cell, drivers, store, out_dir=folder / "datasets", notifier=notifier,
-                              report=lambda run_id, result, st: write_run_report(folder / "reports", run_id, result),
+                              report=lambda run_id, result, st: write_run_report(
+                                  folder / "reports", run_id, result, tool_id=st.run(run_id).tool_id),
                               reconnect=lambda: open_drivers(cell),
                               trend=lambda tool_id, trend: write_trend_page(folder / "reports" / f"tool-{tool_id}",
                                                                             trend))
@@ -72,6 +73,8 @@ def cmd_daemon(args) -> int:
             service.discard_requests("pending when the service started")
             service.announce_interrupted(interrupted)
             service.resume_owed_frame()
+            service.announce_tool_blocks()
+            page = None
             log.info("ready: cell %s, robot %s; the panel offers %s", cell.name, state.value,
                      ", ".join(f"{k} {v}" for k, v in service.routines.items()
                                if registry.unavailable(v, cell) is None))
@@ -88,6 +91,8 @@ def cmd_daemon(args) -> int:
                 service.wait(STOP_WAIT_S)  # the run's end, and its last words to the panel and the store
                 store.event("stop", None)
             finally:
+                if page is not None:
+                    page.stop()
                 if service.drivers is not drivers:  # reconnected after a lost robot
                     service.drivers.close()
         return 0
@@ -97,6 +102,30 @@ def cmd_daemon(args) -> int:
         notifier.close()
         store.close()
         claims.close()
+
+
+def _serve_status_page(cell, service: Service, folder):
+    """The read-only status page and JSON API (the cell file's ``status_page``), in a thread of
+    its own; None when turned off or when its address cannot be had (the service runs on: the
+    panel is what runs the cell, the page only shows it)."""
+    spec = cell.status_page
+    if not spec.enabled:
+        log.info("status page: off (status_page.enabled is false)")
+        return None
+    from cellcal.daemon.status_server import StatusServer  # only a daemon that serves it needs it
+
+    server = StatusServer(status=service.status, state_dir=folder, spec=spec)
+    try:
+        server.start()
+    except OSError as exc:
+        log.error("status page not served: %s (status_page in %s: another port, or enabled: false); the service "
+                  "runs on without it", exc, cell.path)
+        return None
+    log.info("status page and JSON API (read-only): %s", server.url)
+    if not spec.loopback:
+        log.warning("the status page is served on %s:%d, beyond this PC: anyone on that network can read it "
+                    "(read-only; status_page.host in %s)", spec.host, spec.port, cell.path)
+    return server
 
 
 def add_parser(sub) -> None:

@@ -31,10 +31,11 @@ from cellcal.config.cells import TOOL_IDS
 from cellcal.config.robot_files import load_robot
 from cellcal.drivers import registry as drivers_registry
 from cellcal.routines import registry, runner
-from cellcal.routines.base import NotForThisCell, PlanRefused, Result, frame_text, gate_line, jsonable
+from cellcal.routines.base import (NotForThisCell, PlanRefused, Result, RoutineError, frame_text, gate_line,
+                                   jsonable)
 from cellcal.routines.records import read_dataset
 from cellcal.solvers.measurement_model import Layout, Observations, predict
-from cellcal.daemon.cells import load_cell, open_drivers
+from cellcal.daemon.cells import NoToolMounted, load_cell, mounted_tool, open_drivers
 from cellcal.daemon.claims import held
 from cellcal.daemon.store import Store, StoreError, file_sha256, state_dir as store_folder
 from cellcal.cli.common import STATE_HELP, UsageError, counted, print_progress, whole, writable_folder
@@ -167,6 +168,8 @@ def cmd_run(args) -> int:
             writable_folder(args.out, "--out")  # the datasets' place, made once the plan stands: nothing moved yet
             # the robot's claim first: while the service (or another run) holds the robot, say so; nothing moves
             with held(cell, kinds=("robot",)), open_drivers(cell) as drivers:
+                if cell.mounted_source.kind != "file":  # the panel or the tool changer says which tool is on
+                    cell, prepared = _mounted(args, cell, drivers, prepared)
                 dataset = runner.measure(prepared, drivers, args.out, print_progress)
             result = runner.solve(args.routine, cell, dataset)
     except PlanRefused as exc:
@@ -185,6 +188,23 @@ def cmd_run(args) -> int:
     return 0 if result.write_back and result.verdict != "alarm" else 1  # a check's alarm is a cell failure
 
 
+def _mounted(args, cell, drivers, prepared):
+    """(cell, prepared) for the tool the cell's source says is mounted (``mounted: panel`` or
+    the tool changer's inputs): read before anything moves; ``--tool`` must agree with it."""
+    try:
+        tool_id = mounted_tool(cell, drivers)
+    except NoToolMounted as exc:
+        raise RoutineError(f"{exc}; nothing moved") from None
+    if args.tool is not None and tool_id != args.tool:
+        raise UsageError(f"--tool {args.tool}, and {cell.mounted_source.describe()} says tool {tool_id} is "
+                         "mounted; nothing moved")
+    if tool_id == cell.tool.id:
+        return cell, prepared
+    cell = cell.with_tool(tool_id)
+    registry.check_sections(cell)
+    return cell, runner.prepare(args.routine, cell, resume=args.resume)
+
+
 def _tool_id(cell) -> int | None:
     """The mounted tool's id in the cell's tool table (None: a cell without a tool)."""
     return cell.tool.id if cell.tool is not None else None
@@ -199,7 +219,8 @@ def add_parser(sub) -> None:
     p.add_argument("--cell", default="sim", metavar="CELL.yaml",
                    help="cell file, or the name of a shipped cell (default: sim, the simulated cell)")
     p.add_argument("--tool", type=whole(*TOOL_IDS), metavar="ID",
-                   help="the tool of the cell's tool table that is mounted (default: the file's `mounted`)")
+                   help="the tool of the cell's tool table that is mounted (default: the file's `mounted`; "
+                        "where the panel or the tool changer says which, it must agree)")
     p.add_argument("--dry-run", action="store_true", help="plan and check every motion; move nothing")
     p.add_argument("--from", dest="from_dataset", metavar="DATASET",
                    help="re-solve a recorded dataset instead of measuring")

@@ -23,7 +23,8 @@ def cmd_runs_list(args) -> int:
         for r in runs:
             when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(r.started_at))
             code = "" if r.result_code is None else f" code {r.result_code}"
-            print(f"{r.id:5d}  {when}  {r.routine:<11} {r.state:<12}{code}  {r.reason or ''}")
+            tool = "-" if r.tool_id is None else str(r.tool_id)
+            print(f"{r.id:5d}  {when}  tool {tool:<3} {r.routine:<11} {r.state:<12}{code}  {r.reason or ''}")
         return 0
     finally:
         store.close()
@@ -36,8 +37,9 @@ def _written_back(store) -> set[int]:
 
 def _run_summary(r, written: set[int]) -> dict:
     """``passed_gates``: every quality gate passed, so the result was fit to be written back;
-    ``written_back``: its tool frame was written to the controller and read back."""
-    return {"id": r.id, "routine": r.routine, "cell": r.cell, "started_at": r.started_at,
+    ``written_back``: its tool frame was written to the controller and read back; ``tool_id``:
+    the tool of the cell's tool table the run was for (null: the cell describes no tool)."""
+    return {"id": r.id, "routine": r.routine, "cell": r.cell, "tool_id": r.tool_id, "started_at": r.started_at,
             "finished_at": r.finished_at, "state": r.state, "result_code": r.result_code, "reason": r.reason,
             "passed_gates": r.write_back, "written_back": r.id in written}
 
@@ -78,7 +80,8 @@ def cmd_runs_show(args) -> int:
         if args.json:
             print(json.dumps(out))
             return 0
-        print(f"run {r.id}: {r.routine} on {r.cell}: {r.state}"
+        print(f"run {r.id}: {r.routine} on {r.cell}, {'no tool' if r.tool_id is None else f'tool {r.tool_id}'}: "
+              f"{r.state}"
               + ("" if r.result_code is None else f" (code {r.result_code}: {out['result_meaning']})"))
         if r.reason:
             print(f"  {r.reason}")

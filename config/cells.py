@@ -27,14 +27,23 @@ Sections (all lengths in metres, base frame unless said otherwise)::
                 {id (1..255, unique), name, tcp_m, axis, radius_m, length_m, bands (as in
                 ``tool``), sections (optional: routine sections that differ for this tool,
                 ``{tcp_laser: {heights_mm: [...]}}``, merged key by key over the file's own
-                section of that routine when the tool is mounted)}. ``tool`` and ``tools``
+                section of that routine when the tool is mounted), frame_block (optional: its
+                block of the robot's stored tool frames, 0..254, each tool its own; default its
+                place in the table, 0-based: :func:`tool_blocks`)}. ``tool`` and ``tools``
                 together are refused; a two-robot cell has one tool per robot, no table.
-    mounted:    with ``tools``: the id of the tool on the flange when the file is loaded
-                (default: the table's first). :meth:`Cell.with_tool` mounts another.
+    mounted:    with ``tools``: which tool is on the flange: a tool id (fixed; default the
+                table's first), ``panel`` (the panel's mounted-tool register, written by the PLC
+                or the tool changer, read at each start) or ``{robot_inputs: [bit, ...]}`` (the
+                tool changer's id on the robot's digital inputs, least significant bit first;
+                read at each start). ``Cell.tool`` is then the table's first until the service
+                reads the source (:class:`MountedSource`). :meth:`Cell.with_tool` mounts another.
     beams:      the light barrier's beams as installed: a list of
                 {point_m, direction, radius_m (half the beam width), channel, level_when_blocked}
     stylus:     a fixed stylus tip: centre_m, radius_m
     pivot:      a fixed point the tool tip is seated at: point_m
+    status_page: the daemon's read-only status page and JSON API: enabled (true), host
+                (127.0.0.1: loopback only), port (8037), max_connections (8), rate_per_s (20,
+                requests per second per client)
     sim_truth:  what a simulated cell really has (see :class:`SimTruthSpec`); real cells
                 have none. Its tool_tcp_m / tool_axis state tool 1's real frame; every other
                 tool of a table is drawn, from the seed and its id
@@ -59,7 +68,8 @@ from cellcal.config.robot_files import ModelError, load_robot
 DEVICE_KINDS = ("robot", "trigger", "tracker", "panel")
 # the cell file's own sections; every other one is a routine's
 CELL_SECTIONS = frozenset({"cell", "drivers", "robots", "workspace", "limits", "tool", "tools", "mounted", "beams",
-                           "stylus", "pivot", "sim_truth"})
+                           "stylus", "pivot", "sim_truth", "status_page"})
+ROBOT_INPUT_BITS = 18  # a UR's digital inputs: 0-7 standard, 8-15 configurable, 16-17 on the tool flange
 TOOL_IDS = (1, 255)  # a tool table's ids (the panel's tool register holds one)
 _REQUIRED = ("cell", "workspace", "limits")
 ROBOT_NAMES = ("a", "b")  # the robots of a two-robot cell; a's base is the cell frame
@@ -119,6 +129,7 @@ class ToolSpec:
     id: int = 1  # its id in the cell's tool table (a file's ``tool`` is tool 1)
     name: str = "tool"
     sections: dict = field(default_factory=dict)  # routine section -> its keys that differ for this tool
+    frame_block: int | None = None  # its block of the robot's stored tool frames (None: its place in the table)
 
     @property
     def tcp_pose(self) -> np.ndarray:
@@ -176,6 +187,52 @@ class SimTruthSpec:
     base_error_deg: float = 0.5  # ... and turned this far
 
 
+@dataclass(frozen=True)
+class StatusPageSpec:
+    """The daemon's read-only status page and JSON API (``status_page:``)."""
+
+    enabled: bool = True
+    host: str = "127.0.0.1"
+    port: int = 8037
+    max_connections: int = 8
+    rate_per_s: float = 20.0
+
+    @property
+    def loopback(self) -> bool:
+        return self.host == "localhost" or self.host.startswith("127.") or self.host == "::1"
+
+
+def _read_status_page(top: Section) -> StatusPageSpec:
+    page = top.section("status_page")
+    default = StatusPageSpec()
+    spec = StatusPageSpec(enabled=page.flag("enabled", default.enabled),
+                          host=page.text("host", default.host),
+                          port=page.integer("port", default.port, low=1, high=65535),
+                          max_connections=page.integer("max_connections", default.max_connections, low=1, high=256),
+                          rate_per_s=page.number("rate_per_s", default.rate_per_s, above=0.0, high=10000.0))
+    page.done()
+    return spec
+
+
+@dataclass(frozen=True)
+class MountedSource:
+    """Where the service learns which tool of the table is on the flange: ``file`` (``tool``,
+    fixed by the cell file's ``mounted``), ``panel`` (the panel's mounted-tool register, written
+    by the PLC or the tool changer) or ``robot_inputs`` (the tool changer's id on the robot's
+    digital inputs ``bits``, least significant first; 0 there: no tool)."""
+
+    kind: str
+    tool: int = 0
+    bits: tuple = ()
+
+    def describe(self) -> str:
+        if self.kind == "panel":
+            return "the panel's mounted-tool register"
+        if self.kind == "robot_inputs":
+            return f"the tool changer's id on the robot's digital inputs {', '.join(map(str, self.bits))}"
+        return "the cell file's `mounted`"
+
+
 @dataclass
 class Cell:
     """A validated cell file."""
@@ -197,6 +254,12 @@ class Cell:
     robots: dict = field(default_factory=dict)  # name -> RobotSpec; {"a"} alone in a one-robot cell
     tools: dict = field(default_factory=dict)  # id -> ToolSpec: the tool table (robot a's; `tool` is the mounted one)
     file_routines: dict = field(default_factory=dict)  # the routine sections as written, no tool's merged in
+    mounted_source: "MountedSource" = None  # where the service learns which tool is mounted
+    status_page: StatusPageSpec = field(default_factory=StatusPageSpec)  # the daemon's read-only page and API
+
+    def __post_init__(self):
+        if self.mounted_source is None:
+            self.mounted_source = MountedSource("file", self.tool.id if self.tool is not None else 0)
 
     def with_tool(self, tool_id: int) -> "Cell":
         """The same cell with tool `tool_id` of its table mounted: `tool` (and robot a's tool)
@@ -250,6 +313,7 @@ def _read_tool(s: Section) -> ToolSpec:
 def _read_tools(top: Section, routine_sections: tuple | None) -> dict[int, ToolSpec]:
     """[tools]: the tool table, each row a [tool] with its id, name and routine sections."""
     tools: dict[int, ToolSpec] = {}
+    rows: dict[int, Section] = {}
     for row in top.items_of("tools", nonempty=True):
         tool_id = row.integer("id", required=True, low=TOOL_IDS[0], high=TOOL_IDS[1])
         if tool_id in tools:
@@ -263,11 +327,35 @@ def _read_tools(top: Section, routine_sections: tuple | None) -> dict[int, ToolS
             sections.section(section)  # a mapping, else refused here
         own = {str(k): dict(v) for k, v in sections.mapping.items()}
         body = Section(row.source, row.name, {k: v for k, v in row.mapping.items()
-                                              if k not in ("id", "name", "sections")}, row.error)
+                                              if k not in ("id", "name", "sections", "frame_block")}, row.error)
         tool = _read_tool(body)
+        block = row.integer("frame_block", low=0, high=TOOL_IDS[1] - 1) if "frame_block" in row else None
         tools[tool_id] = ToolSpec(tool.tcp_m, tool.axis, tool.radius_m, tool.length_m, tool.bands,
-                                  tool_id, name, own)
+                                  tool_id, name, own, block)
+        rows[tool_id] = row
+    _check_frame_blocks(tools, rows)
     return tools
+
+
+def tool_blocks(tools: dict) -> dict[int, int]:
+    """Tool id -> its block of the robot's stored tool frames (the robot program's frame at its
+    start; a UR: one block of input registers per tool): its ``frame_block``, else its place in
+    the table (0-based, file order; a file's one ``tool``: 0)."""
+    return {tool_id: place if tool.frame_block is None else tool.frame_block
+            for place, (tool_id, tool) in enumerate(tools.items())}
+
+
+def _check_frame_blocks(tools: dict, rows: dict) -> None:
+    """Each tool its own block: a ``frame_block`` another tool has (given, or by its place) is refused."""
+    owner: dict[int, int] = {}
+    for tool_id, block in tool_blocks(tools).items():
+        if block in owner:
+            other = owner[block]
+            blamed, keeps = (tool_id, other) if tools[tool_id].frame_block is not None else (other, tool_id)
+            how = "names it too" if tools[keeps].frame_block is not None else "has it by its place in the table"
+            rows[blamed].fail("frame_block", f"block {block} is tool {keeps}'s (tool {keeps} {how}); each tool "
+                                             "needs a block of its own: give another frame_block")
+        owner[block] = tool_id
 
 
 def _read_bands(s: Section) -> Bands:
@@ -435,8 +523,9 @@ def read_cell(name_or_path: str | Path, routine_sections: Iterable[str] | None =
     if two:
         tool = robots["a"].tool
         tools = {tool.id: tool} if tool is not None else {}
+        mounted = MountedSource("file", tool.id if tool is not None else 0)
     else:
-        tools, tool = _read_tool_table(top, doc, routine_sections)
+        tools, tool, mounted = _read_tool_table(top, doc, routine_sections)
         robots = {"a": RobotSpec("a", robot, tuple(home_q.tolist()), drivers["robot"], tool)}
     beams = _read_beams(top) if "beams" in doc else ()
     stylus = None
@@ -450,6 +539,15 @@ def read_cell(name_or_path: str | Path, routine_sections: Iterable[str] | None =
         pv = top.section("pivot")
         pivot = pv.vector("point_m", 3, required=True)
         pv.done()
+    trigger = drivers.get("trigger")
+    if mounted.kind == "robot_inputs" and trigger is not None and trigger.name == "ur_digital_input":
+        # the beams on the robot's own inputs: the tool changer's id must not share them
+        wired = {int(c) for c in trigger.options.get("channels", ())} | {b.channel for b in beams}
+        shared = sorted(wired & set(mounted.bits))
+        if shared:
+            Section(where, "mounted", doc["mounted"], CellFileError).fail(
+                "robot_inputs", f"input {shared[0]} carries the trigger (drivers.trigger ur_digital_input, the "
+                                "beams' channels) and cannot carry the tool changer's id too")
     truth = _read_sim_truth(top.section("sim_truth")) if "sim_truth" in doc else None
     if truth is not None and tools and 1 not in tools:
         for key in ("tool_tcp_m", "tool_axis"):
@@ -462,8 +560,9 @@ def read_cell(name_or_path: str | Path, routine_sections: Iterable[str] | None =
         if section in doc and section not in CELL_SECTIONS:
             routines[section] = top.section(section).mapping
     a = robots["a"]
+    status_page = _read_status_page(top)
     return Cell(where, name, a.robot, a.home_q_rad, drivers, low, high, limits, tool, beams, stylus,
-                pivot, truth, _merged_sections(routines, tool), robots, tools, routines)
+                pivot, truth, _merged_sections(routines, tool), robots, tools, routines, mounted, status_page)
 
 
 def _read_tool_table(top: Section, doc: dict, routine_sections) -> tuple[dict[int, ToolSpec], ToolSpec | None]:
@@ -475,9 +574,40 @@ def _read_tool_table(top: Section, doc: dict, routine_sections) -> tuple[dict[in
         top.fail("mounted", "names a tool of the tool table [tools], and this file has none")
     if "tools" in doc:
         tools = _read_tools(top, routine_sections)
-        mounted = top.integer("mounted", next(iter(tools)), low=TOOL_IDS[0], high=TOOL_IDS[1])
-        if mounted not in tools:
-            top.fail("mounted", f"no tool {mounted} in [tools] (its tools: {', '.join(map(str, tools))})")
-        return tools, tools[mounted]
+        source = _read_mounted(top, tools)
+        mounted = source.tool if source.kind == "file" else next(iter(tools))
+        return tools, tools[mounted], source
     tool = _read_tool(top.section("tool")) if "tool" in doc else None
-    return ({tool.id: tool} if tool is not None else {}), tool
+    return ({tool.id: tool} if tool is not None else {}), tool, MountedSource("file", 1 if tool is not None else 0)
+
+
+def _read_mounted(top: Section, tools: dict) -> "MountedSource":
+    """[mounted]: a tool id (fixed), ``panel`` (the panel's mounted-tool register) or
+    ``{robot_inputs: [bit, ...]}`` (the tool changer's id on the robot's digital inputs)."""
+    have = ", ".join(map(str, tools))
+    value = top.raw("mounted", next(iter(tools)))
+    if value == "panel":
+        return MountedSource("panel")
+    if isinstance(value, dict):
+        inputs = Section(top.source, "mounted", value, top.error)
+        bits = inputs.sequence("robot_inputs", required=True, nonempty=True)
+        inputs.done()
+        if len(bits) > 8 or any(not isinstance(b, int) or isinstance(b, bool) or not 0 <= b <= ROBOT_INPUT_BITS - 1
+                                for b in bits) or len(set(bits)) != len(bits):
+            inputs.fail("robot_inputs", f"{bits!r}: expected up to 8 different digital input numbers in "
+                                        f"0..{ROBOT_INPUT_BITS - 1}, the tool id's bits, least significant first "
+                                        "(a UR: 0-7 standard, 8-15 configurable, 16-17 tool inputs)")
+        largest = 2 ** len(bits) - 1
+        beyond = [t for t in tools if t > largest]
+        if beyond:
+            inputs.fail("robot_inputs", f"{len(bits)} inputs carry tool ids up to {largest}, and [tools] has "
+                                        f"tool {beyond[0]}: give more inputs or smaller ids")
+        return MountedSource("robot_inputs", bits=tuple(bits))
+    if not isinstance(value, int) or isinstance(value, bool):
+        top.fail("mounted", f"{value!r}: expected a tool id of [tools] (its tools: {have}), `panel` (the panel's "
+                            "mounted-tool register) or {robot_inputs: [...]} (the tool changer's id on the "
+                            "robot's digital inputs)")
+    tool_id = top.integer("mounted", value, low=TOOL_IDS[0], high=TOOL_IDS[1])
+    if tool_id not in tools:
+        top.fail("mounted", f"no tool {tool_id} in [tools] (its tools: {have})")
+    return MountedSource("file", tool_id)

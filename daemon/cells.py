@@ -16,7 +16,8 @@ from cellcal.drivers import registry
 from cellcal.drivers.registry import DriverConfigError
 from cellcal.routines import registry as routines
 
-__all__ = ["Cell", "CellDrivers", "CellFileError", "load_cell", "open_drivers", "shipped_cells"]
+__all__ = ["Cell", "CellDrivers", "CellFileError", "NoToolMounted", "load_cell", "mounted_tool", "open_drivers",
+           "shipped_cells"]
 
 
 def _placed(exc: DriverConfigError, cell: Cell, kind: str) -> CellFileError:
@@ -38,7 +39,36 @@ def load_cell(name_or_path: str | Path) -> Cell:
         except DriverConfigError as exc:
             raise exc.located(cell.path, f"robots.{name}.driver", CellFileError) from None
     routines.check_sections(cell)
+    if cell.mounted_source.kind == "panel" and "panel" not in cell.drivers:
+        raise CellFileError("`panel`: the mounted tool is to be read from the panel, and this cell has no "
+                            "panel (drivers.panel)", source=cell.path, section="mounted")
     return cell
+
+
+class NoToolMounted(Exception):
+    """The mounted-tool source names no tool of the table (or none at all)."""
+
+
+def mounted_tool(cell: Cell, drivers: "CellDrivers") -> int:
+    """The id of the tool on robot a's flange now, from the cell file's source
+    (:class:`~cellcal.config.cells.MountedSource`); 0 for a cell that describes no tool.
+    Raises DeviceError when the source cannot be read, NoToolMounted when it reads no tool
+    or one the table lacks."""
+    source = cell.mounted_source
+    if source.kind == "file":
+        return source.tool
+    if source.kind == "panel":
+        tool = int(drivers.panel.mounted_tool())
+    else:
+        bits = int(drivers.robot.digital_inputs())
+        tool = sum(1 << i for i, bit in enumerate(source.bits) if bits >> bit & 1)
+    if tool == 0:
+        raise NoToolMounted(f"no tool is mounted ({source.describe()} reads 0)")
+    if tool not in cell.tools:
+        have = ", ".join(f"{t.id} {t.name}" for t in cell.tools.values())
+        raise NoToolMounted(f"{source.describe()} reads tool {tool}, which this cell file's tool table lacks "
+                            f"(its tools: {have})")
+    return tool
 
 
 @dataclass

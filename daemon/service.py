@@ -42,10 +42,10 @@ from cellcal.config.reader import ConfigError
 from cellcal.routines.base import CheckAlarm, PlanRefused, Result, RoutineAborted, RoutineError
 from cellcal.routines.frames_owed import FramesOwed
 from cellcal.routines.gates import frame_change
-from cellcal.daemon import drift, outcome
+from cellcal.daemon import cells, drift, outcome
 from cellcal.daemon.notify import Notifier
 from cellcal.daemon.store import Store
-from cellcal.daemon.write_back import TOLERANCE, write_back
+from cellcal.daemon.write_back import TOLERANCE, no_block_note, tool_slot, tools_without_block, write_back
 
 log = logging.getLogger("cellcal.daemon")
 
@@ -81,8 +81,9 @@ RESULT_MEANINGS = {
     ResultCode.NO_SUCH_ROUTINE: "start refused: the routine selector names no routine this cell can run",
     ResultCode.LIMITS: "start refused: the routine's plan would leave the cell's limits; nothing moved",
     ResultCode.BUSY: "start refused: a routine is already running (the press is ignored)",
-    ResultCode.TOOL_NOT_MOUNTED: "start refused: the tool selector names a tool the cell does not have, or not the "
-                                 "one mounted; nothing moved",
+    ResultCode.TOOL_NOT_MOUNTED: "start refused: no tool is mounted (or one the cell lacks), or the tool selector "
+                                 "names another tool than the mounted one or one the cell does not have; nothing "
+                                 "moved",
     ResultCode.SENSOR_FAULT: "the trigger or the tracker failed or went silent; motion stopped",
     ResultCode.ROBOT_FAULT: "the robot faulted (connection lost, protective or emergency stop); motion stopped",
     ResultCode.DEVICE_TIMEOUT: "the robot controller did not answer in time (stalled); motion stopped",
@@ -141,6 +142,17 @@ class Service:
         self._lock = threading.Lock()  # the panel: one caller at a time
         self.panel_ok = True
         self.last: RunOutcome | None = None
+        # the tool the run under way (or the last) is for, and its view of the cell
+        self._run_tool = 0 if getattr(cell, "tool", None) is None else int(getattr(cell.tool, "id", 1))
+        self._run_cell = cell
+        # the tool whose frame the controller's running tool frame holds (None: not known, the
+        # mounted tool is read at each start: the first run sets its tool's frame)
+        source = getattr(cell, "mounted_source", None)
+        self._tcp_tool: int | None = self._run_tool if source is None or source.kind == "file" else None
+        # what status() reports, each kept current by the thread that knows it (plain attribute
+        # writes: a reader never takes a lock the run or the panel loop holds)
+        self._seen = {"routine": None, "progress": None, "since": time.time(), "reason": None, "result_code": None,
+                      "robot": None}
 
     # -- the panel ------------------------------------------------------------------------
 
@@ -171,7 +183,14 @@ class Service:
         except Exception as exc:
             log.error("the results store did not take the event %s (%s): %s", kind, message, exc)
 
+    def _progress(self, run_id: int, message: str) -> None:
+        self._seen["progress"] = message
+        log.info("run %d: %s", run_id, message)
+
     def _transition(self, run_id: int | None, state: str, message: str | None = None) -> None:
+        self._seen["since"] = time.time()
+        if state == "checking":
+            self._seen["progress"] = None
         self.state = state
         tag = f"run {run_id}: " if run_id is not None else ""
         log.info("%s%s%s", tag, state, f": {message}" if message else "")
@@ -303,6 +322,7 @@ class Service:
             except Exception as again:
                 log.error("run %d: the results store cannot record its end either: %s", run_id, again)
         self.state = "fault"
+        self._seen["reason"], self._seen["result_code"] = reason, int(ResultCode.SERVICE_FAULT)
         log.error("run %d (%s): fault: code %d %s: %s", run_id, routine, ResultCode.SERVICE_FAULT,
                   ResultCode.SERVICE_FAULT.name, reason)
         self._active = False
@@ -321,14 +341,19 @@ class Service:
     def run(self, routine: str, tool: int = 0) -> RunOutcome:
         """The whole state machine for one run, in the calling thread; `tool`: the tool the
         operator selected (0: whichever is mounted)."""
-        run_id = self._run_id = self.store.begin_run(routine, self.cell.path)
+        self._seen["routine"] = routine
+        wrong_tool = self._mount(tool)  # decides the tool this run is for: _tool_id() from here on
+        # the run's row belongs to the tool this run is for (0: none, NULL in the store), so it is
+        # decided (_mount) before this line; a tool known only later goes in with store.record_run_tool
+        run_id = self._run_id = self.store.begin_run(routine, self.cell.path, tool_id=self._tool_id() or None)
         self._history_note = None
         self._transition(run_id, "checking", routine)
-        wrong_tool = self._wrong_tool(tool)
         if wrong_tool is not None:
             return self._end(run_id, "refused", ResultCode.TOOL_NOT_MOUNTED, wrong_tool)
         cell = self._cell_for(run_id, routine)
         prepared, frame_before, refusal = self._check(routine, cell)
+        if refusal is None and self._tcp_tool != self._run_tool:
+            frame_before, refusal = self._tool_frame_for_mounted(run_id, frame_before)
         if refusal is None and self.abort.is_set():
             refusal = (ResultCode.ABORTED, "abort pressed before anything moved")
         if refusal is not None:
@@ -340,7 +365,7 @@ class Service:
         self._transition(run_id, "running", f"{len(prepared.plan)} moves")
         try:
             dataset = runner.measure(prepared, self.drivers, self.out_dir,
-                                     lambda message: log.info("run %d: %s", run_id, message), abort=self.abort)
+                                     lambda message: self._progress(run_id, message), abort=self.abort)
         except RoutineAborted as exc:
             return self._end(run_id, "aborted", ResultCode.ABORTED, str(exc))
         except CheckAlarm as exc:
@@ -403,12 +428,12 @@ class Service:
         measured frame is beyond the tool's drift alarm since the last full calibration, with
         the verdict turned to ``drift``; else None. A check of a tool no full calibration in this
         store has written says so (``self._history_note``)."""
-        if result.verdict is None or getattr(self.cell, "tool", None) is None:
+        if result.verdict is None or getattr(self._run_cell, "tool", None) is None:
             return None
         rows = self.store.measured_frames(self._tool_id())
         # a calibration written before the store kept measured frames (schema 6) counts too
         if not any(r["kind"] == "calibration" and r["written"] for r in rows) and not any(
-                self.store.last_passed_result(name) for name in drift.CALIBRATION_ROUTINES):
+                self._last_passed(name) for name in drift.CALIBRATION_ROUTINES):
             self._history_note = drift.NEVER_CALIBRATED
             result.notes.insert(0, drift.NEVER_CALIBRATED)
             result.extra["never_calibrated"] = True
@@ -416,7 +441,7 @@ class Service:
         frame = drift.measured_frame(result)
         if result.verdict not in ("ok", "corrected") or frame is None:
             return None
-        why = drift.drift_alarm(frame, result.determines, rows, self.cell.tool.bands)
+        why = drift.drift_alarm(frame, result.determines, rows, self._run_cell.tool.bands)
         if why is not None:
             result.verdict = "drift"
             result.notes.insert(0, f"drift alarm: {why}; nothing written")
@@ -446,12 +471,12 @@ class Service:
         """The cell as this run sees it: a routine may take what earlier runs in this store
         found (:meth:`Routine.with_history`: tcp-check, the beams of the last tcp-laser)."""
         if routine not in registry.available():
-            return self.cell
+            return self._run_cell
         try:
-            cell, note = registry.routine_class(routine).with_history(self.cell, self.store.last_passed_result)
+            cell, note = registry.routine_class(routine).with_history(self._run_cell, self._last_passed)
         except Exception as exc:  # the past is a help, never a reason not to run
             log.warning("run %d: earlier results not used: %s", run_id, exc)
-            return self.cell
+            return self._run_cell
         if note:
             log.info("run %d: %s", run_id, note)
         return cell
@@ -459,11 +484,11 @@ class Service:
     def _check(self, routine: str, cell=None):
         """(the prepared routine, the controller's tool frame, None) when it may run, else
         (None, None, (code, why))."""
-        cell = self.cell if cell is None else cell
+        cell = self._run_cell if cell is None else cell
         if routine not in registry.available():
             return None, None, (ResultCode.NO_SUCH_ROUTINE,
                                 f"no routine {routine!r} (routines: {', '.join(registry.available())})")
-        why_not = registry.unavailable(routine, self.cell)
+        why_not = registry.unavailable(routine, cell)
         if why_not is not None:
             return None, None, (ResultCode.NO_SUCH_ROUTINE, f"this cell cannot run {routine}: {why_not}")
         if self._reconnecting is not None:
@@ -595,16 +620,56 @@ class Service:
 
     def _robot_state(self) -> RobotState:
         try:
-            return self.drivers.robot.state()
+            state = self.drivers.robot.state()
         except DeviceError:
-            return RobotState.DISCONNECTED
+            state = RobotState.DISCONNECTED
+        self._seen["robot"] = state.value
+        return state
+
+    def status(self) -> dict:
+        """What the service is doing, for the status page and its API: a fresh dict built from
+        what the run and the panel loop last recorded, without calling a device or taking a
+        lock (safe from any thread, and never slows a run)."""
+        seen = dict(self._seen)
+        tools = getattr(self.cell, "tools", None) or {}
+        tool = tools.get(self._run_tool)
+        reconnecting = self._reconnecting is not None
+        return {"state": self.state, "run_id": self._run_id if self._active else None,
+                "last_run_id": self._run_id, "routine": seen["routine"],
+                "progress": seen["progress"] if self._active else None, "since": seen["since"],
+                "reason": seen["reason"], "result_code": seen["result_code"],
+                "result": None if seen["result_code"] is None else ResultCode(seen["result_code"]).name,
+                "mounted_tool": None if tool is None else {"id": tool.id, "name": tool.name},
+                "devices": {"robot": "reconnecting" if reconnecting else (seen["robot"] or "unknown"),
+                            "panel": "none" if getattr(self.drivers, "panel", None) is None else
+                            ("ok" if self.panel_ok else "lost")},
+                "frame_owed_by_run": None if self._frame_owed is None else self._frame_owed[0],
+                "cell": {"name": getattr(self.cell, "name", None)}}
+
+    def announce_tool_blocks(self) -> None:
+        """Said once at the start: each tool of the cell's table whose frame this robot keeps in
+        no register block (the registers ran out): its write-backs reach the running program only."""
+        try:
+            notes = tools_without_block(self.cell, self.drivers.robot)
+        except DeviceError as exc:
+            log.warning("the robot's blocks of stored tool frames could not be told: %s", exc)
+            return
+        for note in notes:
+            log.warning("%s", note)
 
     def write_back(self, run_id: int, frame) -> str | None:
-        """The frame to the controller (running and stored for the program's start), read back
-        and compared; the old frames restored on a mismatch (:mod:`.write_back`)."""
-        before, written, failure = write_back(self.drivers.robot, frame, generation=run_id)
+        """The frame to the controller (running and stored for the program's start, in the block
+        of the tool the run was for), read back and compared; the old frames restored on a
+        mismatch (:mod:`.write_back`). A tool without a block gets the running frame, and the
+        run's reason says so."""
+        slot = tool_slot(self.cell, self._tool_id())
+        before, written, failure = write_back(self.drivers.robot, frame, generation=run_id, slot=slot)
         if failure is not None:
             return failure
+        note = no_block_note(self.drivers.robot, self._tool_id(), slot)
+        if note is not None:
+            log.warning("run %d: %s", run_id, note)
+            self._history_note = note if self._history_note is None else f"{self._history_note}; {note}"
         self.store.record_tool_frame(run_id, "write", before.running, written.running,
                                      before.stored_json(), written.stored_json())
         return None
@@ -616,6 +681,7 @@ class Service:
         if self._history_note is not None and self._run_id == run_id:
             reason = f"{reason} ({self._history_note})"
         self.store.finish_run(run_id, state, int(code), reason)
+        self._seen["reason"], self._seen["result_code"] = reason, int(code)
         self._active = False  # the panel shows the end next: a press after it starts the next run
         self._transition(run_id, state, f"{reason} (code {int(code)} {code.name})")
         # the done lamp says a frame went to the controller; a run that wrote none lights neither
@@ -627,24 +693,82 @@ class Service:
         return RunOutcome(run_id, state, code, reason, result)
 
 
-    def _wrong_tool(self, tool: int) -> str | None:
-        """Why a start for tool `tool` (0: the mounted one) may not run, or None."""
+    def _mount(self, tool: int) -> str | None:
+        """Decide the tool this run is for: the mounted one, read from the cell file's source
+        (its ``mounted``: fixed, the panel's register or the tool changer's inputs on the robot);
+        ``_tool_id()`` and ``_run_cell`` are then that tool's. Returns why a start for tool
+        `tool` (the selector; 0: whichever is mounted) may not run, or None."""
+        tools = getattr(self.cell, "tools", None) or {}
+        source = getattr(self.cell, "mounted_source", None)
+        try:
+            mounted = self._run_tool if source is None else cells.mounted_tool(self.cell, self.drivers)
+        except cells.NoToolMounted as exc:
+            self._run_tool = tool if tool in tools else 0
+            return f"{exc}; nothing moved"
+        except DeviceError as exc:
+            self._run_tool = tool if tool in tools else 0
+            return f"which tool is mounted cannot be read from {source.describe()}: {exc}; nothing moved"
+        if mounted != self._run_tool and mounted in tools:
+            log.info("tool %d (%s) is mounted (%s)", mounted, tools[mounted].name, source.describe())
+        drawn = getattr(self.cell, "tool", None)
+        if mounted == 0 or mounted not in tools or (drawn is not None and getattr(drawn, "id", 1) == mounted):
+            self._run_cell = self.cell
+        elif self._run_cell.tool is None or self._run_cell.tool.id != mounted:
+            self._run_cell = self.cell.with_tool(mounted)
+        self._run_tool = mounted
         if tool == 0:
             return None
-        tools = getattr(self.cell, "tools", None) or {}
         if tool not in tools:
             have = ", ".join(f"{t.id} {t.name}" for t in tools.values()) or "none"
             return f"the tool selector names tool {tool}; this cell has no such tool (its tools: {have}); nothing moved"
-        if tool != self._tool_id():
-            return (f"the tool selector names tool {tool} ({tools[tool].name}) but tool {self._tool_id()} "
-                    f"({tools[self._tool_id()].name}) is mounted (the cell file's `mounted`); nothing moved")
+        if tool != mounted:
+            return (f"the tool selector names tool {tool} ({tools[tool].name}) but tool {mounted} "
+                    f"({tools[mounted].name}) is mounted ({source.describe()}); nothing moved")
         return None
 
     def _tool_id(self) -> int:
-        """The tool the run was for: the cell's mounted tool's id in its tool table (a file's one
-        ``tool`` is tool 1; 0: the cell describes none)."""
-        tool = getattr(self.cell, "tool", None)
-        return 0 if tool is None else int(getattr(tool, "id", 1))
+        """The tool the run under way (or the last) is for: its id in the cell's tool table (a
+        file's one ``tool`` is tool 1; 0: the cell describes none)."""
+        return self._run_tool
+
+    def _last_passed(self, routine: str):
+        """The last passed result of `routine` for the tool this run is for."""
+        try:
+            return self.store.last_passed_result(routine, tool_id=self._run_tool)
+        except TypeError:  # a store without tools per run
+            return self.store.last_passed_result(routine)
+
+    def held_frame(self, tool_id: int) -> tuple[np.ndarray, str]:
+        """The frame the controller holds for tool `tool_id` (m, rad) and where it comes from:
+        the last frame written or restored for it in this store, else the tool as drawn."""
+        rows = [r for r in self.store.tool_frames() if int(r.get("tool_id") or 1) == tool_id]
+        if rows:
+            row = rows[-1]
+            done = "written" if row["action"] == "write" else "restored"
+            return np.asarray(row["frame_after"], dtype=float), f"the last frame {done} for it (run {row['run_id']})"
+        return np.asarray(self.cell.tools[tool_id].tcp_pose, dtype=float), "its drawing (never calibrated here)"
+
+    def _tool_frame_for_mounted(self, run_id: int, frame_before):
+        """A tool change: the controller's running tool frame is made the mounted tool's own
+        (:meth:`held_frame`) before anything moves, so the run measures against it. Returns
+        (the frame before the run, None) or (None, refusal)."""
+        tool_id = self._run_tool
+        frame, origin = self.held_frame(tool_id)
+        robot = self.drivers.robot
+        try:
+            robot.set_tcp(frame)
+            back = np.asarray(robot.tcp(), dtype=float)
+        except DeviceError as exc:
+            return None, (ResultCode.NOT_READY, f"tool {tool_id}'s frame could not be set on the controller: {exc}")
+        if np.abs(back - frame).max() > TOLERANCE:  # doubles travel exactly
+            return None, (ResultCode.ROBOT_FAULT, f"the controller reports {back.tolist()} after tool {tool_id}'s "
+                                                  f"frame {frame.tolist()} was set")
+        self._tcp_tool = tool_id
+        message = (f"tool {tool_id} ({self._run_cell.tool.name}) mounted: the controller's tool frame set to "
+                   f"{origin}")
+        log.info("run %d: %s", run_id, message)
+        self._event("tool_frame_for_tool", f"run {run_id}: {message}")
+        return frame, None
 
     @staticmethod
     def _change(result: Result | None, wrote: bool) -> dict | None:

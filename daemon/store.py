@@ -98,6 +98,21 @@ MIGRATIONS = (
     );
     CREATE INDEX measured_frames_by_tool ON measured_frames(tool_id, id);
     """,
+    # 7: every run, and every tool frame written or restored, belongs to a tool of the cell's tool
+    # table (NULL: a cell that describes no tool). A run before this measured its tool's frame
+    # under that tool's id (6), else it was for tool 1, the one tool a file's ``tool`` describes.
+    # tool_frames carries the id itself, not through a join on runs: each tool's write history
+    # (what ``tool rollback`` walks back) reads from its own index, and a row whose run is gone or
+    # was never recorded (run_id NULL) still says whose frame it holds.
+    """
+    ALTER TABLE runs ADD COLUMN tool_id INTEGER;
+    UPDATE runs SET tool_id = COALESCE((SELECT m.tool_id FROM measured_frames m WHERE m.run_id = runs.id
+                                        ORDER BY m.id LIMIT 1), 1);
+    ALTER TABLE tool_frames ADD COLUMN tool_id INTEGER;
+    UPDATE tool_frames SET tool_id = COALESCE((SELECT r.tool_id FROM runs r WHERE r.id = tool_frames.run_id), 1);
+    CREATE INDEX tool_frames_by_tool ON tool_frames(tool_id, id);
+    CREATE INDEX runs_by_tool ON runs(tool_id, id);
+    """,
 )
 MEASURED_KINDS = ("calibration", "check")  # a full calibration's frame, or a check's
 SCHEMA_VERSION = len(MIGRATIONS)
@@ -141,6 +156,7 @@ class RunRow:
     result_json: str | None
     tool_frame_before: str | None = None
     frame_owed: int = 0
+    tool_id: int | None = None  # the tool of the cell's table the run was for (None: the cell has no tool)
 
 
 STORE_FILE = "cellcal.db"
@@ -277,13 +293,21 @@ class Store:
 
     # -- runs -----------------------------------------------------------------------------
 
-    def begin_run(self, routine: str, cell: str) -> int:
+    def begin_run(self, routine: str, cell: str, tool_id: int | None = 1) -> int:
+        """A new run of `routine` on the cell file `cell`, for tool `tool_id` of its tool table
+        (default 1: a file's one ``tool``; None: the cell describes no tool), in state checking."""
         now = time.time()
         with self._tx() as db:
-            run_id = db.execute("INSERT INTO runs (routine, cell, started_at, state) VALUES (?, ?, ?, 'checking')",
-                                (routine, cell, now)).lastrowid
+            run_id = db.execute("INSERT INTO runs (routine, cell, started_at, state, tool_id) "
+                                "VALUES (?, ?, ?, 'checking', ?)",
+                                (routine, cell, now, _tool_or_none(tool_id))).lastrowid
             db.execute("INSERT INTO states VALUES (?, ?, 'checking', NULL)", (run_id, now))
         return int(run_id)
+
+    def record_run_tool(self, run_id: int, tool_id: int | None) -> None:
+        """The tool run `run_id` is for, when it is known only after :meth:`begin_run` (None: none)."""
+        with self._tx() as db:
+            db.execute("UPDATE runs SET tool_id = ? WHERE id = ?", (_tool_or_none(tool_id), run_id))
 
     def record_state(self, run_id: int, state: str, message: str | None = None) -> None:
         now = time.time()
@@ -336,13 +360,16 @@ class Store:
         """(run id, frame) the controller is still owed, or None. Only the newest run can owe
         one (the service starts no run while a frame is owed); a frame owed from before a
         tool frame was written (write-back, rollback) is stale and never comes back."""
-        row = self.db.execute("SELECT id, started_at, tool_frame_before FROM runs WHERE frame_owed = 1 "
+        row = self.db.execute("SELECT id, started_at, tool_frame_before, tool_id FROM runs WHERE frame_owed = 1 "
                               "ORDER BY id DESC LIMIT 1").fetchone()
         if row is None:
             return None
-        run_id, started_at, frame = row
-        newer = self.db.execute("SELECT COUNT(*) FROM tool_frames WHERE run_id > ? OR at > ?",
-                                (run_id, started_at)).fetchone()[0]
+        run_id, started_at, frame, tool_id = row
+        # a frame written since for another tool went to that tool's block only (it was not
+        # mounted): the running frame owed is still the owing run's tool's
+        newer = self.db.execute("SELECT COUNT(*) FROM tool_frames WHERE (run_id > ? OR at > ?) "
+                                "AND (tool_id IS ? OR tool_id IS NULL OR ? IS NULL)",
+                                (run_id, started_at, tool_id, tool_id)).fetchone()[0]
         if newer or frame is None:
             self.frame_settled(run_id)
             return None
@@ -357,12 +384,12 @@ class Store:
                             "the daemon stopped during this run (killed or crashed); nothing was written back")
         return open_runs
 
-    def last_passed_result(self, routine: str) -> tuple[int, dict] | None:
-        """(run id, result JSON) of the newest run of `routine` that passed every gate and
-        ended done, or None."""
+    def last_passed_result(self, routine: str, tool_id: int | None = None) -> tuple[int, dict] | None:
+        """(run id, result JSON) of the newest run of `routine` (for tool `tool_id`; None: any
+        tool) that passed every gate and ended done, or None."""
         row = self.db.execute("SELECT id, result_json FROM runs WHERE routine = ? AND state = 'done' AND "
-                              "write_back = 1 AND result_json IS NOT NULL ORDER BY id DESC LIMIT 1",
-                              (routine,)).fetchone()
+                              "write_back = 1 AND result_json IS NOT NULL AND (? IS NULL OR tool_id = ?) "
+                              "ORDER BY id DESC LIMIT 1", (routine, tool_id, tool_id)).fetchone()
         return None if row is None else (int(row[0]), json.loads(row[1]))
 
     def runs(self, limit: int = 50) -> list[RunRow]:
@@ -389,40 +416,52 @@ class Store:
     # -- tool frames ----------------------------------------------------------------------
 
     def record_tool_frame(self, run_id: int | None, action: str, before, after, stored_before: dict | None = None,
-                          stored_after: dict | None = None) -> None:
+                          stored_after: dict | None = None, tool_id: int | None = None) -> None:
         """A tool frame written (``before`` -> ``after``); ``stored_*`` the frame the robot program
-        applies at its start ({"tool_frame", "generation"}), None where the robot keeps none."""
+        applies at its start ({"tool_frame", "generation"}), None where the robot keeps none.
+        It is the frame of tool `tool_id`; None: of run `run_id`'s tool (a write-back is its own
+        run's tool, a rollback the tool of the run it undoes)."""
         with self._tx() as db:
+            if tool_id is None and run_id is not None:
+                row = db.execute("SELECT tool_id FROM runs WHERE id = ?", (run_id,)).fetchone()
+                tool_id = None if row is None else row[0]
             db.execute("INSERT INTO tool_frames (run_id, at, action, frame_before, frame_after, stored_before, "
-                       "stored_after) VALUES (?, ?, ?, ?, ?, ?, ?)",
+                       "stored_after, tool_id) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                        (run_id, time.time(), action, None if before is None else json.dumps(list(map(float, before))),
-                        json.dumps(list(map(float, after))), _json_or_none(stored_before), _json_or_none(stored_after)))
+                        json.dumps(list(map(float, after))), _json_or_none(stored_before), _json_or_none(stored_after),
+                        _tool_or_none(tool_id)))
 
-    def tool_frames(self) -> list[dict]:
-        return [{"id": i, "run_id": r, "at": at, "action": a,
+    def tool_frames(self, tool_id: int | None = None) -> list[dict]:
+        """Every tool frame written or restored, oldest first (of tool `tool_id`; None: of every
+        tool): {"id", "run_id", "tool_id", "at", "action", "frame_before", "frame_after",
+        "stored_before", "stored_after"}."""
+        return [{"id": i, "run_id": r, "tool_id": t, "at": at, "action": a,
                  "frame_before": None if b is None else json.loads(b), "frame_after": json.loads(f),
                  "stored_before": None if sb is None else json.loads(sb),
                  "stored_after": None if sa is None else json.loads(sa)}
-                for i, r, at, a, b, f, sb, sa in self.db.execute(
-                    "SELECT id, run_id, at, action, frame_before, frame_after, stored_before, stored_after "
-                    "FROM tool_frames ORDER BY id")]
+                for i, r, t, at, a, b, f, sb, sa in self.db.execute(
+                    "SELECT id, run_id, tool_id, at, action, frame_before, frame_after, stored_before, stored_after "
+                    "FROM tool_frames WHERE ? IS NULL OR tool_id = ? ORDER BY id", (tool_id, tool_id))]
 
-    def writes_not_undone(self) -> list[dict]:
-        """The write-backs still in effect, oldest first: what ``tool rollback`` can undo.
+    def writes_not_undone(self, tool_id: int | None = None) -> list[dict]:
+        """The write-backs still in effect, oldest first: what ``tool rollback`` can undo (of tool
+        `tool_id`; None: of every tool, each tool's walked on its own).
 
-        A rollback of run R put the controller back where it was before R's write, so it
-        undoes R's write and every write recorded after it; the last entry of this list is
-        what a rollback without a run undoes next (repeated, they walk back through the
-        history)."""
-        active: list[dict] = []
-        for frame in self.tool_frames():
+        Each tool has its own frame on the controller, so its history is its own: a rollback of
+        run R put R's tool back where it was before R's write, so it undoes R's write and every
+        write of that tool recorded after it (another tool's writes stay); the last entry of a
+        tool's list is what a rollback of that tool without a run undoes next (repeated, they
+        walk back through that tool's history)."""
+        active: dict[int | None, list[dict]] = {}
+        for frame in self.tool_frames(tool_id):
+            mine = active.setdefault(frame["tool_id"], [])
             if frame["action"] == "write" and frame["frame_before"] is not None:
-                active.append(frame)
+                mine.append(frame)
             elif frame["action"] == "rollback":
-                undone = next((k for k, w in enumerate(active) if w["run_id"] == frame["run_id"]), None)
+                undone = next((k for k, w in enumerate(mine) if w["run_id"] == frame["run_id"]), None)
                 if undone is not None:
-                    del active[undone:]
-        return active
+                    del mine[undone:]
+        return sorted((w for writes in active.values() for w in writes), key=lambda w: w["id"])
 
     # -- measured tool frames (the drift history) -------------------------------------------
 
@@ -466,6 +505,11 @@ class Store:
 
     def events(self) -> list[tuple[float, str, str | None]]:
         return [tuple(r) for r in self.db.execute("SELECT at, kind, message FROM events ORDER BY rowid")]
+
+
+def _tool_or_none(tool_id: int | None) -> int | None:
+    """A tool id as stored: a whole number, or NULL for a cell that describes no tool (0 or None)."""
+    return None if tool_id is None or int(tool_id) == 0 else int(tool_id)
 
 
 def _json_or_none(value) -> str | None:

@@ -121,13 +121,30 @@ class Robot(abc.ABC):
     def state(self) -> RobotState:
         ...
 
-    def stored_tool_frame(self) -> StoredToolFrame | None:
-        """The tool frame the robot program applies at its start, or None when this robot
-        keeps none (then only :meth:`set_tcp` reaches the controller)."""
+    def digital_inputs(self) -> int:
+        """The robot's digital inputs now, as a bit field: bit n is input n, numbered as UR's
+        RTDE ``actual_digital_input_bits`` numbers them (0-7 standard, 8-15 configurable,
+        16-17 on the tool flange). A tool changer wired to them carries its tool id there."""
+        raise DeviceError(self.name, "this robot reports no digital inputs")
+
+    def tool_frame_slots(self) -> int:
+        """How many tool frames this robot keeps for its program's start, one per slot
+        (0, 1, ...: a tool changer's tools each have their own); 0 when it keeps none."""
+        return 0
+
+    def tool_frame_slots_text(self) -> str:
+        """Where those slots are, in the words of the robot's own documentation (for messages)."""
+        slots = self.tool_frame_slots()
+        return f"it keeps {slots} tool frame{'s' if slots != 1 else ''}" if slots else \
+            "it keeps no tool frame for its program's start"
+
+    def stored_tool_frame(self, slot: int = 0) -> StoredToolFrame | None:
+        """The tool frame the robot program applies at its start from slot `slot`, or None when
+        this robot keeps none (then only :meth:`set_tcp` reaches the controller)."""
         return None
 
-    def store_tool_frame(self, stored: StoredToolFrame) -> None:
-        """Make ``stored`` the frame the robot program applies at its next start."""
+    def store_tool_frame(self, stored: StoredToolFrame, slot: int = 0) -> None:
+        """Make ``stored`` the frame the robot program applies at its next start from slot `slot`."""
         raise DeviceError(self.name, "this robot keeps no tool frame for its program's start")
 
     def close(self) -> None:
@@ -212,6 +229,12 @@ class OperatorPanel(abc.ABC):
         """The tool the operator means (its id in the cell's tool table); 0: whichever tool is
         mounted. A panel without a tool selector returns 0."""
         return 0
+
+    def mounted_tool(self) -> int:
+        """The tool on the flange as the PLC or the tool changer reports it (its id in the
+        cell's tool table; 0: none), read at each start when the cell file says ``mounted:
+        panel``."""
+        raise DeviceError(getattr(self, "name", "panel"), "this panel reports no mounted tool")
 
     def set_outcome(self, registers: dict[str, int]) -> None:
         """What a run found, for a PLC or robot program to act on (docs/panel.md "Outcome

@@ -68,8 +68,9 @@ def _trend_link(folder: Path, result: Result, tool_id: int) -> str:
             + f"<p><a href='{where}{TREND_PAGE}'>the tool's trend page</a></p>")
 
 
-def write_run_report(folder: str | Path, run_id: int, result: Result, tool_id: int = 1) -> Path:
-    """The run's page into FOLDER/run-RUN_ID/ (with the trend of tool `tool_id` where FOLDER has it)."""
+def write_run_report(folder: str | Path, run_id: int, result: Result, tool_id: int | None = 1) -> Path:
+    """The run's page into FOLDER/run-RUN_ID/, naming the tool `tool_id` the run was for (None: the
+    cell describes none), with that tool's trend where FOLDER has it."""
     out = Path(folder) / f"run-{run_id}"
     out.mkdir(parents=True, exist_ok=True)
     residuals = np.asarray(result.residuals_mm, dtype=float)
@@ -110,7 +111,9 @@ def write_run_report(folder: str | Path, run_id: int, result: Result, tool_id: i
                "NOT to be written back: " + "; ".join(result.reasons()))
     return write_page(
         out / "report.html", "cellcal run",
-        f"<h1>Run {run_id}: {html.escape(result.routine)}</h1><p><b>{html.escape(verdict)}</b></p>" + drawing +
+        f"<h1>Run {run_id}: {html.escape(result.routine)}</h1>"
+        f"<p>{'no tool (the cell describes none)' if tool_id is None else f'tool {tool_id}'}</p>"
+        f"<p><b>{html.escape(verdict)}</b></p>" + drawing +
         "<h2>Tool frame</h2><table border=1 cellpadding=4><tr><th></th><th>x mm</th><th>y mm</th><th>z mm</th>"
         "<th>rx deg</th><th>ry deg</th><th>rz deg</th><th>z leans toward x, deg</th><th>toward y, deg</th></tr>"
         + _frame_row("before", before) + _frame_row("found", result.tool_frame) + base_row + "</table>"
@@ -119,7 +122,7 @@ def write_run_report(folder: str | Path, run_id: int, result: Result, tool_id: i
         f"<h2>Gates</h2><table border=1 cellpadding=4>{gates}</table>"
         f"<h2>Parameters</h2><table border=1 cellpadding=4>{params}</table>"
         "<h2>Residuals</h2><img src='residuals.png' alt='residual of every measurement'>"
-        + _trend_link(Path(folder), result, tool_id)
+        + ("" if tool_id is None else _trend_link(Path(folder), result, tool_id))
         + "".join(f"<p>{html.escape(n)}</p>" for n in result.notes)
         + f"<h2>Everything</h2><pre>{html.escape(json.dumps(result.as_json(), indent=1, default=_plain))}</pre>"
         f"<p>dataset: {html.escape(str(result.dataset))}</p>")

@@ -65,13 +65,16 @@ def merged(into, changes):
 
 
 def on_host(document: dict, host: str) -> dict:
-    """The document with every networked driver (``host:`` option) at `host`."""
+    """The document with every networked driver (``host:`` option) at `host`, and the daemon's
+    status page there too (each test cell's daemon serves on its own address: no port shared
+    between parallel tests)."""
     doc = copy.deepcopy(document)
     specs = list((doc.get("drivers") or {}).values())
     specs += [robot.get("driver") for robot in (doc.get("robots") or {}).values()]
     for spec in specs:
         if isinstance(spec, dict) and "host" in spec:
             spec["host"] = host
+    doc["status_page"] = {**(doc.get("status_page") or {}), "host": host}
     return doc
 
 

@@ -158,6 +158,7 @@ class PanelMap:
     tilt_x_register: int = 25
     tilt_y_register: int = 26
     tool_selector_register: int = 27  # written by the panel: the tool the start is for (0: the mounted one)
+    mounted_tool_register: int = 28  # written by the PLC or tool changer: the tool on the flange (0: none)
 
     @classmethod
     def of_options(cls, options) -> "PanelMap":
@@ -172,7 +173,8 @@ class PanelMap:
 
     def holding_registers(self) -> list[int]:
         return [self.routine_selector_register, self.result_code_register,
-                self.run_counter_register, *self.outcome_registers().values(), self.tool_selector_register]
+                self.run_counter_register, *self.outcome_registers().values(), self.tool_selector_register,
+                self.mounted_tool_register]
 
     def outcome_registers(self) -> dict[str, int]:
         """The outcome registers by their name in :meth:`OperatorPanel.set_outcome` -> address."""
@@ -209,7 +211,8 @@ class ModbusPanel(OperatorPanel):
                  routine_selector_register: int = 0, result_code_register: int = 1,
                  run_counter_register: int = 2, verdict_register: int = 20, tool_id_register: int = 21,
                  change_x_register: int = 22, change_y_register: int = 23, change_z_register: int = 24,
-                 tilt_x_register: int = 25, tilt_y_register: int = 26, tool_selector_register: int = 27):
+                 tilt_x_register: int = 25, tilt_y_register: int = 26, tool_selector_register: int = 27,
+                 mounted_tool_register: int = 28):
         given = locals()
         addresses = {f.name: given[f.name] for f in dataclasses.fields(PanelMap)}
         self.check_options(port=port, unit_id=unit_id, timeout_s=timeout_s, **addresses)
@@ -237,6 +240,9 @@ class ModbusPanel(OperatorPanel):
 
     def tool_selector(self) -> int:
         return self._link.read_holding_registers(self.map.tool_selector_register)[0]
+
+    def mounted_tool(self) -> int:
+        return self._link.read_holding_registers(self.map.mounted_tool_register)[0]
 
     def set_lamps(self, *, busy: bool | None = None, done: bool | None = None,
                   fault: bool | None = None) -> None:

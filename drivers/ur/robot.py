@@ -17,7 +17,8 @@ notices a dead connection meanwhile. So:
 A protective or emergency stop, a lost or stalled connection, or a timeout raise
 :class:`DeviceError` naming "UR robot at HOST" and what happened, after a best-effort
 stop. The tool frame changes only through :meth:`set_tcp` (the running program's) and
-:meth:`store_tool_frame` (the one the robot program applies at its start).
+:meth:`store_tool_frame` (the one the robot program applies at its start; one block of input
+registers per tool of a tool changer, :meth:`tool_frame_slots`).
 
 Register in the driver registry::
 
@@ -385,6 +386,16 @@ class UrRtdeRobot(Robot):
         self._await(lambda: bool(self._stream.status.digital_outputs >> channel & 1) == bool(level),
                     self.command_timeout_s, f"digital output {channel} reading {int(level)}", safety=False)
 
+    def digital_inputs(self) -> int:
+        """``actual_digital_input_bits`` of the state stream, from a sample that arrived after
+        this call with none older still queued here: the inputs as the controller last sent them
+        (a tool changer's id read at a start), not as a busy reader last saw them. An input that
+        changed within the last few controller cycles may not show yet."""
+        if self._broken:
+            raise DeviceError(self.name, f"not usable after {self._broken}; reconnect")
+        self._check_link("digital_inputs")
+        return int(self._stream.current(self.command_timeout_s).digital_inputs)
+
     def actual_q(self) -> np.ndarray:
         return self._stream.latest().q_rad.copy()
 
@@ -410,14 +421,22 @@ class UrRtdeRobot(Robot):
         self._prepare("tcp")
         return np.array(self._call("getTCPOffset"))
 
-    def stored_tool_frame(self) -> StoredToolFrame:
-        """The frame the robot program applies at start: RTDE input registers (:mod:`.ur_rtde_registers`)."""
-        self._usable("stored_tool_frame")
-        return self._registers.read()
+    def tool_frame_slots(self) -> int:
+        """One block of RTDE input registers per slot, from ``tool_frame_register`` up to 47 (24: 4)."""
+        return self._registers.slots
 
-    def store_tool_frame(self, stored: StoredToolFrame) -> None:
+    def tool_frame_slots_text(self) -> str:
+        return self._registers.text()
+
+    def stored_tool_frame(self, slot: int = 0) -> StoredToolFrame:
+        """The frame the robot program applies at start: block `slot` of RTDE input registers
+        (:mod:`.registers`)."""
+        self._usable("stored_tool_frame")
+        return self._registers.read(slot)
+
+    def store_tool_frame(self, stored: StoredToolFrame, slot: int = 0) -> None:
         self._usable("store_tool_frame")
-        self._registers.write(stored)
+        self._registers.write(stored, slot)
 
     def _usable(self, what: str) -> None:
         if self._broken:

@@ -1,6 +1,7 @@
 """The fake UR controller's fake-only JSON port (30199): read the true arm state and the
 hidden truth, the RTDE input registers as held, the sensors' exact edge times; play a
-robot program's start; put the arm somewhere; and inject faults (a protective or emergency
+robot program's start; put the arm somewhere; change the tool on the flange (``mount_tool``);
+and inject faults (a protective or emergency
 stop, optionally once the arm has moved for a while, dropped connections, a stalled
 controller, an RTDE input it does not keep). A mixin of :class:`.fake_ur.FakeUrController`,
 whose state it reads under the controller's lock."""
@@ -8,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cellcal.drivers.ur.registers import FIRST_REGISTER, FORMAT_TAG, register_names
+from cellcal.drivers.ur.registers import FIRST_REGISTER, FORMAT_TAG, block_first, register_names
 from cellcal.sims.physics.truth import beam_blocked, real_tool_tip
 
 FAULT_KINDS = ("protective_stop", "emergency_stop", "drop", "stall", "resume", "exit", "ignore_input")
@@ -51,7 +52,8 @@ class ControlPort:
                         "tcp_pose": arm.tcp_pose.tolist(), "tcp_offset": arm.tcp_offset.tolist(),
                         "moving": arm.moving, "safety": self.safety, "program_running": self.program_running,
                         "digital_inputs": self.digital_inputs, "digital_outputs": self.digital_outputs,
-                        "stalled": self.stalled, "messages": list(self.messages)[-20:]}
+                        "mounted_tool": self.mounted_tool, "stalled": self.stalled,
+                        "messages": list(self.messages)[-20:]}
             if cmd == "truth":  # what the controller obeys, as a simulated run's report gives it
                 return {"ok": True, "truth": self.truth.report(), "arm_params": self.truth.arm_params.tolist()}
             if cmd == "tool":
@@ -68,8 +70,9 @@ class ControlPort:
                 return {"ok": True}
             if cmd == "inputs":  # the RTDE input registers as the controller holds them
                 return {"ok": True, "inputs": {k: v for k, v in self.inputs.items() if "register" in k}}
-            if cmd == "program_start":
-                return self.program_start(int(request.get("register", FIRST_REGISTER)))
+            if cmd == "program_start":  # the program of the tool whose frame is in block `block` (0: the first)
+                return self.program_start(block_first(int(request.get("register", FIRST_REGISTER)),
+                                                      int(request.get("block", 0))))
             if cmd == "partner" and self._partner_base is not None:  # robot a's real tip now (its base frame)
                 rotation, origin = self._partner_base[:3, :3], self._partner_base[:3, 3]
                 self._partner = (rotation.T @ (np.asarray(request["tip_m"], float) - origin),
@@ -93,6 +96,8 @@ class ControlPort:
                 self._blocked = {id(b): beam_blocked(b, self._body, self._tool_radius_m) for b in self.truth.beams}
                 self.sensors.reset({b.channel: self._blocked[id(b)] for b in self.truth.beams})
                 return {"ok": True}
+            if cmd == "mount_tool":  # a tool change: {tool: ID} of the cell's table, 0 none
+                return self.mount_tool(request.get("tool"))
             if cmd == "set_tcp":  # the controller's tool frame changed behind the service's back (a test's bent tool)
                 if self.arm.moving:
                     return {"ok": False, "error": "the arm is moving"}
@@ -102,7 +107,7 @@ class ControlPort:
                 self.arm.set_tcp(tcp)
                 return {"ok": True}
         return {"ok": False, "error": f"unknown command {cmd!r} (state, truth, tool, edges, inputs, "
-                                          "program_start, fault, add_model, set_q, set_tcp)"}
+                                          "program_start, fault, add_model, set_q, set_tcp, mount_tool)"}
 
     def _fire_faults(self) -> None:
         for fault in list(self.faults):

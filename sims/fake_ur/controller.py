@@ -16,6 +16,9 @@ the arm as built, off by each motion's repeatability, blocks the real beams and 
 the real stylus. The beams' sensors switch late (latency, jitter); the digital inputs
 sample them once per cycle; the control port's ``edges`` gives each switch's exact time
 (for a networked cell's IO module). Without a cell file the truth is the drawing.
+A tool change (``mount_tool`` on the control port) puts another tool of the cell's table on
+the flange as it really is; where the cell file wires the tool changer's id to the digital
+inputs (``mounted: {robot_inputs: [...]}``), they carry it.
 
 The ur_rtde constructors hold Python's GIL while they wait for the controller, so the
 fake must live in another process; the ports are fixed, so parallel fakes need distinct
@@ -40,7 +43,7 @@ from cellcal.sims.physics.arm_motion import ArmKinematics, JointMove, MovingArm,
 from cellcal.sims.physics.scene import SwitchingSensors, scene_from_spec
 from cellcal.sims.inproc.world import PIVOT_SLIDE_SPEED_RAD_S, pivot_socket
 from cellcal.sims.physics.truth import (CellTruth, beam_blocked, beam_edges, meeting_rest_q, meeting_touch, pivot_rest_q, real_tool_body,
-                    real_tool_tip, repeat_offset_m, touching, truth_of_cell)
+                    real_tool_tip, repeat_offset_m, tool_changer_inputs, tool_id_bits, touching, truth_of_cell)
 from cellcal.sims.fake_ur.control import ControlPort
 from cellcal.sims.fake_ur.script import ControlScript
 from cellcal.sims.fake_ur.sessions import ControlSession, DashboardSession, RtdeSession, ScriptSession
@@ -84,6 +87,8 @@ class FakeUrController(ControlPort):
         self._partner_base, self._partner = (self.truth.second.base, None) if arm == "b" else (None, None)
         if arm == "b":
             self.truth = self.truth.for_second()
+        # the tool changer's id on the digital inputs (the cell file's `mounted: {robot_inputs: [...]}`)
+        self.tool_inputs = tool_changer_inputs(cell_spec) if arm == "a" else ()
         self.physics = ArmKinematics(model, self.truth.arm_params)  # the arm as built
         self.rng = np.random.default_rng(seed)  # repeatability and sensor jitter
         self.contacts = [c for c in (self.truth.stylus, *self.truth.contacts) if c is not None]
@@ -172,8 +177,36 @@ class FakeUrController(ControlPort):
             self._body_for, self._body_cache = inputs, self.tool_body()
         return self._body_cache
 
+    @property
+    def mounted_tool(self) -> int:
+        """The id of the tool on the flange (0: none, or a cell without a tool table)."""
+        return self.truth.tool_id
+
+    def mount_tool(self, tool_id) -> dict:
+        """A tool change: tool `tool_id` of the cell's table as it really is goes on the flange
+        (0: none, the bare flange), its body now blocks the beams and touches the fixtures, and
+        the tool changer's id shows on the digital inputs. Refused while the arm moves. The
+        controller's own tool frame is left as it was: setting it is the robot program's job."""
+        with self.lock:
+            if isinstance(tool_id, bool) or not isinstance(tool_id, int):
+                return {"ok": False, "error": f"tool must be a tool id (an integer; 0: none), not {tool_id!r}"}
+            if self.arm.moving:
+                return {"ok": False, "error": "the arm is moving: a tool is changed with the arm at rest"}
+            try:
+                self.truth = self.truth.with_tool(tool_id)
+            except ValueError as exc:
+                return {"ok": False, "error": str(exc)}
+            self.pivot, self._pivot_touch = pivot_socket(self.truth), None
+            self._body_for = (None, None, None)  # the body cache is the old tool's
+            self._body = self._body_now()
+            self._blocked = {id(b): beam_blocked(b, self._body, self._tool_radius_m) for b in self.truth.beams}
+            self.sensors.reset({b.channel: self._blocked[id(b)] for b in self.truth.beams})  # put there, not moved
+            self.digital_inputs = self._input_bits()
+            self.log(f"tool change: tool {tool_id} mounted" if tool_id else "tool change: no tool mounted")
+            return {"ok": True, "mounted_tool": tool_id, "digital_inputs": self.digital_inputs}
+
     def _input_bits(self) -> int:
-        bits = self.cell.input_bits(self.arm.tcp_pose, self.t_s)
+        bits = self.cell.input_bits(self.arm.tcp_pose, self.t_s) | tool_id_bits(self.mounted_tool, self.tool_inputs)
         for beam in self.truth.beams:
             level = self.sensors.blocked[beam.channel] == beam.level_when_blocked
             bits = bits | (1 << beam.channel) if level else bits & ~(1 << beam.channel)

@@ -22,6 +22,7 @@ from cellcal.sims.physics.scene import model_from_spec
 from cellcal.sims.inproc.world import SimWorld
 
 MOTION_TIMEOUT_MARGIN_S = 2.0
+STORED_SLOTS = 4  # tool frames kept for the program's start: a UR's register blocks from register 24
 
 
 def default_world() -> SimWorld:
@@ -46,7 +47,9 @@ class SimRobot(Robot):
         # surfaces that end move_until_contact: ContactPlane/ContactSphere, or their cell-file form
         self.contacts = [model_from_spec(dict(c)) if isinstance(c, dict) else c for c in contacts]
         self._closed = False
-        self._stored = StoredToolFrame(np.zeros(6), 0)  # as a controller after its restart: none stored
+        # slot -> the frame kept for the program's start, as a UR's input register blocks from register
+        # 24 (STORED_SLOTS of them); each as a controller after its restart: none stored
+        self._stored = {slot: StoredToolFrame(np.zeros(6), 0) for slot in range(STORED_SLOTS)}
 
     # -- checks ----------------------------------------------------------------------
 
@@ -134,6 +137,12 @@ class SimRobot(Robot):
     def stop(self) -> None:
         self.world.arm.halt()  # motions run to completion inside a call, so there is nothing to decelerate
 
+    def digital_inputs(self) -> int:
+        """The world's digital inputs now: the beams' levels, the tool changer's id."""
+        if self._closed:
+            raise DeviceError(self.name, "closed")
+        return self.world.digital_inputs()
+
     # -- state -----------------------------------------------------------------------
 
     def actual_q(self) -> np.ndarray:
@@ -156,20 +165,32 @@ class SimRobot(Robot):
     def tcp(self) -> np.ndarray:
         return self.world.arm.tcp_offset.copy()
 
-    def stored_tool_frame(self) -> StoredToolFrame:
-        """The frame the robot program would apply at its start (a controller's input registers)."""
-        if self._closed:
-            raise DeviceError(self.name, "closed")
-        return self._stored
+    def tool_frame_slots(self) -> int:
+        return len(self._stored)
 
-    def store_tool_frame(self, stored: StoredToolFrame) -> None:
+    def tool_frame_slots_text(self) -> str:
+        return f"blocks for {len(self._stored)} tools, as a UR's from input register 24"
+
+    def _slot(self, slot: int) -> int:
         if self._closed:
             raise DeviceError(self.name, "closed")
+        if int(slot) not in self._stored:
+            raise DeviceError(self.name, f"no tool frame block {slot}: it keeps {self.tool_frame_slots_text()} "
+                                         f"(blocks 0..{len(self._stored) - 1})")
+        return int(slot)
+
+    def stored_tool_frame(self, slot: int = 0) -> StoredToolFrame:
+        """The frame the robot program would apply at its start from block `slot` (a controller's
+        input registers)."""
+        return self._stored[self._slot(slot)]
+
+    def store_tool_frame(self, stored: StoredToolFrame, slot: int = 0) -> None:
+        slot = self._slot(slot)
         frame = np.asarray(stored.tool_frame, dtype=float)
         if frame.shape != (6,) or not np.all(np.isfinite(frame)) or not 0 <= int(stored.generation) < 2**31:
             raise DeviceError(self.name, "a stored tool frame must be 6 finite numbers and a generation in "
                                          "0..2**31-1")
-        self._stored = StoredToolFrame(frame.copy(), int(stored.generation))
+        self._stored[slot] = StoredToolFrame(frame.copy(), int(stored.generation))
 
     def state(self) -> RobotState:
         return RobotState.DISCONNECTED if self._closed else self.world.state
@@ -224,6 +245,10 @@ class SimPanel(OperatorPanel):
         self._start = self._abort = False
         self.routine = int(routine)
         self.tool = 0  # the tool selector: 0, whichever is mounted
+        self.world = world
+        # the mounted-tool register as the PLC or the tool changer writes it; None: the tool on the
+        # world's flange (world.mount_tool), as the cell's PLC reports it (0 without a world)
+        self.mounted: int | None = None
         self.lamps = {"busy": False, "done": False, "fault": False}
         self.result_code = 0
         self.run_counter = 0
@@ -256,6 +281,11 @@ class SimPanel(OperatorPanel):
 
     def tool_selector(self) -> int:
         return self.tool
+
+    def mounted_tool(self) -> int:
+        if self.mounted is not None:
+            return int(self.mounted)
+        return self.world.mounted_tool if self.world is not None else 0
 
     def set_lamps(self, *, busy: bool | None = None, done: bool | None = None,
                   fault: bool | None = None) -> None:

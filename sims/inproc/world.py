@@ -24,6 +24,10 @@ ends as a compliant one (force mode) does: the cone guides the tip's rounding to
 seat and the arm comes to rest there, off by its repeatability; a tip that lands on the
 flat beside the socket stays where it landed.
 
+A tool change (:meth:`SimWorld.mount_tool`) puts another tool of the cell's table on the
+flange as it really is; where the cell file wires the tool changer's id to the robot's digital
+inputs (``mounted: {robot_inputs: [...]}``), they carry it.
+
 A two-robot cell has one world per arm, each in its own base frame and on its own
 clock (:func:`world_of_cell` builds both and links them; ``of_robot`` picks one). Robot
 a's needle ends in a small centring cup facing out along its axis; robot b's needle
@@ -45,7 +49,8 @@ from cellcal.solvers.robot_model import KinematicModel
 from cellcal.sims.physics.arm_motion import ArmKinematics, JointMove, MovingArm, MotionFault
 from cellcal.sims.physics.scene import LightBeam
 from cellcal.sims.physics.truth import (CellTruth, beam_blocked, beam_edges, meeting_rest_q, meeting_touch, pivot_rest_q, real_tool_body,
-                    real_tool_tip, repeat_offset_m, tool_axis_m, touching, truth_of_cell)
+                    real_tool_tip, repeat_offset_m, tool_axis_m, tool_changer_inputs, tool_id_bits, touching,
+                    truth_of_cell)
 
 HOME_Q = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
 SAMPLE_BUFFER_S = 120.0
@@ -99,6 +104,7 @@ class SimWorld:
         self.arms = {"a": self}  # every arm of the cell by name (of_robot)
         self.workspace = workspace
         self.limits = limits
+        self.tool_inputs: tuple = ()  # the digital inputs carrying the tool changer's id, least significant first
         self.rng = np.random.default_rng(seed)
         self.t_s = 0.0
         self.state = RobotState.READY
@@ -190,8 +196,27 @@ class SimWorld:
         """Swarf in the socket: the next seat comes to rest `offset_m` (base frame) off."""
         self._pivot_fouling.append(np.asarray(offset_m, dtype=float))
 
+    @property
+    def mounted_tool(self) -> int:
+        """The id of the tool on the flange (0: none, or a cell without a tool table)."""
+        return self.truth.tool_id
+
+    def mount_tool(self, tool_id: int, device: str = "sim robot") -> None:
+        """A tool change: tool `tool_id` of the cell's table as it really is goes on the flange
+        (0: none, the bare flange); its body now blocks the beams and touches the fixtures, and
+        the tool changer's id shows on the digital inputs (:attr:`tool_inputs`). The controller's
+        tool frame is left as it was. Raises DeviceError while the arm moves, ValueError for an
+        id the table does not have."""
+        if self.arm.motion is not None:
+            raise DeviceError(device, "the arm is moving: a tool is changed with the arm at rest")
+        self.truth = self.truth.with_tool(tool_id)
+        self.pivot = pivot_socket(self.truth)
+        self._body = self.tool_body()
+        self._blocked = {id(b): beam_blocked(b, self._body, self.tool_radius_m) for b in self.beams}
+        self._edges = []  # put there, not moved: no edges
+
     def digital_inputs(self) -> int:
-        bits = 0
+        bits = tool_id_bits(self.mounted_tool, self.tool_inputs)
         for beam in self.beams:
             level = self._blocked[id(beam)] == beam.level_when_blocked
             bits |= int(level) << beam.channel
@@ -327,6 +352,7 @@ def world_of_cell(cell: Cell) -> SimWorld:
     limits = SpeedLimits(**{k: v for k, v in cell.limits.items() if k in SpeedLimits.__dataclass_fields__})
     box = Workspace(cell.workspace_min_m, cell.workspace_max_m)
     world = SimWorld(model, q0=cell.home_q_rad, truth=truth_of_cell(cell, model), workspace=box, limits=limits)
+    world.tool_inputs = tool_changer_inputs(cell)
     if world.truth.second is not None:
         b = cell.robots["b"]
         other = SimWorld(load_robot(b.robot), q0=b.home_q_rad, truth=world.truth.for_second(),

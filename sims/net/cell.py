@@ -27,6 +27,12 @@ address (the UR ports are fixed), obeying robot b's part of the same truth. Robo
 needle tip is relayed to it every :data:`PARTNER_RELAY_S`, so robot b's contact search
 meets robot a's tip as it does in process.
 
+A tool change (:meth:`SimCell.mount_tool`, or :func:`mount_tool_on_running` from another
+process: ``cellcal sim-cell --mount-tool ID``) puts another tool of the cell's table on robot
+a's flange as it really is, shows its id on the robot's digital inputs where the cell file
+wires the tool changer there, and writes it to the panel's mounted-tool register as the
+cell's PLC would (written at the start as well).
+
 A cell file that does not describe such a cell is refused with a CellFileError naming
 the section; a fake that cannot start (a port in use) raises SimCellError.
 """
@@ -41,12 +47,14 @@ import threading
 import numpy as np
 
 from cellcal.config.cells import Cell, CellFileError
-from cellcal.drivers.interfaces import Edge
-from cellcal.drivers.modbus.panel import PanelMap
+from cellcal.config.robot_files import load_robot
+from cellcal.drivers.interfaces import DeviceError, Edge
+from cellcal.drivers.modbus.panel import ModbusLink, PanelMap
 from cellcal.sims.fake_ur.controller import CONTROL_PORT, DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT
 from cellcal.sims.fake_ur.process import ControlClient, FakeUrProcess
 from cellcal.sims.net.modbus_server import ModbusCellServer
 from cellcal.sims.net.tracker_server import TrackerServer
+from cellcal.sims.physics.truth import CellTruth, truth_of_cell
 
 UR_PORTS = (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT)
 EDGE_WAIT_S = 0.2  # how long one request for new edges waits (the wiring's shutdown time)
@@ -69,6 +77,7 @@ class NetAddresses:
     unit_id: int = 1
     tracker_targets: tuple = ("smr1",)
     other_ur_hosts: tuple = ()  # (robot name, host) of the cell's robots besides a
+    panel: bool = False  # the IO module serves the operator panel (not only the trigger ring)
 
     @classmethod
     def of(cls, cell: Cell) -> "NetAddresses":
@@ -117,7 +126,8 @@ class NetAddresses:
                 raise CellFileError(f"host {spec.driver.options['host']}: each robot's controller needs its own "
                                     "address (the UR ports are fixed)", source=cell.path, section=where)
             others.append((name, spec.driver.options["host"]))
-        return cls(robot.options["host"], modbus, tracker, base, panel_map, unit, targets, tuple(others))
+        return cls(robot.options["host"], modbus, tracker, base, panel_map, unit, targets, tuple(others),
+                   drivers.get("panel") is not None)
 
     def listening_line(self) -> str:
         parts = [f"ur {self.ur_host} ({', '.join(map(str, UR_PORTS))})"]
@@ -142,6 +152,51 @@ def check_free(host: str, port: int) -> None:
         probe.close()
 
 
+def _mount_tool(cell: Cell, tool_id: int, connect) -> dict:
+    """Tell robot a's fake controller (a control connection from `connect()`) to mount tool
+    `tool_id` of `cell`'s table (0: none)."""
+    if tool_id != 0:
+        cell.with_tool(tool_id)  # CellFileError naming the table, for an id it does not have
+    try:
+        client = connect()
+    except OSError as exc:
+        raise SimCellError(f"no fake UR controller answers on {cell.drivers['robot'].options['host']}:"
+                           f"{CONTROL_PORT} ({exc.strerror or exc}): is `cellcal sim-cell` running for this "
+                           "cell file?") from None
+    try:
+        return client.request(cmd="mount_tool", tool=int(tool_id))
+    except RuntimeError as exc:  # the controller refused: the arm moving
+        raise SimCellError(f"tool {tool_id} not mounted: {exc}") from None
+    except (OSError, ValueError) as exc:
+        raise SimCellError(f"the fake UR controller's control connection failed: {exc}") from None
+    finally:
+        client.close()
+
+
+def mount_tool_on_running(cell: Cell, tool_id: int, timeout_s: float = 5.0) -> dict:
+    """A tool change on the `cellcal sim-cell` of `cell` running in another process, as the
+    operator at the tool changer does it: robot a's fake controller (its control port) mounts
+    tool `tool_id` (0: none), then the panel's mounted-tool register is written over Modbus TCP
+    as the cell's PLC writes it. Raises CellFileError for an id the table lacks, SimCellError
+    when the sim-cell does not answer or refuses. Returns the controller's reply, with the
+    panel register written (``panel_register``, None without a panel)."""
+    addresses = NetAddresses.of(cell)
+    reply = _mount_tool(cell, tool_id, lambda: ControlClient(addresses.ur_host, CONTROL_PORT, timeout_s))
+    reply["panel_register"] = None
+    if addresses.panel and addresses.modbus is not None:
+        plc = ModbusLink("the panel's IO module", *addresses.modbus, addresses.unit_id, timeout_s)
+        try:
+            plc.connect()
+            plc.write_register(addresses.panel_map.mounted_tool_register, int(tool_id))
+        except DeviceError as exc:
+            raise SimCellError(f"tool {tool_id} is mounted, and the panel's mounted-tool register was not "
+                               f"written: {exc}") from None
+        finally:
+            plc.close()
+        reply["panel_register"] = addresses.panel_map.mounted_tool_register
+    return reply
+
+
 class SimCell:
     """The fakes of one networked cell, started and stopped together (a context manager)."""
 
@@ -159,6 +214,8 @@ class SimCell:
         self.other_urs: dict[str, FakeUrProcess] = {}
         self._relay: threading.Thread | None = None
         self._relay_clients: list[ControlClient] = []
+        self._tool_id: int | None = None  # after a tool change: the tool mounted since
+        self._truth: CellTruth | None = None
 
     def start(self) -> "SimCell":
         a = self.addresses
@@ -180,6 +237,8 @@ class SimCell:
             if a.modbus is not None:
                 self.modbus = ModbusCellServer(*a.modbus, unit_id=a.unit_id, panel_map=a.panel_map,
                                                trigger_base_register=a.trigger_base_register).start()
+                if a.panel:  # the PLC reports the tool on the flange (the cell's `mounted: panel` reads it)
+                    self.modbus.set_mounted_tool(self.tool_id)
                 self._stopping.clear()
                 self._wiring_client = self.fake_ur.client()
                 self._wiring = threading.Thread(target=self._wire_edges, args=(self._wiring_client, self.modbus),
@@ -192,6 +251,35 @@ class SimCell:
             self.stop()
             raise
         return self
+
+    @property
+    def tool_id(self) -> int:
+        """The id of the tool on robot a's flange (0: none, or a cell without a tool)."""
+        return self._tool_id if self._tool_id is not None else (self.cell.tool.id if self.cell.tool is not None else 0)
+
+    @property
+    def truth(self) -> CellTruth:
+        """The hidden truth the fake controller obeys, with the tool now mounted: built here from
+        the same cell file with the same function as in the controller's process, for a test to
+        score against (never for a routine)."""
+        if self._truth is None:
+            self._truth = truth_of_cell(self.cell, load_robot(self.cell.robot))
+        return self._truth if self._truth.tool_id == self.tool_id else self._truth.with_tool(self.tool_id)
+
+    def mount_tool(self, tool_id: int) -> dict:
+        """A tool change on robot a, as at the cell's tool changer: tool `tool_id` of the cell's
+        table as it really is goes on the flange (0: none) and the tool changer's id shows on the
+        robot's digital inputs where the cell file wires it (the fake UR controller's
+        ``mount_tool``); then, as the cell's PLC would, the panel's mounted-tool register says
+        so. Raises CellFileError for an id the table does not have, SimCellError when the
+        controller refuses (the arm moving). Returns the controller's reply."""
+        if self.fake_ur is None:
+            raise SimCellError("the simulated cell is not running")
+        reply = _mount_tool(self.cell, tool_id, self.fake_ur.client)
+        if self.modbus is not None and self.addresses.panel:
+            self.modbus.set_mounted_tool(tool_id)
+        self._tool_id = tool_id
+        return reply
 
     def _start_other_robots(self) -> None:
         """A fake controller for each robot besides a, and the relay of robot a's tip to them."""

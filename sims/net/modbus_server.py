@@ -198,6 +198,14 @@ class ModbusCellServer:
     def select_tool(self, tool: int) -> None:
         self._set(WRITE_REGISTER, self.panel_map.tool_selector_register, [tool])
 
+    def set_mounted_tool(self, tool: int) -> None:
+        """The PLC's or the tool changer's side: the tool on the flange (0: none) in the
+        mounted-tool register (map key ``mounted_tool``)."""
+        self._set(WRITE_REGISTER, self.panel_map.mounted_tool_register, [tool])
+
+    def mounted_tool(self) -> int:
+        return self._get(READ_HOLDING, self.panel_map.mounted_tool_register)[0]
+
     def start_request_pending(self) -> bool:
         return bool(self._get(READ_COILS, self.panel_map.start_request_coil)[0])
 

@@ -11,7 +11,8 @@ reality is from that, or states reality outright, and a seed draws the rest. Fro
   things with its whole body, not just a point; in a cell with a tool table, every tool
   of it as it really is (``tools``), tool 1 drawn as the one tool of a one-tool cell is and
   every other from its own stream of the seed and its id, so mounting another tool
-  (:meth:`Cell.with_tool`) changes nothing else of the truth;
+  (:meth:`Cell.with_tool`, or a tool change at run time: :meth:`CellTruth.with_tool`, 0 for
+  none, the bare flange) changes nothing else of the truth;
 * the fixtures where they really are, the sensors' real latency and jitter, and the
   arm's repeatability (each motion ends a little off, drawn afresh per motion);
 * in a two-robot cell, robot b as it really is (:class:`SecondArm`): its arm, its real
@@ -26,7 +27,7 @@ it; tests and the run's report (``sim_truth`` in the JSON) do.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -62,6 +63,26 @@ class ToolBody:
         return np.concatenate([self.tcp_m, se3.rotvec_from_z(self.axis)])
 
 
+FLANGE_RADIUS_M = 0.0315  # a UR's tool flange (ISO 9409-1-50-4-M6) is 63 mm across
+# no tool mounted: the flange itself, a ball of its radius just behind its face (its "tip" the
+# flange centre), what a beam or a surface meets when the tool changer holds no tool
+BARE_FLANGE = ToolBody(np.zeros(3), np.array([0.0, 0.0, 1.0]), FLANGE_RADIUS_M, FLANGE_RADIUS_M)
+TOOL_DRAWN_KEYS = ("tool_tcp_off_drawing_mm", "tool_axis_off_drawing_deg")  # the mounted tool's, in `drawn`
+
+
+def tool_id_bits(tool_id: int, inputs) -> int:
+    """The robot's digital input bits a tool changer sets for `tool_id`: its binary digits on
+    the input numbers `inputs`, least significant first (0: none set)."""
+    return sum(1 << bit for i, bit in enumerate(inputs) if int(tool_id) >> i & 1)
+
+
+def tool_changer_inputs(cell: Cell | None) -> tuple:
+    """The robot inputs that carry the tool changer's id in `cell` (``mounted: {robot_inputs:
+    [...]}``), least significant first; () when the cell reads its tool elsewhere."""
+    source = getattr(cell, "mounted_source", None)
+    return tuple(source.bits) if source is not None and source.kind == "robot_inputs" else ()
+
+
 @dataclass(frozen=True)
 class SecondArm:
     """Robot b of a two-robot cell as it really is."""
@@ -86,6 +107,21 @@ class CellTruth:
     drawn: dict = field(default_factory=dict)  # how far each part is from the cell file, for reports
     second: SecondArm | None = None  # robot b of a two-robot cell
     tools: dict = field(default_factory=dict)  # tool id -> ToolBody: every tool of the table as it really is
+    tool_id: int = 0  # which tool of `tools` is `tool` (0: none of the table, the bare flange or no table)
+    tools_drawn: dict = field(default_factory=dict)  # tool id -> its `drawn` entries (how far off its drawing)
+
+    def with_tool(self, tool_id: int) -> "CellTruth":
+        """The same cell with tool `tool_id` of the table really on the flange (a tool change),
+        0 for none: the bare flange (:data:`BARE_FLANGE`). Nothing else of the truth changes, so
+        it is the truth of the cell file with that tool mounted (:meth:`Cell.with_tool`).
+        Raises ValueError for an id the table does not have."""
+        tool_id = int(tool_id)
+        if tool_id != 0 and tool_id not in self.tools:
+            have = ", ".join(map(str, self.tools)) or "none"
+            raise ValueError(f"no tool {tool_id} in this cell's tool table (its tools: {have}; 0: none)")
+        drawn = {k: v for k, v in self.drawn.items() if k not in TOOL_DRAWN_KEYS}
+        drawn.update(self.tools_drawn.get(tool_id, {}))
+        return replace(self, tool=self.tools[tool_id] if tool_id else BARE_FLANGE, tool_id=tool_id, drawn=drawn)
 
     def for_second(self) -> "CellTruth":
         """The truth robot b's own world obeys: its arm and tool, no fixtures, the same
@@ -171,9 +207,12 @@ def truth_of_cell(cell: Cell, model: KinematicModel) -> CellTruth:
         if tool_id != 1:
             tools[tool_id] = _real_tool(drawn_tool, spec, np.random.default_rng([spec.seed, 3, tool_id]))
     tool = tools[cell.tool.id] if cell.tool is not None else None
+    tools_drawn = {tool_id: {"tool_tcp_off_drawing_mm": float(np.linalg.norm(real.tcp_m - table[tool_id].tcp_m) * 1e3),
+                             "tool_axis_off_drawing_deg": float(np.rad2deg(np.arccos(np.clip(
+                                 real.axis @ table[tool_id].axis, -1, 1))))}
+                   for tool_id, real in tools.items() if real is not None}
     if tool is not None:
-        drawn["tool_tcp_off_drawing_mm"] = float(np.linalg.norm(tool.tcp_m - cell.tool.tcp_m) * 1e3)
-        drawn["tool_axis_off_drawing_deg"] = float(np.rad2deg(np.arccos(np.clip(tool.axis @ cell.tool.axis, -1, 1))))
+        drawn.update(tools_drawn[cell.tool.id])
 
     def placed(point: np.ndarray) -> np.ndarray:
         return np.asarray(point, float) + _random_unit(rng) * spec.fixture_error_mm / 1e3
@@ -186,7 +225,8 @@ def truth_of_cell(cell: Cell, model: KinematicModel) -> CellTruth:
     pivot = placed(cell.pivot_m) if cell.pivot_m is not None else None
     second = _second_arm(cell, spec, drawn) if "b" in cell.robots else None
     return CellTruth(params, tool, beams, stylus, pivot, (), spec.repeatability_mm, spec.trigger_latency_s,
-                     spec.trigger_jitter_s, spec.seed, drawn, second, tools)
+                     spec.trigger_jitter_s, spec.seed, drawn, second, tools,
+                     cell.tool.id if cell.tool is not None else 0, tools_drawn)
 
 
 def _real_tool(drawn_tool, spec: SimTruthSpec, rng: np.random.Generator) -> ToolBody | None:

@@ -95,7 +95,7 @@ def test_rollback_restores_the_running_and_the_stored_frame_from_before_the_writ
     store.close()
     monkeypatch.setattr(tool_cmd, "load_cell", lambda path: _Cell())
     monkeypatch.setattr(tool_cmd, "open_drivers", lambda cell: CellDrivers(robot=robot))
-    args = argparse.Namespace(state_dir=str(tmp_path), run=None, cell="test cell", json=False)
+    args = argparse.Namespace(state_dir=str(tmp_path), run=None, tool=None, cell="test cell", json=False)
     assert tool_cmd.cmd_tool_rollback(args) == 0
     robot._closed = False  # the drivers were closed on leaving; look at what the controller holds
     np.testing.assert_array_equal(robot.tcp(), FRAME_A)
@@ -103,8 +103,9 @@ def test_rollback_restores_the_running_and_the_stored_frame_from_before_the_writ
     store = Store.open(tmp_path)
     last = store.tool_frames()[-1]
     store.close()
-    assert last["action"] == "rollback" and last["stored_after"] == {"tool_frame": FRAME_A.tolist(), "generation": 2}
-    assert last["stored_before"] == {"tool_frame": FRAME_B.tolist(), "generation": run_id}
+    assert last["action"] == "rollback" and last["stored_after"] == {"tool_frame": FRAME_A.tolist(), "generation": 2,
+                                                                     "slot": 0}  # the block it went back to
+    assert last["stored_before"] == {"tool_frame": FRAME_B.tolist(), "generation": run_id, "slot": 0}
 
 
 def test_the_readme_script_reads_the_registers_and_the_tag_the_driver_writes():

@@ -42,7 +42,7 @@ def test_the_change_of_a_tip_only_result_leaves_the_tilt_undetermined():
 
 
 def test_outcome_registers_are_addresses_of_their_own():
-    assert len(set(PanelMap().holding_registers())) == len(PanelMap().holding_registers()) == 11
+    assert len(set(PanelMap().holding_registers())) == len(PanelMap().holding_registers()) == 12
     with pytest.raises(DriverConfigError, match="share an address"):
         ModbusPanel.check_options(port=502, unit_id=1, timeout_s=1.0,
                                   **{**PanelMap().__dict__, "tilt_y_register": 1})

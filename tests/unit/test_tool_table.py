@@ -136,6 +136,22 @@ BAD = [
     ("mounted without a table", {"tools": DELETE, "tool": {k: v for k, v in PIN.items() if k not in ("id", "name")},
                                  "mounted": 1}, None, ["[mounted]", "has none"]),
     ("an empty table", {}, [], ["[tools]", "non-empty list"]),
+    ("mounted neither an id nor a source", {"mounted": "plc"}, None,
+     ["[mounted]", "'plc'", "expected a tool id", "`panel`", "robot_inputs"]),
+    ("a tool changer input out of range", {"mounted": {"robot_inputs": [8, 18]}}, None,
+     ["[mounted.robot_inputs]", "0..17"]),
+    ("a tool changer input twice", {"mounted": {"robot_inputs": [8, 8]}}, None,
+     ["[mounted.robot_inputs]", "different"]),
+    ("too few tool changer inputs for the ids", {"mounted": {"robot_inputs": [8, 9]}}, [PIN, {**TORCH, "id": 5}],
+     ["[mounted.robot_inputs]", "ids up to 3", "tool 5"]),
+    ("a misspelt key of the tool changer", {"mounted": {"robot_input": [8]}}, None,
+     ["[mounted.robot_inputs]", "missing"]),
+    ("a tool changer input the beams' trigger uses", {
+        "mounted": {"robot_inputs": [1, 16]},  # the shipped beams are on channels 0 and 1
+        "drivers": {"trigger": {"driver": "ur_digital_input", "host": "127.0.0.1", "channels": [0, 1]}}},
+     None, ["[mounted.robot_inputs]", "input 1 carries the trigger"]),
+    ("the mounted tool from a panel the cell lacks", {"mounted": "panel", "drivers": {"panel": DELETE}}, None,
+     ["[mounted]", "no panel"]),
     ("sim_truth's tool frame without a tool 1", {"sim_truth": {"tool_tcp_m": [0.0, 0.0, 0.15]}},
      [{**TORCH, "sections": {}}], ["[sim_truth.tool_tcp_m]", "no tool 1"]),
 ]
@@ -171,3 +187,49 @@ def test_a_two_robot_cell_keeps_one_tool_per_robot(tmp_path, capsys):
     assert main(["run", "handshake", "--cell", str(path), "--dry-run"]) == 2
     err = capsys.readouterr().err
     assert "[tools]" in err and "no tool table there" in err
+
+
+# -- where the service learns which tool is mounted ------------------------------------------------
+
+class _Inputs:
+    """A robot whose digital inputs read `bits` (an int), or fail."""
+
+    def __init__(self, bits):
+        self.bits = bits
+
+    def digital_inputs(self):
+        if isinstance(self.bits, Exception):
+            raise self.bits
+        return self.bits
+
+
+def test_the_mounted_tool_comes_from_the_file_the_panel_or_the_tool_changers_inputs(tmp_path):
+    from types import SimpleNamespace
+
+    from cellcal.daemon.cells import NoToolMounted, mounted_tool
+    from cellcal.drivers.interfaces import DeviceError
+    fixed = load_cell(two_tools(tmp_path, {"mounted": 2}, name="fixed.yaml"))
+    assert fixed.mounted_source.kind == "file" and mounted_tool(fixed, SimpleNamespace()) == 2
+    assert load_cell("sim").mounted_source.tool == 1  # a file's one tool is tool 1, fixed
+
+    panel = load_cell(two_tools(tmp_path, {"mounted": "panel"}, name="panel.yaml"))
+    assert panel.mounted_source.kind == "panel" and panel.tool.id == 1  # the table's first until read
+    for register, expected in ((2, 2), (1, 1)):
+        assert mounted_tool(panel, SimpleNamespace(panel=SimpleNamespace(mounted_tool=lambda r=register: r))) \
+            == expected
+    with pytest.raises(NoToolMounted, match="reads 0"):
+        mounted_tool(panel, SimpleNamespace(panel=SimpleNamespace(mounted_tool=lambda: 0)))
+    with pytest.raises(NoToolMounted, match="reads tool 7, which this cell file's tool table lacks"):
+        mounted_tool(panel, SimpleNamespace(panel=SimpleNamespace(mounted_tool=lambda: 7)))
+
+    changer = load_cell(two_tools(tmp_path, {"mounted": {"robot_inputs": [16, 17]}}, name="changer.yaml"))
+    assert changer.mounted_source.bits == (16, 17)
+    # bit 16 is the id's least significant bit, 17 the next; other inputs (0-15) do not count
+    for bits, expected in ((1 << 16, 1), (1 << 17 | 0xFFFF, 2)):
+        assert mounted_tool(changer, SimpleNamespace(robot=_Inputs(bits))) == expected
+    with pytest.raises(NoToolMounted, match="no tool is mounted"):
+        mounted_tool(changer, SimpleNamespace(robot=_Inputs(0xFFFF)))
+    with pytest.raises(NoToolMounted, match="reads tool 3"):
+        mounted_tool(changer, SimpleNamespace(robot=_Inputs(3 << 16)))
+    with pytest.raises(DeviceError):
+        mounted_tool(changer, SimpleNamespace(robot=_Inputs(DeviceError("robot", "lost"))))
