@@ -52,10 +52,11 @@ def short_cell(folder: Path, host: str) -> Path:
 class Net:
     """The running fakes (on a loopback address of their own) and what a case needs to reach them."""
 
-    def __init__(self, folder: Path):
+    def __init__(self, folder: Path, cell_file=None):
+        """`cell_file(folder, host)`: the cell file to serve (default :func:`short_cell`)."""
         self.host = loopback.allocate()
         try:
-            self.path = short_cell(folder, self.host)
+            self.path = (cell_file or short_cell)(folder, self.host)
             self.cell = load_cell(self.path)
             self.sim = SimCell(self.cell).start()
         except BaseException:
@@ -165,6 +166,30 @@ class Daemon:
 
     def stop(self) -> int:
         return _stop(self.proc)
+
+
+OUTCOME = ("verdict", "tool_id", "change_x", "change_y", "change_z", "tilt_x", "tilt_y")  # registers 20-26
+
+
+def plc_reads(net: Net) -> dict:
+    """What a PLC reads after a run, with a plain Modbus client: the result code, the lamps and
+    the outcome registers, decoded (docs/panel.md)."""
+    from pymodbus.client import ModbusTcpClient
+
+    from cellcal.daemon import outcome
+    with ModbusTcpClient(net.host, port=net.sim.addresses.modbus[1]) as client:
+        unit = net.sim.addresses.unit_id
+        code = client.read_holding_registers(1, count=1, device_id=unit).registers[0]
+        raw = client.read_holding_registers(20, count=7, device_id=unit).registers
+        lamps = client.read_coils(8, count=3, device_id=unit).bits[:3]
+    return {"code": code, "lamps": dict(zip(("busy", "done", "fault"), lamps)),
+            **outcome.decoded(dict(zip(OUTCOME, raw)))}
+
+
+def controller_tcp(net: Net) -> np.ndarray:
+    """The controller's tool frame, once the arm is at rest."""
+    net.at_rest(0.0)
+    return np.asarray(net.state()["tcp_offset"], dtype=float)
 
 
 def until_the_run_ends(net: Net, counter: int, meanwhile=lambda: None) -> None:

@@ -9,17 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pymodbus.client import ModbusTcpClient
-
-from cellcal.daemon import outcome
 from cellcal.daemon.service import ResultCode
-import daemon_harness
 from cell_edits import edited_cell
-from daemon_harness import Net, press_start, until_the_run_ends
+from daemon_harness import Net, controller_tcp, plc_reads, press_start, until_the_run_ends
 
 pytestmark = pytest.mark.slow
-
-OUTCOME = ("verdict", "tool_id", "change_x", "change_y", "change_z", "tilt_x", "tilt_y")
 
 
 def full_laser_cell(folder, host):
@@ -31,9 +25,7 @@ def full_laser_cell(folder, host):
 
 @pytest.fixture(scope="module")
 def net(tmp_path_factory):
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(daemon_harness, "short_cell", full_laser_cell)
-        net = Net(tmp_path_factory.mktemp("sim-net"))
+    net = Net(tmp_path_factory.mktemp("sim-net"), full_laser_cell)
     try:
         net.reset()
         yield net
@@ -46,18 +38,7 @@ def press(net: Net, routine: str) -> dict:
     counter = net.panel.run_counter()
     press_start(net, routine)
     until_the_run_ends(net, counter)
-    with ModbusTcpClient(net.host, port=net.sim.addresses.modbus[1]) as client:
-        unit = net.sim.addresses.unit_id
-        code = client.read_holding_registers(1, count=1, device_id=unit).registers[0]
-        raw = client.read_holding_registers(20, count=7, device_id=unit).registers
-        lamps = client.read_coils(8, count=3, device_id=unit).bits[:3]
-    return {"code": code, "lamps": dict(zip(("busy", "done", "fault"), lamps)),
-            **outcome.decoded(dict(zip(OUTCOME, raw)))}
-
-
-def controller_tcp(net: Net) -> np.ndarray:
-    net.at_rest(0.0)
-    return np.asarray(net.state()["tcp_offset"], dtype=float)
+    return plc_reads(net)
 
 
 def test_check_ok_then_corrected_then_alarm_from_the_panel(net, cellcal_daemon):

@@ -11,17 +11,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pymodbus.client import ModbusTcpClient
-
 import daemon_harness
 from cell_edits import edited_cell
-from cellcal.daemon import outcome
 from cellcal.daemon.service import ResultCode
-from daemon_harness import Net, press_start, until_the_run_ends
+from daemon_harness import Net, controller_tcp, plc_reads, press_start, until_the_run_ends
 
 pytestmark = pytest.mark.slow
 
-OUTCOME = ("verdict", "tool_id", "change_x", "change_y", "change_z", "tilt_x", "tilt_y")
 # each written frame against its tool's real one: tcp-laser's accuracy on sim-net is about
 # 0.01-0.02 mm (README); 0.05 mm leaves room for another machine's rounding, and is far below
 # the 20 mm between the two tools' tips, so a frame of the wrong tool cannot pass
@@ -43,9 +39,7 @@ def two_tool_cell(folder, host):
 
 @pytest.fixture(scope="module")
 def net(tmp_path_factory):
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(daemon_harness, "short_cell", two_tool_cell)
-        net = Net(tmp_path_factory.mktemp("sim-net"))
+    net = Net(tmp_path_factory.mktemp("sim-net"), two_tool_cell)
     try:
         net.reset()
         yield net
@@ -76,21 +70,6 @@ def refused(net: Net, routine: str, tool: int = 0) -> dict:
 def assert_still(net: Net, q) -> None:
     look = net.state()
     assert not look["moving"] and look["q"] == q
-
-
-def plc_reads(net: Net) -> dict:
-    with ModbusTcpClient(net.host, port=net.sim.addresses.modbus[1]) as client:
-        unit = net.sim.addresses.unit_id
-        code = client.read_holding_registers(1, count=1, device_id=unit).registers[0]
-        raw = client.read_holding_registers(20, count=7, device_id=unit).registers
-        lamps = client.read_coils(8, count=3, device_id=unit).bits[:3]
-    return {"code": code, "lamps": dict(zip(("busy", "done", "fault"), lamps)),
-            **outcome.decoded(dict(zip(OUTCOME, raw)))}
-
-
-def controller_tcp(net: Net) -> np.ndarray:
-    net.at_rest(0.0)
-    return np.asarray(net.state()["tcp_offset"], dtype=float)
 
 
 def stored_block(net: Net, block: int) -> list[float]:

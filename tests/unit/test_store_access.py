@@ -25,25 +25,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellcal.cli.main import main
 from cellcal.config.cells import shipped_cells
 from cellcal.daemon.claims import Device, DeviceClaim, FolderLock, InUseError, devices
 from cellcal.daemon.cells import load_cell
 from cellcal.daemon.store import Store, StoreError, check_state_folder
+from cli_run import one_message, run_cli  # tests/cli_run.py
 
 NOBODY = 65534  # the unprivileged user the root-only case becomes
-
-
-def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
-    code = main(list(argv))
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def one_message(err: str) -> str:
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("cellcal: ") and "Traceback" not in err, err
-    return lines[0]
 
 
 # -- the commands that read the store never make one -----------------------------------------------

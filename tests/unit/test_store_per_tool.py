@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellcal.cli.main import main
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import MIGRATIONS, SCHEMA_VERSION, STORE_FILE, Store
 from cell_edits import DELETE, edited_cell  # tests/cell_edits.py
+from cli_run import one_message, run_cli  # tests/cli_run.py
 
 PIN = {"id": 1, "name": "pin", "tcp_m": [0.0, 0.0, 0.150], "axis": [0.0, 0.0, 1.0], "radius_m": 0.003,
        "length_m": 0.1}
@@ -36,18 +36,6 @@ TORCH = {"id": 2, "name": "torch", "tcp_m": [0.0, 0.005, 0.170], "axis": [0.0, 0
 # apart, so any mix-up between them shows in an exact comparison
 PIN_FRAMES = [[0.0, 0.0, 0.150 + k * 1e-4, 0.0, 0.0, 0.0] for k in range(3)]
 TORCH_FRAMES = [[0.0, 0.005, 0.170 + k * 1e-4, 0.0, 0.0, 0.0] for k in range(3)]
-
-
-def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
-    code = main(list(argv))
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def one_message(err: str) -> str:
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("cellcal: ") and "Traceback" not in err, err
-    return lines[0]
 
 
 def two_tool_cell(tmp_path: Path, mounted: int = 1, name: str = "two.yaml") -> Path:

@@ -1,0 +1,18 @@
+"""``cellcal`` called in process, as the unit tests of the commands do."""
+from __future__ import annotations
+
+from cellcal.cli.main import main
+
+
+def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
+    """(exit status, stdout, stderr) of ``cellcal ARGV``."""
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def one_message(err: str) -> str:
+    """The one line a refused command prints on stderr (no traceback)."""
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("cellcal: ") and "Traceback" not in err, err
+    return lines[0]
