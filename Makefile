@@ -10,7 +10,7 @@ LOCK := requirements.lock
 # exist, and pip warns about each one on every call; a failing install still says why.
 PIP := $(BIN)/python -m pip -qq
 
-.PHONY: demo demo-identify test test-fast bench wheel lock clean
+.PHONY: demo demo-identify test test-fast bench wheel lock clean chromium
 
 $(STAMP): pyproject.toml $(LOCK)
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -28,8 +28,25 @@ demo-identify: $(STAMP)
 
 # two workers, a test file each at a time (module fixtures such as a running sim-net stay
 # in one worker): most end-to-end cases wait on simulated devices that run in real time
-test: $(STAMP)
+test: $(STAMP) chromium
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+
+# Debian's headless-capable Chromium for the status page's browser test
+# (tests/e2e/test_status_page_browser.py), installed when it is missing and this is root with
+# apt-get; a no-op once it is there. It never fails the build: where it cannot be installed the
+# test skips and says what is missing. `apt-get update` only when the first try finds no package.
+chromium:
+	@command -v chromium >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	    echo "installing Debian's chromium for the browser test (apt-get)"; \
+	    export DEBIAN_FRONTEND=noninteractive; \
+	    { apt-get install -y -qq --no-install-recommends chromium >/dev/null 2>&1 || \
+	      { apt-get update -qq >/dev/null 2>&1 && \
+	        apt-get install -y -qq --no-install-recommends chromium >/dev/null 2>&1; }; } || \
+	    echo "chromium could not be installed (apt-get failed): the browser test will skip"; \
+	  else \
+	    echo "chromium is not installed (needs root and apt-get to install it): the browser test will skip"; \
+	  fi; }
 
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not slow"

@@ -74,7 +74,7 @@ def cmd_daemon(args) -> int:
             service.announce_interrupted(interrupted)
             service.resume_owed_frame()
             service.announce_tool_blocks()
-            page = None
+            page = _serve_status_page(cell, service, folder)
             log.info("ready: cell %s, robot %s; the panel offers %s", cell.name, state.value,
                      ", ".join(f"{k} {v}" for k, v in service.routines.items()
                                if registry.unavailable(v, cell) is None))
@@ -114,7 +114,8 @@ def _serve_status_page(cell, service: Service, folder):
         return None
     from cellcal.daemon.status_server import StatusServer  # only a daemon that serves it needs it
 
-    server = StatusServer(status=service.status, state_dir=folder, spec=spec)
+    server = StatusServer(status=service.status, state_dir=folder, spec=spec,
+                          tool_names={tool_id: tool.name for tool_id, tool in (cell.tools or {}).items()})
     try:
         server.start()
     except OSError as exc:

@@ -75,6 +75,9 @@ def change_between(frame, determines, base) -> dict:
     return {"tip_mm": tip, "axis_deg": axis}
 
 
+MIN_RATE_SPAN_WEEKS = 1.0 / 7.0  # a rate per week needs at least a day between its first and last point
+
+
 def _slope(x, y) -> float | None:
     x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
     if len(x) < 2 or np.ptp(x) == 0.0:
@@ -111,11 +114,13 @@ def trend(rows: list[dict], tool_id: int) -> dict:
             weeks = [(p["at"] - last["at"]) / SECONDS_PER_WEEK for p in used]
             runs = [p["run_id"] for p in used]
             values = [p["since_last_calibration"][key] for p in used]
-            per_week, per_run = _slope(weeks, values), _slope(runs, values)
+            # a weekly rate from minutes of history extrapolates the checks' noise: none under a day
+            per_week = _slope(weeks, values) if len(weeks) > 1 and np.ptp(weeks) >= MIN_RATE_SPAN_WEEKS else None
+            per_run = _slope(runs, values)
             rate[f"{name}_per_week"] = per_week
             rate[f"{name}_per_1000_runs"] = None if per_run is None else per_run * 1000.0
         if all(rate[k] is None for k in ("tip_mm_per_week", "axis_deg_per_week")):
-            rate["why_none"] = (f"fewer than two points (at different times) since the last full calibration "
+            rate["why_none"] = (f"fewer than two points a day or more apart since the last full calibration "
                                 f"(run {last['run_id']})")
     latest = points[-1] if points else None
     return {"tool_id": int(tool_id), "never_calibrated": first is None,

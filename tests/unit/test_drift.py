@@ -117,6 +117,17 @@ def test_one_point_since_the_calibration_gives_no_rate_and_says_why(store):
     assert t["rate"]["tip_mm_per_week"] is None and "fewer than two points" in t["rate"]["why_none"]
 
 
+def test_no_weekly_rate_from_less_than_a_day_of_history(store):
+    """A calibration and a check minutes apart: 0.05 mm in 0.01 day would read 35 mm per week,
+    the check's noise extrapolated; no weekly rate is given until the points span a day."""
+    t = drift.trend(history(store, [(0, "calibration", 0.0, 0.0, True, BOTH), (0.01, "check", 0.05, 0.0, False,
+                                                                                 BOTH)]), 1)
+    assert t["rate"]["tip_mm_per_week"] is None and "a day or more apart" in t["rate"]["why_none"]
+    t = drift.trend(history(store, [(0, "calibration", 0.0, 0.0, True, BOTH), (1, "check", 0.05, 0.0, False,
+                                                                              BOTH)]), 1)
+    assert t["rate"]["tip_mm_per_week"] == pytest.approx(0.35, abs=1e-6)  # 0.05 mm in a day
+
+
 @pytest.mark.parametrize("bands, determines, dx, tilt, words", [
     (Bands(drift_mm=0.2), BOTH, 0.3, 0.0, ["tip 0.300 mm", "beyond the drift alarm 0.2 mm"]),
     (Bands(drift_deg=0.1), BOTH, 0.0, 0.15, ["axis 0.150 deg", "beyond the drift alarm 0.1 deg"]),
