@@ -112,7 +112,7 @@ def _serve_status_page(cell, service: Service, folder):
     if not spec.enabled:
         log.info("status page: off (status_page.enabled is false)")
         return None
-    from cellcal.daemon.status_server import StatusServer  # only a daemon that serves it needs it
+    from cellcal.daemon.status_server import StatusServer, exposure_warning  # only a daemon serving it needs it
 
     server = StatusServer(status=service.status, state_dir=folder, spec=spec,
                           tool_names={tool_id: tool.name for tool_id, tool in (cell.tools or {}).items()})
@@ -123,9 +123,9 @@ def _serve_status_page(cell, service: Service, folder):
                   "runs on without it", exc, cell.path)
         return None
     log.info("status page and JSON API (read-only): %s", server.url)
-    if not spec.loopback:
-        log.warning("the status page is served on %s:%d, beyond this PC: anyone on that network can read it "
-                    "(read-only; status_page.host in %s)", spec.host, spec.port, cell.path)
+    beyond = exposure_warning(spec.host, spec.port)
+    if beyond is not None:
+        log.warning("%s: anyone on that network can read it (read-only; status_page.host in %s)", beyond, cell.path)
     return server
 
 

@@ -197,10 +197,6 @@ class StatusPageSpec:
     max_connections: int = 8
     rate_per_s: float = 20.0
 
-    @property
-    def loopback(self) -> bool:
-        return self.host == "localhost" or self.host.startswith("127.") or self.host == "::1"
-
 
 def _read_status_page(top: Section) -> StatusPageSpec:
     page = top.section("status_page")
