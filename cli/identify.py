@@ -5,8 +5,9 @@ import json
 
 import numpy as np
 
-from cellcal.cli import model_out
+from cellcal.cli import identify_points, model_out
 from cellcal.cli.common import UsageError, number, print_progress, whole
+from cellcal.config.fixture_files import read_fixture
 from cellcal.config.robot_files import load_robot
 from cellcal.measurements.table import MeasurementTable, check_joint_limits, read_measurements, repeated_warning
 from cellcal.reports.identification import identification_json, identification_text
@@ -29,6 +30,7 @@ def _split(table: MeasurementTable, validate: MeasurementTable | None, path: str
 
 def run(args) -> int:
     model = load_robot(args.robot)
+    fixture = read_fixture(args.fixture) if args.fixture else None
     table = read_measurements(args.data, model.n_joints)
     validate = read_measurements(args.validate, model.n_joints) if args.validate else None
     for data in (table, validate):
@@ -51,6 +53,8 @@ def run(args) -> int:
     n_min = 10
     if len(cal) < n_min:
         raise UsageError(f"{args.data}: {len(cal)} calibration rows; identification needs at least {n_min}")
+    if fixture is not None or any(t is not None and t.is_point.any() for t in (cal, val)):
+        return identify_points.run(args, model, cal, val, fixture)  # the point form: fixtures as the instrument
     options = IdentifyOptions(regularize=args.regularize, loss=args.loss, folds=args.folds,
                               fixed=tuple(args.fix or ()), prior_mm=args.prior_mm)
     obs = cal.observations()
@@ -79,6 +83,9 @@ def add_parser(sub) -> None:
     p.add_argument("--robot", required=True, metavar="ROBOT",
                    help="robot model file (YAML), or the name of a shipped model such as ur10e")
     p.add_argument("--data", required=True, metavar="CAL.csv", help="measurement CSV")
+    p.add_argument("--fixture", metavar="FIXTURE.yaml",
+                   help="the fixture's points and the known distances between them, for rows of the point form "
+                        "(a point column instead of x_mm, y_mm, z_mm; docs/measurements.md)")
     p.add_argument("--validate", metavar="VAL.csv",
                    help="measurements to validate on (default: rows of --data marked split=val, if any)")
     p.add_argument("--regularize", choices=REGULARIZE, default="cv",

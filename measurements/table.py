@@ -9,8 +9,17 @@ Required: ``q1_deg`` .. ``qN_deg`` or ``q1_rad`` .. ``qN_rad`` (one unit for all
 joints, N = the robot model's joint count) and ``x_mm``, ``y_mm``, ``z_mm``.
 Optional: ``target``, ``qw``/``qx``/``qy``/``qz`` (all four or none), ``t_s``,
 ``temp_c``, ``payload_kg``, ``split`` (``cal`` or ``val``). Other columns are
-kept as text. A file that cannot be used raises :class:`DatasetError` with one
-message naming the file, the line and the column; nothing is partly loaded.
+kept as text.
+
+The point form (calibration from the cell's own fixtures): a ``point`` column names the
+unknown fixed point the target sat at (a socket) or touched (a stylus) instead of a
+measured position, with an optional ``setup`` (one placement of the fixture; the same
+point id in two setups is two points). A row then has either a point or ``x_mm``,
+``y_mm``, ``z_mm``, never both; the position columns may be left out when every row has
+a point. Point rows carry NaN positions in ``xyz_mm``; ``observations()`` refuses them.
+
+A file that cannot be used raises :class:`DatasetError` with one message naming the
+file, the line and the column; nothing is partly loaded.
 """
 from __future__ import annotations
 
@@ -29,7 +38,9 @@ QUAT = ("qw", "qx", "qy", "qz")
 SCALARS = ("t_s", "temp_c", "payload_kg")
 SPLITS = ("cal", "val")
 DEFAULT_TARGET = "tcp"
-KNOWN = XYZ + QUAT + SCALARS + ("target", "split")
+POINT_COLS = ("point", "setup")
+DEFAULT_SETUP = "default"  # the setup of point rows in a file without a setup column (or an empty cell)
+KNOWN = XYZ + QUAT + SCALARS + ("target", "split") + POINT_COLS
 
 MAX_POSITION_MM = 1e5  # 100 m: beyond any tracker's range
 MAX_JOINT = {"rad": 4 * np.pi, "deg": 720.0}  # two turns either way
@@ -61,6 +72,14 @@ class MeasurementTable:
     split: np.ndarray | None  # (N,) 'cal' or 'val'
     extra: dict[str, tuple[str, ...]]  # unknown columns, as text
     joint_unit: str  # 'deg' or 'rad', as in the file
+    # point form: the fixed point of each row ('' on a row with a measured position) and its setup
+    point: np.ndarray | None = None  # (N,) str, or None when the file has no point column
+    setup: np.ndarray | None = None  # (N,) str, DEFAULT_SETUP where none was given; '' on position rows
+
+    @property
+    def is_point(self) -> np.ndarray:
+        """(N,) bool: rows of the point form (a fixed point, no measured position)."""
+        return np.zeros(len(self), bool) if self.point is None else self.point != ""
 
     def __len__(self) -> int:
         return len(self.q_rad)
@@ -80,6 +99,13 @@ class MeasurementTable:
         return MeasurementTable(**picked)
 
     def observations(self) -> Observations:
+        """The rows as measured positions; a point-form row has none, and is refused here."""
+        points = np.flatnonzero(self.is_point)
+        if points.size:
+            raise DatasetError(
+                f"{self.path}:{self.line[points[0]]}: column 'point': {counted_rows(points.size)} of the point form "
+                "(a fixed point, no measured position); this command needs x_mm, y_mm, z_mm in every row (point-form "
+                "data are read by cellcal identify, with --fixture for the fixture's distances)")
         return Observations(q=self.q_rad, xyz_mm=self.xyz_mm, target=self.target, target_names=self.target_names)
 
 
@@ -109,7 +135,10 @@ def read_measurements(path, n_joints: int) -> MeasurementTable:
             raise DatasetError(f"{name}:{i + 1}: row has {count} fields, header has {len(header)}")
     lines_1 = rows + 1  # physical line of each row, 1-based
 
-    numeric = [*joints, *XYZ, *(c for c in SCALARS if c in cols), *(QUAT if "qw" in cols else ())]
+    point_form = "point" in cols
+    # in the point form a position cell may be empty (a point row): those columns are parsed below, row by row
+    numeric = [*joints, *(() if point_form else XYZ), *(c for c in SCALARS if c in cols),
+               *(QUAT if "qw" in cols else ())]
     text_cols = [c for c in cols if c not in numeric and c not in joints]
     values = {c: np.empty(len(rows)) for c in numeric}
     texts: dict[str, list[str]] = {c: [] for c in text_cols}
@@ -145,8 +174,12 @@ def read_measurements(path, n_joints: int) -> MeasurementTable:
     turns = "beyond two turns, further than any joint turns" + (" (degrees under a _rad header?)" if unit == "rad"
                                                                 else "")
     q = np.column_stack([column(c, MAX_JOINT[unit], unit, turns) for c in joints])
-    xyz = np.column_stack([column(c, MAX_POSITION_MM, "mm",
-                                  "not a position a measuring instrument gives (over 100 m away)") for c in XYZ])
+    if point_form:
+        point, setup, xyz = _point_columns(name, lines_1, texts, cols, len(rows))
+    else:
+        point = setup = None
+        xyz = np.column_stack([column(c, MAX_POSITION_MM, "mm",
+                                      "not a position a measuring instrument gives (over 100 m away)") for c in XYZ])
     scalars = {c: column(c) if c in cols else None for c in SCALARS}
     if scalars["payload_kg"] is not None:
         column("payload_kg", MAX_PAYLOAD_KG, "kg", "more than any arm carries")
@@ -182,8 +215,61 @@ def read_measurements(path, n_joints: int) -> MeasurementTable:
     return MeasurementTable(
         path=name, q_rad=np.deg2rad(q) if unit == "deg" else q, xyz_mm=xyz, target=target,
         target_names=target_names, line=lines_1.astype(int), quat=quat, split=split_col, extra=extra,
-        joint_unit=unit, **scalars,
+        joint_unit=unit, point=point, setup=setup, **scalars,
     )
+
+
+def counted_rows(n: int) -> str:
+    return f"{n} row" if n == 1 else f"{n} rows"
+
+
+def _point_columns(name, lines_1, texts, cols, n):
+    """point, setup and positions of a file with a point column; each row has a point or a position."""
+    ids = [v.strip() for v in texts.pop("point")]
+    point = np.array(ids, dtype=str)
+    is_point = point != ""
+    xyz = np.full((n, 3), np.nan)
+    have = [c for c in XYZ if c in cols]
+    cells = {c: [v.strip() for v in texts.pop(c)] for c in have}
+    for c in have:  # a point row leaves the position empty; a position row fills all three
+        filled = np.array([v != "" for v in cells[c]], dtype=bool)
+        both = np.flatnonzero(filled & is_point)
+        if both.size:
+            k = both[0]
+            raise DatasetError(f"{name}:{lines_1[k]}: columns 'point' and {c!r}: a point ({ids[k]!r}) and a position "
+                               f"({cells[c][k]}) in one row; a row is either a measured position (x_mm, y_mm, z_mm) "
+                               "or the fixed point the target sat at (point), never both")
+    for k in np.flatnonzero(~is_point):
+        missing = [c for c in XYZ if c not in cols or cells[c][k] == ""]
+        if missing:
+            what = ("neither a point nor a position" if len(missing) == 3 else
+                    f"a position without {', '.join(missing)}")
+            raise DatasetError(f"{name}:{lines_1[k]}: column {missing[0]!r}: {what}; give the point the target sat at "
+                               "(point) or all of x_mm, y_mm, z_mm")
+    measured = np.flatnonzero(~is_point)
+    for j, c in enumerate(XYZ):
+        if not measured.size:
+            break
+        parsed, bad = _parse_block([cells[c][k] for k in measured])
+        if bad is not None:
+            text = cells[c][measured[bad]]
+            raise DatasetError(f"{name}:{lines_1[measured[bad]]}: column {c!r}: {text!r} is {_what_is_wrong(text)}")
+        over = np.flatnonzero(np.abs(parsed) > MAX_POSITION_MM)
+        if over.size:
+            k = measured[over[0]]
+            raise DatasetError(f"{name}:{lines_1[k]}: column {c!r}: {cells[c][k]} mm is not a position a measuring "
+                               f"instrument gives (over 100 m away) (|value| must be at most {MAX_POSITION_MM:g})")
+        xyz[measured, j] = parsed
+    if "setup" in cols:
+        given = [v.strip() for v in texts.pop("setup")]
+        stray = next((k for k in measured if given[k]), None)
+        if stray is not None:
+            raise DatasetError(f"{name}:{lines_1[stray]}: column 'setup': {given[stray]!r} on a row with a measured "
+                               "position; a setup is a placement of the fixture and belongs to point rows only")
+        setup = np.array([(g or DEFAULT_SETUP) if p else "" for g, p in zip(given, is_point)], dtype=str)
+    else:
+        setup = np.where(is_point, DEFAULT_SETUP, "").astype(str)
+    return point, setup, xyz
 
 
 _BLOCK_ROWS = 8192
@@ -286,7 +372,14 @@ def _check_header(where: str, header: list[str], n_joints: int):
         raise DatasetError(f"{where}: column {h!r}: the file has joint columns up to q{in_file}, "
                            f"the robot model has {n_joints} joints")
     joints = tuple(f"q{k}_{unit}" for k in range(1, n_joints + 1))
-    for c in joints + XYZ:
+    if "setup" in cols and "point" not in cols:
+        raise DatasetError(f"{where}: column 'setup': a setup without a 'point' column; setups group the rows of the "
+                           "point form (point: the fixed point the target sat at)")
+    positions = XYZ
+    if "point" in cols:  # the point form: positions optional, but all three or none
+        present_xyz = [c for c in XYZ if c in cols]
+        positions = XYZ if present_xyz else ()
+    for c in joints + positions:
         if c not in cols:
             plural = "" if len(found) == 1 else "s"
             counts = f" (the file has {len(found)} joint column{plural}, the robot model {n_joints} joints)" \
@@ -323,8 +416,11 @@ def check_joint_limits(table: MeasurementTable, joint_limits, model_name: str) -
 
 def write_measurements(path, *, q_rad, xyz_mm, target_names=None, target=None, t_s=None, temp_c=None,
                        payload_kg=None, split=None, quat=None, extra=None, comment: str | None = None,
-                       joint_unit: str = "rad") -> None:
-    """Write measurements in the format :func:`read_measurements` reads; floats round-trip exactly."""
+                       joint_unit: str = "rad", point=None, setup=None) -> None:
+    """Write measurements in the format :func:`read_measurements` reads; floats round-trip exactly.
+
+    point (and setup): the point form, one id per row ('' on a row with a measured position); the
+    position cells of point rows are left empty (their xyz_mm may be NaN)."""
     q = np.atleast_2d(np.asarray(q_rad, dtype=float))
     n = len(q)
     if joint_unit not in ("deg", "rad"):
@@ -340,7 +436,21 @@ def write_measurements(path, *, q_rad, xyz_mm, target_names=None, target=None, t
 
     q_out = np.rad2deg(q) if joint_unit == "deg" else q
     numeric([f"q{k}_{joint_unit}" for k in range(1, q.shape[1] + 1)], q_out, q.shape[1])
-    numeric(XYZ, xyz_mm, 3)
+    if point is None:
+        numeric(XYZ, xyz_mm, 3)
+    else:
+        ids = [str(v).strip() for v in np.asarray(point, dtype=object).reshape(n)]
+        where = np.array([v != "" for v in ids], dtype=bool)
+        xyz = np.asarray(xyz_mm, dtype=float).reshape(n, 3) if xyz_mm is not None else np.full((n, 3), np.nan)
+        if not np.all(np.isfinite(xyz[~where])):
+            raise ValueError("x_mm, y_mm, z_mm: values must be finite on rows without a point")
+        if (~where).any():
+            for j, c in enumerate(XYZ):
+                columns[c] = ["" if w else repr(float(v)) for v, w in zip(xyz[:, j], where)]
+        columns["point"] = ids
+        if setup is not None:
+            sets = [str(v).strip() for v in np.asarray(setup, dtype=object).reshape(n)]
+            columns["setup"] = [v if w else "" for v, w in zip(sets, where)]
     if target is not None:
         names = tuple(target_names) if target_names is not None else None
         if not names or any(not str(t).strip() for t in names):
@@ -365,7 +475,7 @@ def write_measurements(path, *, q_rad, xyz_mm, target_names=None, target=None, t
         if len(columns[c]) != n:
             raise ValueError(f"extra column {c!r} has {len(columns[c])} values for {n} rows")
 
-    for c in ("target", *(extra or {})):
+    for c in ("target", "point", "setup", *(extra or {})):
         if any("\n" in v or "\r" in v for v in columns.get(c, ())):
             raise ValueError(f"column {c!r}: values must not contain line breaks (one record per line)")
     with open(os.fspath(path), "w", encoding="utf-8", newline="") as f:
@@ -383,7 +493,7 @@ def write_table(path, table: MeasurementTable, comment: str | None = None) -> No
         path, q_rad=table.q_rad, xyz_mm=table.xyz_mm, target_names=table.target_names,
         target=None if single else table.target, t_s=table.t_s, temp_c=table.temp_c,
         payload_kg=table.payload_kg, split=table.split, quat=table.quat, extra=table.extra,
-        comment=comment, joint_unit=table.joint_unit,
+        comment=comment, joint_unit=table.joint_unit, point=table.point, setup=table.setup,
     )
 
 
@@ -422,7 +532,10 @@ def repeated_measurements(table: MeasurementTable) -> list[tuple[int, int]]:
     first, line of the repeat) pairs in file order. No instrument measures the same position twice to
     the last digit, so these are copies: fits and spreads then count one measurement as two, and every
     standard deviation computed from the data comes out too small."""
-    key = np.column_stack([table.q_rad, table.xyz_mm, table.target])
+    key = np.column_stack([table.q_rad, np.nan_to_num(table.xyz_mm), table.target])
+    if table.point is not None:  # point rows: the same joints at the same point of the same setup
+        _, point_id = np.unique(np.char.add(np.char.add(table.setup, "\0"), table.point), return_inverse=True)
+        key = np.column_stack([key, point_id.reshape(-1)])
     _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
     return [(int(table.line[first[g]]), int(table.line[k])) for k, g in enumerate(inverse) if first[g] != k]

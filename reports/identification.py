@@ -67,6 +67,13 @@ def group_rows(result: Identification) -> list[dict]:
             for g in result.correlated]
 
 
+def fit_diagnostics(result) -> dict:
+    """How the fit went, the same keys for every identification's JSON (docs/cli.md)."""
+    return {"noise_mm": result.noise_mm, "structural_rank": result.structural_rank, "noise_rank": result.noise_rank,
+            "condition": result.condition, "status": result.status, "success": result.success,
+            "message": result.message, "seconds": result.seconds}
+
+
 def identification_json(result: Identification, obs: Observations, val: Observations | None) -> dict:
     """The JSON of ``cellcal identify``.
 
@@ -86,14 +93,7 @@ def identification_json(result: Identification, obs: Observations, val: Observat
         "fixed": list(result.fixed),
         "regularize": {"lambda": result.lam,
                        "cv_curve": [{"lambda": lam, "heldout_mean_mm": e} for lam, e in result.cv_curve]},
-        "noise_mm": result.noise_mm,
-        "structural_rank": result.structural_rank,
-        "noise_rank": result.noise_rank,
-        "condition": result.condition,
-        "status": result.status,
-        "success": result.success,
-        "message": result.message,
-        "seconds": result.seconds,
+        **fit_diagnostics(result),
     }
     if val is not None:
         out["validate"] = error_stats(_errors(result, result.x, val))

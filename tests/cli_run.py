@@ -16,3 +16,19 @@ def one_message(err: str) -> str:
     lines = [line for line in err.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("cellcal: ") and "Traceback" not in err, err
     return lines[0]
+
+
+def refused(capsys, argv, code: int, needles) -> str:
+    """``cellcal ARGV`` refused: exit status `code` (the argument parser's own refusals
+    included), stdout empty, one line on stderr holding every needle, no traceback."""
+    try:
+        status = main([str(a) for a in argv])
+    except SystemExit as stopped:  # the argument parser's own refusals, bounded numbers among them
+        status = stopped.code
+    assert status == code
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err and err.count("\n") == 1, err
+    for needle in needles:
+        assert needle in err, err
+    assert out == ""
+    return err

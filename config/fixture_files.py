@@ -1,0 +1,110 @@
+"""The fixture file of a calibration from the cell's own fixtures (``cellcal identify --fixture``).
+
+What is known about a fixture whose points the tool seats in (sockets) or touches (a
+stylus ball), as docs/measurements.md ("Point form") shows it::
+
+    points: [hole_0, hole_1]               # the fixture's point ids, as the data's point column has them
+    distances_mm:                           # known distances, each with its standard deviation (mm)
+      - [hole_0, hole_1, 50.0, 0.1]         # point a, point b, distance, standard deviation
+    seating_sd_mm: 0.03                     # optional: how well the tool returns to a point (default 0.05)
+    stylus_radius_mm: 4.0                   # optional: the points are balls the tool tip touches
+
+Distances hold within each setup (one placement of the fixture). With
+``stylus_radius_mm`` every point is the centre of a ball of that radius and each row a
+contact: the tip lies on the ball's surface, not at its centre. Every problem is one
+:class:`~cellcal.config.reader.ConfigError` naming the file and the key.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from cellcal.config.reader import ConfigError, Section, read_yaml
+
+DEFAULT_SEATING_SD_MM = 0.05  # a ball seated in a conical socket by a compliant search returns to a few 0.01 mm
+MAX_DISTANCE_MM = 5000.0  # a fixture no arm reaches across is no fixture
+CONTRADICTION_SIGMAS = 3.0  # distances that miss a triangle by more than this many standard deviations contradict
+
+
+class FixtureError(ConfigError):
+    """A fixture file that cannot be used; the message names the file and the key."""
+
+
+@dataclass(frozen=True)
+class Distance:
+    a: str
+    b: str
+    mm: float
+    sd_mm: float
+    key: str  # where it is in the file, e.g. distances_mm[0]
+
+
+@dataclass(frozen=True)
+class Fixture:
+    path: str
+    points: tuple[str, ...]
+    distances: tuple[Distance, ...]
+    seating_sd_mm: float = DEFAULT_SEATING_SD_MM
+    stylus_radius_mm: float | None = None  # None: sockets (the target sits at the point)
+
+
+def read_fixture(path: str | Path) -> Fixture:
+    source = str(path)
+    top = Section(source, None, read_yaml(path, FixtureError), FixtureError)
+    top.expect(("points", "distances_mm", "seating_sd_mm", "stylus_radius_mm"), required=("points",))
+    raw_points = top.sequence("points", nonempty=True)
+    points: list[str] = []
+    for i, p in enumerate(raw_points):
+        if not isinstance(p, str) or not p.strip() or p != p.strip() or "," in p:
+            top.fail(f"points[{i}]", f"{p!r} is not a point id (a non-empty text without commas or surrounding "
+                                     "blanks, as in the data's point column)")
+        if p in points:
+            top.fail(f"points[{i}]", f"{p!r} is listed twice (also points[{points.index(p)}])")
+        points.append(p)
+    distances: list[Distance] = []
+    for i, row in enumerate(top.sequence("distances_mm", [])):
+        key = f"distances_mm[{i}]"
+        if not isinstance(row, list) or len(row) != 4:
+            top.fail(key, f"expected [point a, point b, distance mm, standard deviation mm], got {row!r}")
+        a, b, d, sd = row
+        for p in (a, b):
+            if p not in points:
+                top.fail(key, f"{p!r} is not one of points ({', '.join(points)})")
+        if a == b:
+            top.fail(key, f"a distance from {a!r} to itself")
+        for value, what, high in ((d, "distance", MAX_DISTANCE_MM), (sd, "standard deviation", d)):
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)):
+                top.fail(key, f"the {what} {value!r} is not a number (mm)")
+            if not 0 < value <= high:
+                top.fail(key, f"the {what} {value!r} mm is out of range (must be above 0 and at most {high:g} mm)")
+        for other in distances:
+            if {other.a, other.b} == {a, b}:
+                agree = abs(other.mm - d) <= CONTRADICTION_SIGMAS * math.hypot(other.sd_mm, sd)
+                top.fail(key, f"{a} - {b} again ({other.key} gives {other.mm:g} mm): "
+                              + ("give each pair once" if agree else "the two distances contradict each other"))
+        distances.append(Distance(a, b, float(d), float(sd), key))
+    _check_triangles(top, distances)
+    seating = top.number("seating_sd_mm", DEFAULT_SEATING_SD_MM, above=0.0, high=5.0)
+    radius = top.number("stylus_radius_mm", None, above=0.0, high=100.0) if "stylus_radius_mm" in top else None
+    top.done()
+    return Fixture(source, tuple(points), tuple(distances), seating, radius)
+
+
+def _check_triangles(top: Section, distances: list[Distance]) -> None:
+    """Refuse three distances no three points can have (one longer than the other two together,
+    beyond their standard deviations)."""
+    by_pair = {frozenset((d.a, d.b)): d for d in distances}
+    names = sorted({p for d in distances for p in (d.a, d.b)})
+    for trio in itertools.combinations(names, 3):
+        sides = [by_pair.get(frozenset(pair)) for pair in itertools.combinations(trio, 2)]
+        if any(s is None for s in sides):
+            continue
+        longest = max(sides, key=lambda s: s.mm)
+        rest = [s for s in sides if s is not longest]
+        slack = CONTRADICTION_SIGMAS * math.sqrt(sum(s.sd_mm ** 2 for s in sides))
+        if longest.mm > rest[0].mm + rest[1].mm + slack:
+            top.fail(longest.key, f"{longest.a} - {longest.b} {longest.mm:g} mm contradicts {rest[0].key} "
+                                  f"({rest[0].mm:g} mm) and {rest[1].key} ({rest[1].mm:g} mm): no three points are "
+                                  "that far apart; one of the three distances is wrong")
