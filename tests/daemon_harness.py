@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -166,6 +167,14 @@ class Daemon:
 
     def stop(self) -> int:
         return _stop(self.proc)
+
+
+def systemd_stop_timeout_s() -> float:
+    """TimeoutStopSec of the shipped unit (config/cellcal.service): how long systemd waits after
+    SIGTERM before it kills the service. A stop must end within it; how fast it usually is (well
+    under a second unloaded) is not a test's to assert on a shared machine."""
+    unit = Path(__file__).resolve().parents[1] / "config" / "cellcal.service"
+    return float(re.search(r"^TimeoutStopSec=(\d+)", unit.read_text(), re.M).group(1))
 
 
 OUTCOME = ("verdict", "tool_id", "change_x", "change_y", "change_z", "tilt_x", "tilt_y")  # registers 20-26

@@ -27,6 +27,7 @@ from cellcal.daemon.service import RESULT_MEANINGS, ResultCode, Service
 from cellcal.daemon.store import SCHEMA_VERSION, Store
 from cellcal.routines import registry
 from cell_edits import edited_cell  # tests/cell_edits.py
+from daemon_harness import systemd_stop_timeout_s  # tests/daemon_harness.py
 from report_check import assert_page_draws, layer
 
 ROUTINE = "tcp-laser"
@@ -271,11 +272,11 @@ def test_the_daemon_speaks_the_notify_protocol_and_stops_on_sigterm(tmp_path):
             assert first and "READY=1" in first[-1], (first, proc.stderr.read() if proc.poll() else "")
             watchdog = _messages(sock, "WATCHDOG=1", 2)
             assert any("WATCHDOG=1" in m for m in watchdog), watchdog
-            t0 = time.monotonic()
             proc.send_signal(signal.SIGTERM)
             last = _messages(sock, "STOPPING=1", 5)
             assert any("STOPPING=1" in m for m in last), last
-            assert proc.wait(timeout=5) == 0 and time.monotonic() - t0 < 2.0
+            # exit 0 before systemd would kill it (the unit's TimeoutStopSec); not a speed claim
+            assert proc.wait(timeout=systemd_stop_timeout_s()) == 0
         finally:
             if proc.poll() is None:
                 proc.kill()
