@@ -61,6 +61,7 @@ def finding_json(f: Finding, n: int) -> dict:
         "candidates": [_scored(c) for c in f.candidates],
         "notes": list(f.notes),
         **discriminate_cmd.tie_json(f),
+        "undecided": _undecided_json(f),
         "n": n,
         "seconds": f.seconds,
     }
@@ -71,6 +72,15 @@ def finding_json(f: Finding, n: int) -> dict:
         out["both"] = {"label": f.both.label, "heldout_mean_mm": f.both.heldout_mean_mm,
                        "magnitude": f.both.magnitude}
     return out
+
+
+def _undecided_json(f: Finding) -> dict | None:
+    """An effect whose cause these data cannot decide: its size, and the experiment that decides (else None)."""
+    if f.undecided is None:
+        return None
+    return {"gain_pct": 100.0 * (1.0 - f.undecided.heldout_mean_mm / f.baseline.heldout_mean_mm),
+            "heldout_mean_mm": f.undecided.heldout_mean_mm,
+            "causes": [t.cause for t in f.indistinguishable], "experiment": f.decide_by}
 
 
 def _spectra(f: Finding) -> dict | None:
@@ -108,7 +118,13 @@ def _coverage_text(f: Finding) -> list[str]:
 
 def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
     lines = [f"cellcal analyze: {robot}, {n} measurements", ""]
-    if f.cause == "none" and f.indistinguishable:
+    if f.undecided is not None:
+        gain = 100.0 * (1.0 - f.undecided.heldout_mean_mm / f.baseline.heldout_mean_mm)
+        lines.append(f"finding: an effect, cause undecided -- the best explanation gains {gain:.1f}% on held-out "
+                     f"data ({f.undecided.heldout_mean_mm:.4f} mm), but these data cannot tell apart "
+                     "the explanations below (cause: none)")
+        lines.append(f"  experiment that decides: {f.decide_by}")
+    elif f.cause == "none" and f.indistinguishable:
         lines.append("finding: none -- these data cannot tell apart the explanations below")
     elif f.cause == "none":
         lines.append("finding: none -- no candidate beats the geometric model clearly on held-out data")
@@ -117,14 +133,18 @@ def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
         lines.append(f"finding: {f.cause} ({where})")
         for k, v in f.magnitude.items():
             lines += describe(v) if isinstance(v, list) else [f"  {k:32s} {v:.6g}"]
-    lines.append(f"held-out mean error: geometry only {f.baseline.heldout_mean_mm:.4f} mm, "
-                 f"with the effect {f.extended.heldout_mean_mm:.4f} mm (gain {f.gain_pct:.1f}%)"
+    with_effect = (f"with the effect {f.extended.heldout_mean_mm:.4f} mm (gain {f.gain_pct:.1f}%)"
+                   if f.undecided is None else
+                   f"with its best explanation {f.undecided.heldout_mean_mm:.4f} mm, cause undecided")
+    lines.append(f"held-out mean error: geometry only {f.baseline.heldout_mean_mm:.4f} mm, {with_effect}"
                  + (f", each without its largest {100 * f.baseline.trim:.0f}% (robust loss)"
                     if f.baseline.trim else ""))
     lines += _coverage_text(f)
     if f.second is not None:
         lines.append(f"second effect: {f.second.label}; both fitted: {f.both.heldout_mean_mm:.4f} mm")
     lines += [f"  note: {note}" for note in (*f.notes, *not_scored)]
+    if f.grounds and not f.indistinguishable:  # with a tie, its lines say the grounds
+        lines.append(f"  grounds: {f.grounds}")
     lines += discriminate_cmd.tie_lines(f)
     lines += ["", "candidates (held-out mean error, mm):"]
     for c in f.candidates[:10]:

@@ -118,13 +118,17 @@ def write_report(folder, model, obs: Observations, f: Finding, text: str) -> Pat
         images += cyclic_plots(out, model, obs, f, plotted_rows(len(obs)))
 
     fig, ax = plt.subplots(figsize=(7.5, 4.0))
-    top = max(f.baseline.heldout_errors.max(), f.extended.heldout_errors.max())
+    top = max(f.baseline.heldout_errors.max(), f.extended.heldout_errors.max(),
+              f.undecided.heldout_errors.max() if f.undecided is not None else 0.0)
     bins = np.linspace(0.0, top, 40)
     ax.hist(f.baseline.heldout_errors, bins=bins, alpha=0.6, label=f"geometry only, mean "
             f"{f.baseline.heldout_mean_mm:.3f} mm")
     if f.cause != "none":
         ax.hist(f.extended.heldout_errors, bins=bins, alpha=0.6, label=f"with {f.cause}, mean "
                 f"{f.extended.heldout_mean_mm:.3f} mm")
+    elif f.undecided is not None:  # an effect whose cause these data cannot decide: what its best explanation does
+        ax.hist(f.undecided.heldout_errors, bins=bins, alpha=0.6, label=f"with {f.undecided.label} (cause "
+                f"undecided), mean {f.undecided.heldout_mean_mm:.3f} mm")
     ax.set_xlabel("held-out error (mm)")
     ax.set_ylabel("measurements")
     ax.legend()

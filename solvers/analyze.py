@@ -10,13 +10,19 @@
    (``score_candidates``).
 4. Name the best candidate only when it beats the baseline by MIN_GAIN and the
    best candidate of any other cause by MIN_MARGIN; else ``none``
-   (``name_cause``, which also settles near-ties).
+   (``name_cause``, which also settles near-ties). Each cause competes with its
+   preferred candidate (``contenders``: a single place unless several places beat it
+   by MULTI_GAIN); the candidate list itself stays ordered by held-out score, and a
+   preference that names another than the lowest-scored one is said in the grounds.
+   A gain of MIN_GAIN that no cause wins is an effect whose cause is undecided
+   (``Finding.undecided``), never a plain ``none``.
 5. With the named term in the model, rank the rest again: a second effect
    (``find_second_effect``), and a fit of both. The named term, and the pair,
    are then fitted in full.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -80,7 +86,7 @@ class Finding:
     magnitude: dict
     baseline: Scored
     extended: Scored
-    candidates: tuple[Scored, ...]  # best first
+    candidates: tuple[Scored, ...]  # best (lowest held-out mean) first
     margin: float  # how much higher (fraction) the best other cause's held-out error is
     second: Scored | None = None  # second effect, fitted together with the first
     both: Scored | None = None
@@ -88,8 +94,11 @@ class Finding:
     notes: tuple[str, ...] = field(default_factory=tuple)
     joint_range_deg: tuple[tuple[float, float], ...] = ()  # angles the data cover, per joint
     indistinguishable: tuple = ()  # ties.Tied: explanations these data cannot tell apart, best first
-    grounds: str = ""  # why one of them is named all the same ("" when none is)
+    grounds: str = ""  # why one of them is named all the same, or why not the lowest-scored ("" when neither)
     scorer: object = field(default=None, repr=False, compare=False)  # LinearisedScorer, for the experiment design
+    undecided: Scored | None = None  # cause "none" although this, the best contender, gains MIN_GAIN: an
+    #                                  effect whose cause these data cannot decide (see indistinguishable)
+    decide_by: str = ""  # with undecided: the experiment that decides, in words
 
     @property
     def gain_pct(self) -> float:
@@ -101,10 +110,13 @@ class Naming:
     """What the naming rule decided."""
 
     named: Scored | None  # None: the answer is ``none``
-    candidates: tuple[Scored, ...]  # best first; a simpler explanation that wins a tie goes first
+    candidates: tuple[Scored, ...]  # best (lowest held-out mean) first, whatever was named
     margin: float  # how much higher (fraction) the best other cause's held-out error is
     notes: tuple[str, ...] = ()
     tie: str = ""  # how a near-tie was settled: "nested", "both" (two effects), "ambiguous" or "unseparated"
+    contenders: tuple[Scored, ...] = ()  # each cause's preferred candidate, best first (``contenders``);
+    #                                      () for made-up namings: then the first single place of each cause
+    grounds: str = ""  # why the named one is not the lowest-scored candidate ("" when it is, or none is named)
 
 
 def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = AnalyzeOptions(),
@@ -142,6 +154,11 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
                                   lambda s: _fit_in_full(model, geometric_fit, obs, folds, s.terms, options.prior_mm,
                                                          s.label, scorer.robust).magnitude)
     naming = tied.naming
+    undecided = None
+    if naming.named is None and naming.contenders and \
+            1.0 - naming.contenders[0].heldout_mean_mm / baseline.heldout_mean_mm >= MIN_GAIN:
+        undecided = naming.contenders[0]
+    grounds = "; ".join(g for g in (tied.grounds, naming.grounds if naming.named is not None else "") if g)
 
     extended, second, both = baseline, None, None
     if naming.named is not None:
@@ -158,7 +175,8 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
         extended=extended, candidates=naming.candidates, margin=float(naming.margin), second=second, both=both,
         seconds=time.perf_counter() - started, notes=naming.notes,
         joint_range_deg=tuple((float(lo), float(hi)) for lo, hi in np.rad2deg([obs.q.min(0), obs.q.max(0)]).T),
-        indistinguishable=tied.entries, grounds=tied.grounds, scorer=scorer)
+        indistinguishable=tied.entries, grounds=grounds, scorer=scorer, undecided=undecided,
+        decide_by=ties.decide_by(tied.entries) if undecided is not None else "")
 
 
 def heldout_with_terms(model, obs: Observations, terms: Sequence[Term],
@@ -171,7 +189,8 @@ def heldout_with_terms(model, obs: Observations, terms: Sequence[Term],
 
 
 def score_candidates(terms: Sequence[Term], scorer: LinearisedScorer, errors=None) -> list[Scored]:
-    """Each term scored alone with the geometry; best (lowest held-out mean) first.
+    """Each term scored alone with the geometry; best (lowest held-out mean) first, nothing else
+    considered (the naming's preferences are ``contenders``').
     errors: the terms' held-out errors when already computed (one row per term)."""
     x = scorer.geometric_fit.x
     if errors is None:
@@ -180,56 +199,78 @@ def score_candidates(terms: Sequence[Term], scorer: LinearisedScorer, errors=Non
                      theta=np.zeros(t.size), magnitude={}, x=x, terms=(t,), trim=scorer.robust.trim)
               for t, e in zip(terms, errors)]
     ranked.sort(key=lambda s: s.heldout_mean_mm)
-    _prefer_single_place(ranked, lambda c: c.heldout_mean_mm, lambda c: c.terms[0])
     return ranked
+
+
+def contenders(candidates: Sequence[Scored]) -> list[Scored]:
+    """Each cause's candidate in the contest between causes, best (lowest held-out mean) first: its
+    best-scored one, or its best single place when that scores within MULTI_GAIN of it (parsimony:
+    a single place says *where*)."""
+    by_cause: dict[str, list[Scored]] = {}
+    for c in sorted(candidates, key=lambda s: s.heldout_mean_mm):
+        by_cause.setdefault(c.cause, []).append(c)
+    out = []
+    for ranked in by_cause.values():
+        _prefer_single_place(ranked, lambda c: c.heldout_mean_mm, lambda c: c.terms[0])
+        out.append(ranked[0])
+    return sorted(out, key=lambda s: s.heldout_mean_mm)
 
 
 # -- naming: which cause, if any, the data supports ---------------------------------------------------------
 
 
 def name_cause(candidates: Sequence[Scored], baseline: Scored, scorer: LinearisedScorer) -> Naming:
-    """The naming rule over candidates ranked best first.
+    """The naming rule over the candidates (any order; the Naming lists them best first).
 
-    The best candidate is named when it beats geometry alone by MIN_GAIN and the
-    best candidate of every other cause by MIN_MARGIN. Below MIN_GAIN the answer
-    is ``none``; within MIN_MARGIN the tie is settled by ``_settle_tie``.
+    Each cause competes with its ``contenders`` entry. The best contender is named when
+    it beats geometry alone by MIN_GAIN and the contender of every other cause by
+    MIN_MARGIN. Below MIN_GAIN the answer is ``none``; within MIN_MARGIN the tie is
+    settled by ``_settle_tie``.
     """
     if not candidates:
         return Naming(named=None, candidates=(), margin=0.0)
-    best = candidates[0]
+    ranked = tuple(sorted(candidates, key=lambda s: s.heldout_mean_mm))
+    rivals = tuple(contenders(ranked))
+    best = rivals[0]
     gain = 1.0 - best.heldout_mean_mm / baseline.heldout_mean_mm
-    others = [c for c in candidates if c.cause != best.cause]
-    margin = (others[0].heldout_mean_mm / best.heldout_mean_mm - 1.0) if others else 1.0
+    margin = (rivals[1].heldout_mean_mm / best.heldout_mean_mm - 1.0) if len(rivals) > 1 else 1.0
+    lowest = ranked[0]
+    grounds = ""
+    if lowest is not best and lowest.cause == best.cause:
+        grounds = (f"{best.label} rather than {lowest.label} ({lowest.heldout_mean_mm:.4f} mm held-out): several "
+                   f"places must beat the best single place of their cause by {100 * MULTI_GAIN:.0f}% "
+                   f"({100 * (1.0 - lowest.heldout_mean_mm / best.heldout_mean_mm):.1f}% here), and a single place "
+                   f"says where")
     if gain < MIN_GAIN:
         note = (f"best candidate {best.label} gains {100 * gain:.1f}% on held-out data, "
                 f"below the {100 * MIN_GAIN:.0f}% needed to name it")
-        return Naming(named=None, candidates=tuple(candidates), margin=margin, notes=(note,))
+        return Naming(named=None, candidates=ranked, margin=margin, notes=(note,), contenders=rivals)
     if margin >= MIN_MARGIN:
-        return Naming(named=best, candidates=tuple(candidates), margin=margin)
-    return _settle_tie(best, others[0], candidates, baseline, margin, scorer)
+        return Naming(named=best, candidates=ranked, margin=margin, contenders=rivals, grounds=grounds)
+    return dataclasses.replace(_settle_tie(best, rivals[1], ranked, baseline, margin, scorer), contenders=rivals,
+                               grounds=grounds)
 
 
 def _settle_tie(best: Scored, runner_up: Scored, candidates: Sequence[Scored], baseline: Scored, margin: float,
                 scorer: LinearisedScorer) -> Naming:
     """Two causes explain about as much. One explanation contained in the other: the
     simpler one is named. Two effects (together they beat either by MIN_GAIN): the best
-    is named. Else the same structure, ambiguous: ``none``."""
-    ranked = list(candidates)
+    is named. Else the same structure, ambiguous: ``none``. The candidates keep their order."""
+    ranked = tuple(candidates)
     simpler, larger = sorted((best, runner_up), key=lambda c: sum(t.size for t in c.terms))
     if (1.0 - simpler.heldout_mean_mm / baseline.heldout_mean_mm >= MIN_GAIN
             and simpler.terms[0].size < larger.terms[0].size and scorer.is_nested(simpler.terms[0], larger.terms[0])):
-        ranked.insert(0, ranked.pop(ranked.index(simpler)))
         note = (f"{larger.label} fits about as well only through terms that are the same as "
                 f"{simpler.label}; the simpler explanation is named")
-        return Naming(named=simpler, candidates=tuple(ranked), margin=margin, notes=(note,), tie="nested")
+        return Naming(named=simpler, candidates=ranked, margin=margin, notes=(note,), tie="nested")
     pair_mean_mm = float(trimmed_mean(scorer.heldout_errors_mm(best.terms + runner_up.terms), best.trim))
     if pair_mean_mm < (1.0 - MIN_GAIN) * min(best.heldout_mean_mm, runner_up.heldout_mean_mm):
         note = (f"{best.label} and {runner_up.label} are both present: together they "
                 f"reach {pair_mean_mm:.4f} mm held-out")
-        return Naming(named=best, candidates=tuple(ranked), margin=margin, notes=(note,), tie="both")
+        return Naming(named=best, candidates=ranked, margin=margin, notes=(note,), tie="both")
     note = (f"{best.label} and {runner_up.label} explain the data about equally well "
             f"(held-out errors {100 * margin:.1f}% apart, {100 * MIN_MARGIN:.0f}% needed)")
-    return Naming(named=None, candidates=tuple(ranked), margin=margin, notes=(note,), tie="ambiguous")
+    return Naming(named=None, candidates=ranked, margin=margin, notes=(note,), tie="ambiguous")
 
 
 def find_second_effect(named: Scored, terms: Sequence[Term], candidates: Sequence[Scored],

@@ -7,6 +7,13 @@ a fit to all rows, using only the fold's training rows; near a least-squares
 minimum (and the kinematics is very nearly linear over calibration-sized
 changes) that step is the fold's own solution to second order.
 
+Data logged along a path (a tracker sampling a robot program: consecutive rows a
+degree or so apart) chain into one neighbour group. Such data (the largest group holds
+more than one fold's share of the rows) are cut into blocks along the row order instead,
+whole blocks to a fold, and the rows of other folds that lie within the neighbour radius
+of a fold's rows are left out of that fold's training (``FoldIds.exclude``): the gap a
+neighbour needs, so the held-out block is data the fit has not effectively seen.
+
 The Jacobian is never needed whole: per-fold R factors (``FoldFactors``) give every
 fold's normal equations, and the held-out errors take one more pass over its rows.
 """
@@ -53,16 +60,67 @@ def groups(q: np.ndarray, radius_rad: float = 0.0) -> np.ndarray:
 GROUP_BLOCK_ROWS = 2048
 
 
-def fold_ids(q: np.ndarray, folds: int, seed: int = 0, radius_rad: float = 0.0) -> np.ndarray:
-    """Fold of each row, whole groups at a time, folds of nearly equal group count."""
+PATH_BLOCKS_PER_FOLD = 10  # path-ordered data: blocks along the row order per fold
+
+
+class FoldIds(np.ndarray):
+    """Fold of each row (an int array), with the rows each fold's training leaves out beside its
+    own: ``exclude[k]`` (row indices, k indexing the sorted fold ids) or None when there are none.
+    Indexing or arithmetic gives plain fold ids without exclusions."""
+
+    exclude: tuple[np.ndarray, ...] | None = None
+
+    def __array_finalize__(self, obj):
+        self.exclude = None
+
+
+def fold_ids(q: np.ndarray, folds: int, seed: int = 0, radius_rad: float = 0.0) -> FoldIds:
+    """Fold of each row, whole groups at a time, folds of nearly equal group count.
+
+    When the neighbour groups chain most of the data together (the largest holds more than
+    1/folds of the rows: a path logged along a program), blocks of consecutive rows take the
+    place of groups and each fold's training leaves out the rows within radius_rad of it
+    (``path_fold_ids``)."""
+    q = np.asarray(q, dtype=float)
     group = groups(q, radius_rad)
     n_groups = int(group.max()) + 1
+    if radius_rad > 0 and np.bincount(group).max() * folds > len(q):
+        distinct = int(groups(q).max()) + 1
+        if distinct < folds:
+            raise ValueError(f"only {distinct} distinct configurations: too few for {folds}-fold cross-validation")
+        return path_fold_ids(q, folds, seed, radius_rad)
     if n_groups < folds:
         raise ValueError(f"only {n_groups} distinct configurations: too few for {folds}-fold cross-validation")
     order = np.random.default_rng(seed).permutation(n_groups)
     fold_of_group = np.empty(n_groups, dtype=int)
     fold_of_group[order] = np.arange(n_groups) % folds
-    return fold_of_group[group]
+    return fold_of_group[group].view(FoldIds)
+
+
+def path_fold_ids(q: np.ndarray, folds: int, seed: int, radius_rad: float) -> FoldIds:
+    """Folds for rows in path order: PATH_BLOCKS_PER_FOLD blocks of consecutive rows per fold (fewer
+    when rows are few), whole blocks to a fold at random; each fold's training excludes the rows of
+    other folds within radius_rad (max over joints) of any of its rows."""
+    n = len(q)
+    n_blocks = max(folds, min(folds * PATH_BLOCKS_PER_FOLD, n // 2))
+    block = np.minimum(np.arange(n) * n_blocks // n, n_blocks - 1)
+    order = np.random.default_rng(seed).permutation(n_blocks)
+    fold_of_block = np.empty(n_blocks, dtype=int)
+    fold_of_block[order] = np.arange(n_blocks) % folds
+    out = fold_of_block[block].view(FoldIds)
+    exclude = []
+    for k in range(folds):
+        own = out == k
+        others = np.flatnonzero(~own)
+        dist, _ = cKDTree(q[own]).query(q[others], p=np.inf, distance_upper_bound=radius_rad)
+        exclude.append(others[dist <= radius_rad])
+        if 2 * len(exclude[-1]) > len(others):
+            raise ValueError(
+                f"the {n} configurations keep returning to the same places (more than half of the rows lie within "
+                f"{np.rad2deg(radius_rad):.0f} deg of a block held out for {folds}-fold cross-validation): too few "
+                f"configurations a fit has not seen to score it on; measure more distinct poses")
+    out.exclude = tuple(exclude)
+    return out
 
 
 class FoldFactors:
@@ -75,11 +133,18 @@ class FoldFactors:
     """
 
     def __init__(self, folds: np.ndarray, p: int):
+        exclude = getattr(folds, "exclude", None)  # FoldIds: rows each fold's training also leaves out
         self.folds = np.asarray(folds)
         self.ids, self.index = np.unique(self.folds, return_inverse=True)
         self.index = self.index.ravel()
         self.p = p
         self._acc = [RFactor(p + 1) for _ in self.ids]
+        self._gap = None  # (folds, N) bool: rows left out of each fold's training beside its own
+        if exclude is not None and any(len(e) for e in exclude):
+            self._gap = np.zeros((len(self.ids), len(self.folds)), dtype=bool)
+            for k, rows in enumerate(exclude):
+                self._gap[k, rows] = True
+            self._gap_acc = [RFactor(p + 1) for _ in self.ids]
         self._grams = None
 
     def add(self, rows, j: np.ndarray, r: np.ndarray) -> None:
@@ -89,6 +154,9 @@ class FoldFactors:
         fold = np.repeat(self.index[rows], 3)
         for k, acc in enumerate(self._acc):
             acc.add(block[fold == k])
+        if self._gap is not None:
+            for k, acc in enumerate(self._gap_acc):
+                acc.add(block[np.repeat(self._gap[k, rows], 3)])
         self._grams = None
 
     @property
@@ -100,11 +168,14 @@ class FoldFactors:
         return stacked_r(self.factors)
 
     def training(self, k: int):
-        """Normal matrix J^T J and J^T r of every row outside fold k (k indexes self.ids)."""
+        """Normal matrix J^T J and J^T r of every row outside fold k (k indexes self.ids) and outside
+        its gap (the rows of other folds too close to it, path-ordered data)."""
         if self._grams is None:  # every fold's training Gram matrix, once: the total less the fold's own
             grams = [f.T @ f for f in self.factors]
             total = np.sum(grams, axis=0)
             self._grams = [total - g for g in grams]
+            if self._gap is not None:
+                self._grams = [g - a.r.T @ a.r for g, a in zip(self._grams, self._gap_acc)]
         g = self._grams[k]
         return g[: self.p, : self.p], g[: self.p, self.p]
 

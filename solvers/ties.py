@@ -87,18 +87,16 @@ def tied_explanations(naming, baseline, scorer, min_gain: float, min_margin: flo
     candidates = naming.candidates
     if not candidates or naming.tie == "both":
         return TieReport(naming)
-    lowest_mm = min(c.heldout_mean_mm for c in candidates)
+    rivals = naming.contenders or _first_single_places(candidates)
+    if not rivals:
+        return TieReport(naming)
+    lowest_mm = rivals[0].heldout_mean_mm  # the best contender: the one the naming rule weighs
     if 1.0 - lowest_mm / baseline.heldout_mean_mm < min_gain:
         return TieReport(naming)
-    picked, causes = [], set()
-    for c in candidates:  # the first of each cause, as ranked; a single place before several
-        if c.cause in causes or c.terms[0].multi or c.heldout_mean_mm >= lowest_mm * (1.0 + min_margin):
-            continue
-        picked.append(c)
-        causes.add(c.cause)
+    picked = [c for c in rivals if c.heldout_mean_mm < lowest_mm * (1.0 + min_margin)]
     apart = None
     if len(picked) == 1 and naming.named is picked[0]:  # named by the margin: do the data themselves separate them?
-        runner_up, apart = _unseparated(picked[0], candidates, baseline, scorer, min_gain)
+        runner_up, apart = _unseparated(picked[0], rivals, baseline, scorer, min_gain)
         if runner_up is None:
             return TieReport(naming)
         picked.append(runner_up)
@@ -119,13 +117,51 @@ def tied_explanations(naming, baseline, scorer, min_gain: float, min_margin: flo
         return TieReport(naming, tuple(entries))
     chosen = plausible[0]
     grounds = "named on physical plausibility alone: " + "; ".join(_size_text(e) for e in entries)
-    ranked = (chosen.scored,) + tuple(c for c in candidates if c is not chosen.scored)
-    naming = dataclasses.replace(naming, named=chosen.scored, candidates=ranked, notes=naming.notes + (grounds,))
+    naming = dataclasses.replace(naming, named=chosen.scored, notes=naming.notes + (grounds,))
     return TieReport(naming, tuple(entries), grounds)
 
 
+def _first_single_places(candidates) -> tuple:
+    """The first single-place candidate of each cause, in the order given (for namings without contenders)."""
+    out, causes = [], set()
+    for c in candidates:
+        if c.cause not in causes and not c.terms[0].multi:
+            out.append(c)
+            causes.add(c.cause)
+    return tuple(out)
+
+
+# What drives each cause's effect, and how an experiment varies it, for the experiment that tells two causes
+# apart: vary what drives one while what drives the other stays, and the other way round.
+DRIVERS = {
+    "joint_compliance": ("the gravity torque on {where}", "another posture of the joints beyond it, or a payload"),
+    "cyclic_joint_error": ("the angle of {where} itself", "the same angles in other postures"),
+    "backlash": ("the side {where} approaches each pose from", "each pose approached from both sides"),
+    "thermal_drift": ("the arm's temperature", "the same poses cold and warm"),
+    "parallel_axis_tilt": ("the angles of {where}", "those angles over their range"),
+    "trigger_latency": ("the speed through the trigger", "sweeps at several speeds, both directions"),
+}
+
+
+def decide_by(entries) -> str:
+    """The experiment that decides a tie, in words: what drives each of the two best explanations, to be
+    varied apart."""
+    if len(entries) < 2:
+        return ""
+    follows, how = [], []
+    for e in entries[:2]:
+        where = e.scored.where
+        joints = where.get("joints") or ([where["joint"]] if "joint" in where else [])
+        place = ("joint " + ", ".join(str(j) for j in joints)) if joints else "the joints"
+        driver, vary = DRIVERS.get(e.cause, (f"what drives {e.cause}", "it"))
+        follows.append(f"{e.cause} follows {driver.format(where=place)}")
+        how.append(vary)
+    return (f"{follows[0]}, {follows[1]}: measure poses where the two change independently ({how[0]}; "
+            f"{how[1]}); `cellcal analyze --discriminate N -o POSES.csv` proposes such poses and how many suffice")
+
+
 def _unseparated(best, candidates, baseline, scorer, min_gain: float):
-    """(the best single-place candidate of another cause, how many noise standard deviations apart the
+    """(the first single-place candidate of another cause, how many noise standard deviations apart the
     two put the data) when it also explains the data (gains min_gain) and they lie fewer than
     sqrt(DECIDE_LAMBDA) apart, the closer direction counted (either may be the truth); else (None, None).
     The noise is what the best explanation leaves on held-out data."""

@@ -151,7 +151,7 @@ def test_naming_rule_says_none_for_two_causes_that_explain_the_same():
 def test_naming_rule_prefers_the_simpler_of_two_nested_explanations():
     larger, simpler = scored("joint_compliance", 0.50, size=3), scored("cyclic_joint_error", 0.52, size=2)
     naming = name_cause([larger, simpler], BASELINE, StubScorer(nested=True))
-    assert naming.named is simpler and naming.candidates[:2] == (simpler, larger)
+    assert naming.named is simpler and naming.candidates[:2] == (larger, simpler)  # listed best first all the same
     assert "simpler explanation" in naming.notes[0]
 
 

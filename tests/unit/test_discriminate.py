@@ -45,7 +45,7 @@ def test_a_tie_is_settled_on_physical_plausibility_and_says_so():
     limit = TYPICAL_MAX["joint_compliance"][1]
     sizes = {"joint_compliance": {"deflection_rms_deg": 3.0 * limit}, "cyclic_joint_error": {"amplitude_deg": 0.02}}
     report = ties([a, b], sizes=sizes)
-    assert report.naming.named is b and report.naming.candidates[0] is b
+    assert report.naming.named is b and report.naming.candidates[0] is a  # the list stays best first
     assert report.grounds.startswith("named on physical plausibility") and "beyond the 0.5" in report.grounds
     assert report.grounds in report.naming.notes
 
