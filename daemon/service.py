@@ -642,7 +642,11 @@ class Service:
                 "mounted_tool": None if tool is None else {"id": tool.id, "name": tool.name},
                 "devices": {"robot": "reconnecting" if reconnecting else (seen["robot"] or "unknown"),
                             "panel": "none" if getattr(self.drivers, "panel", None) is None else
-                            ("ok" if self.panel_ok else "lost")},
+                            ("ok" if self.panel_ok else "lost"),
+                            # used during runs only: "open" since the service started, a failure shows
+                            # as the run's fault (result code and reason)
+                            **{kind: "open" for kind in ("trigger", "tracker")
+                               if getattr(self.drivers, kind, None) is not None}},
                 "frame_owed_by_run": None if self._frame_owed is None else self._frame_owed[0],
                 "cell": {"name": getattr(self.cell, "name", None)}}
 

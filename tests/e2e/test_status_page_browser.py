@@ -235,6 +235,7 @@ def test_the_page_shows_what_the_store_holds_in_a_real_browser(net, browser, cel
     assert page.one(id="cell-name").text == f": {net.cell.name}"
     devices = {row.attrs["data-device"]: row.one("td").text for row in page.one(id="devices").all("tr")}
     assert devices["panel"] == "ok" and devices["robot"] not in ("", "unknown", "reconnecting"), devices
+    assert devices["trigger"] == devices["tracker"] == "open", devices  # sim-net has both
     tool_id = check["tool_id"]
     assert page.one(id="mounted-tool").text.startswith(f"tool {tool_id}")
 
