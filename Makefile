@@ -27,9 +27,10 @@ demo-identify: $(STAMP)
 	$(BIN)/cellcal sim-campaign --robot ur10e --poses 60 --out out/demo
 
 # two workers, a test file each at a time (module fixtures such as a running sim-net stay
-# in one worker): most end-to-end cases wait on simulated devices that run in real time
+# in one worker): most end-to-end cases wait on simulated devices that run in real time; the
+# slowest cases are listed at the end (the suite is to stay under 10 minutes on 2 cores)
 test: $(STAMP) chromium
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15
 
 # Debian's headless-capable Chromium for the status page's browser test
 # (tests/e2e/test_status_page_browser.py), installed when it is missing and this is root with
