@@ -7,8 +7,8 @@ import json
 from cellcal.config.robot_files import load_robot
 from cellcal.routines.base import jsonable
 from cellcal.measurements.table import check_joint_limits, joint_velocities, read_measurements, repeated_warning
-from cellcal.solvers.analyze import AnalyzeOptions, Finding, Scored, analyze
-from cellcal.solvers.identify import LOSSES
+from cellcal.solvers.analyze import AnalyzeOptions, Finding, Scored, Transfer, analyze, transfer
+from cellcal.solvers.identify import LOSSES, IdentificationError
 from cellcal.solvers.effects import CAUSES, Context, approach_directions
 from cellcal.solvers.effects.cyclic_joint_error import order_search
 from cellcal.solvers.physical_sizes import describe
@@ -17,6 +17,7 @@ from cellcal.cli import discriminate as discriminate_cmd
 from cellcal.cli.common import ReportError, UsageError, print_progress, whole, writable_folder
 
 MIN_MEASUREMENTS = 30
+MIN_VALIDATE = 10  # rows of --validate, and at least twice as many coordinates as its frame and targets' unknowns
 
 
 def add_parser(sub):
@@ -34,6 +35,10 @@ def add_parser(sub):
     p.add_argument("--loss", choices=LOSSES, default="linear",
                    help="robust loss against gross outliers, as identify's; the held-out scores then leave out "
                         "each model's largest 10%% of errors (default: linear, i.e. least squares)")
+    p.add_argument("--validate", metavar="B.csv",
+                   help="a second data set (another time, pose set or target): the named effect as fitted on "
+                        "--data, with only B's instrument frame and target offsets fitted on B, scored against "
+                        "the geometry alone, with how much of B lies inside --data's joint ranges")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     model_out.add_argument(p, analyze=True)
     discriminate_cmd.add_arguments(p)
@@ -72,6 +77,40 @@ def finding_json(f: Finding, n: int) -> dict:
         out["both"] = {"label": f.both.label, "heldout_mean_mm": f.both.heldout_mean_mm,
                        "magnitude": f.both.magnitude}
     return out
+
+
+def validate_json(v: Transfer) -> dict:
+    """The finding tried on the --validate data set."""
+    return {"baseline_mean_mm": v.baseline_mean_mm, "extended_mean_mm": v.extended_mean_mm, "gain_pct": v.gain_pct,
+            "rows": len(v.baseline_errors_mm), "effect": v.carried or None,
+            "coverage": {"per_joint": list(v.coverage_per_joint), "all_joints": v.coverage_all},
+            "note": v.note}
+
+
+def validate_text(v: Transfer, path: str) -> list[str]:
+    lines = [f"validate on {path} ({len(v.baseline_errors_mm)} measurements; frame and target offsets fitted on it, "
+             "everything else as fitted here):"]
+    if v.extended_errors_mm is None:
+        lines.append(f"  geometry only {v.baseline_mean_mm:.4f} mm mean; {v.note}")
+    else:
+        lines.append(f"  geometry only {v.baseline_mean_mm:.4f} mm mean, with {v.carried} "
+                     f"{v.extended_mean_mm:.4f} mm (gain {v.gain_pct:.1f}%)")
+    lines.append(f"  inside this data set's joint ranges: {100 * v.coverage_all:.0f}% of its rows on every joint; "
+                 "per joint " + ", ".join(f"{j + 1}: {100 * c:.0f}%" for j, c in enumerate(v.coverage_per_joint)))
+    return lines
+
+
+def _read_validate(path: str, model):
+    """The --validate data set as observations and context; one message for what it lacks."""
+    table = read_measurements(path, model.n_joints)
+    check_joint_limits(table, model.joint_limits, model.name)
+    obs = table.observations()  # refuses point-form rows: the effect is scored on measured positions
+    unknowns = 6 + 3 * len(obs.target_names)
+    if len(obs) < MIN_VALIDATE or 3 * len(obs) < 2 * unknowns:
+        raise UsageError(f"{path}: {len(obs)} measurements; --validate needs at least "
+                         f"{max(MIN_VALIDATE, -(-2 * unknowns // 3))} to fit its own frame and "
+                         f"{len(obs.target_names)} target offset(s) and still test the effect")
+    return obs, _context(table)
 
 
 def _undecided_json(f: Finding) -> dict | None:
@@ -116,7 +155,7 @@ def _coverage_text(f: Finding) -> list[str]:
     return lines
 
 
-def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
+def finding_text(f: Finding, robot: str, n: int, not_scored=(), validation=None) -> str:
     lines = [f"cellcal analyze: {robot}, {n} measurements", ""]
     if f.undecided is not None:
         gain = 100.0 * (1.0 - f.undecided.heldout_mean_mm / f.baseline.heldout_mean_mm)
@@ -146,6 +185,8 @@ def finding_text(f: Finding, robot: str, n: int, not_scored=()) -> str:
     if f.grounds and not f.indistinguishable:  # with a tie, its lines say the grounds
         lines.append(f"  grounds: {f.grounds}")
     lines += discriminate_cmd.tie_lines(f)
+    if validation is not None:
+        lines += validate_text(*validation)
     lines += ["", "candidates (held-out mean error, mm):"]
     for c in f.candidates[:10]:
         lines.append(f"  {c.heldout_mean_mm:8.4f}  {c.label}")
@@ -168,6 +209,7 @@ def run(args) -> int:
     if len(table) < MIN_MEASUREMENTS:
         raise UsageError(f"{args.data}: {len(table)} measurements; the analysis needs at least {MIN_MEASUREMENTS}")
     obs = table.observations()
+    obs_b, ctx_b = _read_validate(args.validate, model) if args.validate else (None, None)
     ctx = _context(table)
     requested = tuple(dict.fromkeys(args.causes))
     unscorable = {c: why for c in requested if (why := CAUSES[c].unscorable(model, ctx))}
@@ -180,7 +222,14 @@ def run(args) -> int:
     causes = tuple(c for c in requested if c not in unscorable)
     finding = analyze(model, obs, ctx, AnalyzeOptions(folds=args.folds, causes=causes, loss=args.loss),
                       progress=print_progress)
-    text = finding_text(finding, model.name, len(obs), not_scored)
+    validation = None
+    if obs_b is not None:
+        try:
+            validation = transfer(model, finding, obs, obs_b, ctx_b, args.loss)
+        except IdentificationError as exc:
+            raise IdentificationError(f"--validate {args.validate}: {exc}") from None  # exit 1: B's data are wrong
+    text = finding_text(finding, model.name, len(obs), not_scored,
+                        None if validation is None else (validation, args.validate))
     experiment = discriminate_cmd.run_design(args, finding, ctx, model)
     if experiment and experiment["poses"]:
         text += f"\n\nexperiment: {experiment['summary']}\nposes written to {experiment['file']}"
@@ -191,6 +240,8 @@ def run(args) -> int:
         out["not_scored"] = {c: why for c, why in unscorable.items()}
         if experiment is not None:
             out["discriminate"] = experiment
+        if validation is not None:
+            out["validate"] = validate_json(validation)
         print(json.dumps(out, default=jsonable), flush=True)
     else:
         print(text, flush=True)
@@ -200,7 +251,7 @@ def run(args) -> int:
         from cellcal.reports.analysis import write_report  # matplotlib loads only when a report is asked for
 
         try:
-            page = write_report(args.report, model, obs, finding, text)
+            page = write_report(args.report, model, obs, finding, text, validation)
         except OSError as exc:
             raise ReportError(f"--report {args.report}: cannot write the report there: "
                               f"{exc.strerror or exc}; the finding above stands") from None

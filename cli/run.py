@@ -34,6 +34,8 @@ from cellcal.routines import registry, runner
 from cellcal.routines.base import (NotForThisCell, PlanRefused, Result, RoutineError, frame_text, gate_line,
                                    jsonable)
 from cellcal.routines.records import read_dataset
+from cellcal.solvers import se3
+from cellcal.solvers.inverse import tcp_frames
 from cellcal.solvers.measurement_model import Layout, Observations, predict
 from cellcal.daemon.cells import NoToolMounted, load_cell, mounted_tool, open_drivers
 from cellcal.daemon.claims import held
@@ -51,6 +53,8 @@ def _score(result: Result, cell) -> None:
         score["determined"] = sorted(result.determines)  # the errors of the rest are the kept frame's
     if result.routine == "tracker" and result.dataset and truth.tool is not None:
         score.update(_score_kinematics(result, truth, load_robot(cell.robot)))
+    if result.routine == "kinematic-fixture" and "kinematics" in result.extra and truth.tool is not None:
+        score.update(_score_fixture(result, truth, load_robot(cell.robot), cell))
     if result.routine == "handshake" and result.frame is not None:
         score.update(truth.score_base_frame(result.frame["pose_m_rad"]))
         score.update(truth.score_tips(*(np.asarray(result.extra[f"tip_{n}_mm"]) / 1e3 for n in "ab")))
@@ -78,6 +82,37 @@ def _score_kinematics(result: Result, truth, model) -> dict:
     error = np.linalg.norm(p_found - p_true, axis=1)
     return {"validation_mean_mm": after, "floor_mean_mm": floor, "validation_over_floor": after / floor,
             "model_error_mean_mm": float(error.mean()), "model_error_max_mm": float(error.max())}
+
+
+WORKSPACE_POSES = 300  # random poses over the workspace a fixture calibration is scored at
+WORKSPACE_SEED = 0
+
+
+def _score_fixture(result: Result, truth, model, cell) -> dict:
+    """A calibration from fixtures against the arm as built, over the whole workspace, not only at the
+    sockets: at random joint configurations whose real tool tip is inside the workspace box, the mean
+    distance between the tip the calibrated model predicts (its kinematics and its fitted tip offset)
+    and the real tip, after the one rigid motion that best lays the one on the other (fixture data fix
+    no base frame: the points live in a frame of the plate's, so the error is relative to the plate);
+    next to it the nominal arm's, with the real tip (what a perfect tool calibration on the drawn arm
+    would give)."""
+    rng = np.random.default_rng(WORKSPACE_SEED)
+    lo, hi = np.asarray(cell.workspace_min_m) * 1e3, np.asarray(cell.workspace_max_m) * 1e3
+    tip_true = truth.tool.tcp_m * 1e3 - truth.tool.axis * truth.tool.radius_m * 1e3  # the rounding's centre
+    q = rng.uniform(-np.pi, np.pi, (20 * WORKSPACE_POSES, model.n_joints))
+    real = tcp_frames(model, q, np.r_[tip_true / 1e3, 0, 0, 0], params=truth.arm_params)[1] * 1e3
+    inside = np.all((real >= lo) & (real <= hi), axis=1)
+    q, real = q[inside][:WORKSPACE_POSES], real[inside][:WORKSPACE_POSES]
+    found_tip = np.asarray(result.extra["target_offset_mm"]) / 1e3
+    found = tcp_frames(model, q, np.r_[found_tip, 0, 0, 0], params=np.asarray(result.extra["kinematics"]))[1] * 1e3
+    nominal = tcp_frames(model, q, np.r_[tip_true / 1e3, 0, 0, 0])[1] * 1e3
+
+    def mean_error(predicted):
+        rotation, shift = se3.rigid_fit(predicted, real)
+        return float(np.linalg.norm(predicted @ rotation.T + shift - real, axis=1).mean())
+
+    return {"workspace_poses": int(len(q)), "workspace_mean_mm": mean_error(found),
+            "workspace_nominal_mean_mm": mean_error(nominal)}
 
 
 def _text(result: Result) -> str:

@@ -21,6 +21,8 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from cellcal.config.reader import ConfigError, Section, read_yaml
 
 DEFAULT_SEATING_SD_MM = 0.05  # a ball seated in a conical socket by a compliant search returns to a few 0.01 mm
@@ -52,7 +54,11 @@ class Fixture:
 
 def read_fixture(path: str | Path) -> Fixture:
     source = str(path)
-    top = Section(source, None, read_yaml(path, FixtureError), FixtureError)
+    return fixture_of(Section(source, None, read_yaml(path, FixtureError), FixtureError), source)
+
+
+def fixture_of(top: Section, source: str) -> Fixture:
+    """The fixture a mapping describes (a fixture file's top, or a cell file's inline ``fixture:``)."""
     top.expect(("points", "distances_mm", "seating_sd_mm", "stylus_radius_mm"), required=("points",))
     raw_points = top.sequence("points", nonempty=True)
     points: list[str] = []
@@ -108,3 +114,80 @@ def _check_triangles(top: Section, distances: list[Distance]) -> None:
             top.fail(longest.key, f"{longest.a} - {longest.b} {longest.mm:g} mm contradicts {rest[0].key} "
                                   f"({rest[0].mm:g} mm) and {rest[1].key} ({rest[1].mm:g} mm): no three points are "
                                   "that far apart; one of the three distances is wrong")
+
+
+# -- a fixture placed in a cell (the kinematic-fixture routine's section; the simulated cell's truth) --
+
+MAX_PLACEMENTS = 20
+
+
+@dataclass(frozen=True)
+class Placement:
+    """One placement (setup) of the fixture as drawn: the plate lies flat (its z up), its origin at
+    ``at_m`` in the robot's base frame, turned ``yaw_deg`` about the vertical."""
+
+    name: str
+    at_m: np.ndarray
+    yaw_deg: float
+
+    def point_m(self, layout_mm) -> np.ndarray:
+        """Where a point at `layout_mm` ([x, y] on the plate, mm) is, base frame, m."""
+        c, s = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
+        x, y = np.asarray(layout_mm, dtype=float) / 1e3
+        return self.at_m + np.array([c * x - s * y, s * x + c * y, 0.0])
+
+
+@dataclass(frozen=True)
+class CellFixture:
+    fixture: Fixture
+    layout_mm: dict  # point id -> [x, y] on the plate as drawn, mm
+    placements: tuple[Placement, ...]
+
+
+def cell_fixture(section: Section, cell_path: str | None) -> CellFixture:
+    """The keys ``fixture``, ``layout_mm`` and ``placements`` of a cell file's routine section (the
+    caller reads the rest and calls ``done``). ``fixture`` is a fixture file (relative to the cell
+    file) or the same mapping inline; ``layout_mm`` where each of its points is on the plate as
+    drawn ({id: [x, y]} mm, the plate's z up); ``placements`` the setups: [{name, at_m, yaw_deg}]."""
+    raw = section.raw("fixture", required=True)
+    if isinstance(raw, str):
+        path = Path(raw) if Path(raw).is_absolute() or cell_path is None else Path(cell_path).parent / raw
+        if not path.is_file():
+            section.fail("fixture", f"no fixture file {str(path)!r} (a path relative to the cell file, or the "
+                                    "fixture inline: points, distances_mm, seating_sd_mm)")
+        fixture = read_fixture(path)
+    elif isinstance(raw, dict):
+        inline = Section(section.source, section.child_name("fixture"), raw, section.error)
+        fixture = fixture_of(inline, f"{section.source} [{section.child_name('fixture')}]")
+    else:
+        section.fail("fixture", f"expected a fixture file's path or the fixture inline, got {raw!r}")
+    if fixture.stylus_radius_mm is not None:
+        section.fail("fixture", "a stylus fixture (stylus_radius_mm): this routine seats the tool in sockets; "
+                                "touching a stylus is not there yet")
+    layout_section = section.section("layout_mm", required=True)
+    layout = {}
+    for p in fixture.points:
+        layout[p] = layout_section.vector(p, 2, required=True)
+    layout_section.done()
+    for d in fixture.distances:
+        drawn = float(np.linalg.norm(layout[d.a] - layout[d.b]))
+        if abs(drawn - d.mm) > CONTRADICTION_SIGMAS * d.sd_mm + 1e-9:
+            layout_section.fail(d.a, f"{d.a} - {d.b} are {drawn:g} mm apart here, the fixture says "
+                                     f"{d.mm:g} +- {d.sd_mm:g} mm ({d.key}): the drawing and the fixture disagree")
+    if not fixture.distances:
+        section.fail("fixture", "no distances_mm: without a known distance fixture data cannot fix the arm's "
+                                "lengths (give at least two sockets and the distance between them)")
+    placements = []
+    rows = section.items_of("placements", required=True, nonempty=True)
+    if len(rows) > MAX_PLACEMENTS:
+        section.fail("placements", f"{len(rows)} placements; at most {MAX_PLACEMENTS}")
+    for i, row in enumerate(rows):
+        name = row.text("name", f"p{i + 1}")
+        if not name or "," in name or name != name.strip():
+            row.fail("name", f"{name!r} is not a setup id (a non-empty text without commas or surrounding blanks)")
+        if name in (p.name for p in placements):
+            row.fail("name", f"{name!r} names two placements")
+        placements.append(Placement(name, row.vector("at_m", 3, required=True),
+                                    row.number("yaw_deg", 0.0, low=-360.0, high=360.0)))
+        row.done()
+    return CellFixture(fixture, layout, tuple(placements))

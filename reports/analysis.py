@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from cellcal.reports.page import figure_html, plt, write_page
-from cellcal.solvers.analyze import Finding
+from cellcal.solvers.analyze import Finding, Transfer
 from cellcal.solvers.measurement_model import Layout, Observations, jacobian
 from cellcal.solvers.se3 import rotvec_to_matrix
 
@@ -70,7 +70,28 @@ def _regressor(model, obs: Observations, f: Finding, rows: np.ndarray):
     return np.rad2deg(sub.q[:, joint - 1]), f"joint {joint} angle (deg)", direction
 
 
-REPORT_FILES = ("residual_vs_regressor.png", "heldout_histogram.png", "candidates.png", "report.md", "report.html")
+def _validate_plot(out: Path, v: Transfer) -> tuple[str, str]:
+    """The --validate data set's error per row, in its row order: geometry only, and with the carried effect."""
+    fig, ax = plt.subplots(figsize=(7.5, 4.0))
+    rows = np.arange(len(v.baseline_errors_mm))
+    ax.plot(rows, v.baseline_errors_mm, ".", ms=4, alpha=0.7,
+            label=f"geometry only, mean {v.baseline_mean_mm:.3f} mm")
+    if v.extended_errors_mm is not None:
+        ax.plot(rows, v.extended_errors_mm, ".", ms=4, alpha=0.7,
+                label=f"with {v.carried}, mean {v.extended_mean_mm:.3f} mm")
+    ax.set_xlabel("row of the validation data")
+    ax.set_ylabel("error (mm)")
+    ax.set_title("validation data: fitted on the analysed data, only frame and targets refitted"
+                 + ("" if v.extended_errors_mm is not None else " (no effect named)"), fontsize=10)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "validate.png", dpi=110)
+    plt.close(fig)
+    return "validate.png", "Validation data: error per row, geometry only and with the effect"
+
+
+REPORT_FILES = ("residual_vs_regressor.png", "heldout_histogram.png", "candidates.png", "validate.png", "report.md",
+                "report.html")
 
 
 def prepare_folder(folder) -> Path:
@@ -90,7 +111,7 @@ def prepare_folder(folder) -> Path:
     return out
 
 
-def write_report(folder, model, obs: Observations, f: Finding, text: str) -> Path:
+def write_report(folder, model, obs: Observations, f: Finding, text: str, validation: Transfer | None = None) -> Path:
     out = prepare_folder(folder)
     images = []
 
@@ -147,6 +168,8 @@ def write_report(folder, model, obs: Observations, f: Finding, text: str) -> Pat
     fig.savefig(out / "candidates.png", dpi=110)
     plt.close(fig)
     images.append(("candidates.png", "Candidates ranked by held-out error"))
+    if validation is not None:
+        images.append(_validate_plot(out, validation))
 
     md = ["# cellcal analyze", "", "```", text, "```", ""]
     md += [f"![{title}]({name})" for name, title in images]

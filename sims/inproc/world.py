@@ -99,6 +99,8 @@ class SimWorld:
         self.beams: list[LightBeam] = list(self.truth.beams)
         self.contacts = [c for c in (self.truth.stylus, *self.truth.contacts) if c is not None]
         self.pivot = pivot_socket(self.truth)
+        self.sockets = fixture_sockets(self.truth)  # the kinematic-fixture plate's, each seats as the pivot does
+        self._touched: PivotSocket | None = None  # the socket the last contact search met
         self._pivot_fouling: list[np.ndarray] = []
         self.partner = None  # () -> (tip, axis): the other robot's real tip and tool axis, this base frame
         self.arms = {"a": self}  # every arm of the cell by name (of_robot)
@@ -149,7 +151,12 @@ class SimWorld:
     def pivot_touch(self) -> str | None:
         """'seat' or 'face' when the real tip's rounding touches the pivot fixture (see
         :meth:`PivotSocket.touch`), None when clear or the cell has no pivot."""
-        return None if self.pivot is None else self.pivot.touch(self._body[0], self.tool_radius_m)
+        for socket in ([self.pivot] if self.pivot is not None else []) + self.sockets:
+            touch = socket.touch(self._body[0], self.tool_radius_m)
+            if touch is not None:
+                self._touched = socket
+                return touch
+        return None
 
     def of_robot(self, name: str) -> "SimWorld":
         """The world of the cell's robot `name` (``a`` is this one)."""
@@ -178,7 +185,8 @@ class SimWorld:
         held, follows the cone until the tip's rounding rests in it. The rest is a new pose,
         off by the arm's repeatability like every other; the controller reports its joints."""
         offset = repeat_offset_m(self.truth, self.rng)
-        seat = self.pivot.seat_m + (self._pivot_fouling.pop(0) if self._pivot_fouling else 0.0)
+        socket = self._touched if self._touched is not None else self.pivot
+        seat = socket.seat_m + (self._pivot_fouling.pop(0) if self._pivot_fouling else 0.0)
         try:
             q_rest = pivot_rest_q(self.truth, self.physics, self.arm.q, seat, offset)
         except MotionFault as exc:
@@ -211,6 +219,7 @@ class SimWorld:
             raise DeviceError(device, "the arm is moving: a tool is changed with the arm at rest")
         self.truth = self.truth.with_tool(tool_id)
         self.pivot = pivot_socket(self.truth)
+        self.sockets = fixture_sockets(self.truth)
         self._body = self.tool_body()
         self._blocked = {id(b): beam_blocked(b, self._body, self.tool_radius_m) for b in self.beams}
         self._edges = []  # put there, not moved: no edges
@@ -375,3 +384,10 @@ def _box_in(box: Workspace, base: np.ndarray) -> Workspace:
     corners = np.array(np.meshgrid(*zip(box.min_m, box.max_m))).reshape(3, -1).T
     local = (corners - base[:3, 3]) @ base[:3, :3]
     return Workspace(local.min(axis=0), local.max(axis=0))
+
+
+def fixture_sockets(truth: CellTruth) -> list[PivotSocket]:
+    """The kinematic-fixture plate's sockets as really placed, as sockets for the mounted tool."""
+    if truth.tool is None:
+        return []
+    return [PivotSocket(np.asarray(point, dtype=float), truth.tool.radius_m) for _, _, point in truth.sockets]

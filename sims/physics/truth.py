@@ -32,6 +32,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from cellcal.config.cells import Cell, SimTruthSpec
+from cellcal.config.fixture_files import Placement, cell_fixture
+from cellcal.config.reader import Section
 from cellcal.config.robot_files import load_robot
 from cellcal.drivers.interfaces import Edge, TriggerEvent
 from cellcal.solvers import se3
@@ -109,6 +111,9 @@ class CellTruth:
     tools: dict = field(default_factory=dict)  # tool id -> ToolBody: every tool of the table as it really is
     tool_id: int = 0  # which tool of `tools` is `tool` (0: none of the table, the bare flange or no table)
     tools_drawn: dict = field(default_factory=dict)  # tool id -> its `drawn` entries (how far off its drawing)
+    # the kinematic-fixture plate's sockets as really placed: (setup, point id, position m), where a
+    # vertical tool's tip rests in each (the plate's drawing in [kinematic_fixture], _fixture_sockets)
+    sockets: tuple = ()
 
     def with_tool(self, tool_id: int) -> "CellTruth":
         """The same cell with tool `tool_id` of the table really on the flange (a tool change),
@@ -224,9 +229,33 @@ def truth_of_cell(cell: Cell, model: KinematicModel) -> CellTruth:
         stylus = ContactSphere(placed(cell.stylus["centre_m"]), cell.stylus["radius_m"])
     pivot = placed(cell.pivot_m) if cell.pivot_m is not None else None
     second = _second_arm(cell, spec, drawn) if "b" in cell.robots else None
+    sockets = _fixture_sockets(cell, spec)
     return CellTruth(params, tool, beams, stylus, pivot, (), spec.repeatability_mm, spec.trigger_latency_s,
                      spec.trigger_jitter_s, spec.seed, drawn, second, tools,
-                     cell.tool.id if cell.tool is not None else 0, tools_drawn)
+                     cell.tool.id if cell.tool is not None else 0, tools_drawn, sockets)
+
+
+FIXTURE_YAW_ERROR_DEG = 0.2  # a plate set down by its drawing is turned this much (1 sigma) off it
+
+
+def _fixture_sockets(cell: Cell, spec: SimTruthSpec) -> tuple:
+    """The kinematic-fixture plate of the cell file's [kinematic_fixture] as really placed, from the seed's
+    own stream (seed, 4), so adding it changes nothing else of the truth: one plate, its sockets off their
+    drawing by the fixture's distance standard deviations (half of it per coordinate and socket), each
+    placement `fixture_error_mm` (a random direction) and about 0.2 deg of yaw off where the file puts it."""
+    raw = cell.routines.get("kinematic_fixture")
+    if raw is None:
+        return ()
+    placed = cell_fixture(Section(str(cell.path), "kinematic_fixture", raw), str(cell.path))
+    rng = np.random.default_rng([spec.seed, 4])
+    sd_mm = min((d.sd_mm for d in placed.fixture.distances), default=0.0)
+    layout = {p: xy + rng.normal(0.0, sd_mm / 2.0, 2) for p, xy in placed.layout_mm.items()}
+    out = []
+    for setup in placed.placements:
+        real = Placement(setup.name, setup.at_m + _random_unit(rng) * spec.fixture_error_mm / 1e3,
+                         setup.yaw_deg + rng.normal(0.0, FIXTURE_YAW_ERROR_DEG))
+        out += [(setup.name, p, real.point_m(layout[p])) for p in placed.fixture.points]
+    return tuple(out)
 
 
 def _real_tool(drawn_tool, spec: SimTruthSpec, rng: np.random.Generator) -> ToolBody | None:
