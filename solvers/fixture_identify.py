@@ -510,3 +510,48 @@ def refit_points(model: KinematicModel, k, offsets, base, data: PointData, known
     if free.any():
         z, _ = prob.fit(z, free)
     return prob.row_errors(z), z[u.points_slice].reshape(-1, 3)
+
+
+@dataclass(frozen=True)
+class SeatPrediction:
+    """What a planned set of seats should give, from the nominal model at the planned joints."""
+
+    condition: float  # of the scaled Jacobian of what the seats determine
+    mean_error_mm: float  # predicted 1-sigma position error of the calibrated arm over q_eval (RMS), mm
+    rank: int  # kinematic parameters estimated (above the noise)
+    estimated: tuple[str, ...]
+
+
+def predict_seats(model: KinematicModel, data: PointData, options: FixtureOptions, q_eval: np.ndarray,
+                  noise_mm: float) -> SeatPrediction:
+    """The 1-sigma error a calibration from these seats should leave at the poses q_eval, with seating
+    noise noise_mm per axis and the fixture's distances as given: the covariance of the unknowns the
+    seats determine (structurally), propagated to the target's position (base frame as the nominal
+    model places it, a convention the data do not see)."""
+    prob = _Problem(model, data, options, with_base=False)
+    u = prob.u
+    z = prob.start()
+    _, j = prob.evaluate(z)
+    scale = prob.scale()
+    nuisance = np.zeros(u.size, bool)
+    nuisance[u.n_kin:] = True
+    # what the fit would estimate: the directions above the noise (as identify_points decides)
+    keep = identifiability.analyse(j * scale, nuisance, ~nuisance, noise_mm=noise_mm, prior_mm=options.prior_mm).keep
+    js = j[:, keep] * scale[keep]
+    # rows' noise: seating noise_mm per axis; distance rows carry their own weight already
+    u_, s, vt = np.linalg.svd(js, full_matrices=False)
+    cov = (vt.T / s**2) @ vt * noise_mm**2 * np.outer(scale[keep], scale[keep])
+    layout = Layout(model, ("t",))
+    x = layout.initial(base=np.zeros(6), offsets=z[u.target(0)][None])
+    x[: u.n_kin] = z[: u.n_kin]
+    obs = Observations(np.asarray(q_eval, dtype=float), np.zeros((len(q_eval), 3)), np.zeros(len(q_eval), int),
+                       ("t",))
+    _, je = jacobian(layout, x, obs)
+    zcols = np.r_[np.arange(u.n_kin), layout.n_kin + 6 + np.arange(3)]
+    je_z = np.zeros((len(q_eval), 3, u.size))
+    je_z[:, :, np.r_[np.arange(u.n_kin), u.target(0).start + np.arange(3)]] = je[:, :, zcols]
+    je_k = je_z[:, :, keep]
+    var = np.einsum("nip,pq,niq->n", je_k, cov, je_k)
+    return SeatPrediction(condition=float(s[0] / s[-1]) if s[-1] > 0 else float("inf"),
+                          mean_error_mm=float(np.sqrt(np.mean(var))), rank=int(keep[: u.n_kin].sum()),
+                          estimated=tuple(np.array(model.param_names)[keep[: u.n_kin]]))

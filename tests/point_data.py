@@ -71,10 +71,16 @@ def _solve(chain, k, offset, goal_rot, goal_pos, q0, iters=60):
     return q
 
 
+WRIST_SEEDS_DEG = {"normal": [0.0, -100.0, 100.0, -90.0, -90.0, 0.0],  # a UR's usual wrist, tool down
+                   "flipped": [0.0, -100.0, 100.0, 90.0, 90.0, 0.0]}  # the other wrist branch, same tool pose
+
+
 def seat(arm: SimulatedArm, placements, per_socket: int, rng, setups=None, repeatability_mm=0.03,
-         max_tilt_deg=35.0, stylus_radius_mm=None) -> PlateData:
-    """Seat the arm's target in both sockets of each placement, per_socket orientations each; with
-    stylus_radius_mm the points are balls and the target touches each at a random spot of its upper half."""
+         max_tilt_deg=35.0, stylus_radius_mm=None, wrists=("normal",), spacing_mm=SPACING_MM) -> PlateData:
+    """Seat the arm's target in both sockets (spacing_mm apart) of each placement, per_socket random
+    orientations each, shared out over the wrist branches; with stylus_radius_mm the points are balls
+    and the target touches each at a random spot of its upper half. A seat the true arm cannot reach
+    on its branch within the joint limits is drawn again."""
     model = arm.model
     layout: Layout = arm.truth.layout
     x = arm.truth.x
@@ -86,31 +92,37 @@ def seat(arm: SimulatedArm, placements, per_socket: int, rng, setups=None, repea
     for s, (centre, direction) in enumerate(placements):
         setup = setups[s] if setups else f"plate_{s}"
         for h, sign in enumerate((-0.5, 0.5)):
-            c = centre + sign * SPACING_MM * direction
+            c = centre + sign * spacing_mm * direction
             truth[(setup, f"hole_{h}")] = c
             got = []
-            while len(got) < per_socket:
-                m = 4 * per_socket
-                tilt = np.deg2rad(rng.uniform(0, max_tilt_deg, m))
-                spin, lean = rng.uniform(-np.pi, np.pi, m), rng.uniform(-np.pi, np.pi, m)
-                down = se3.rotvec_to_matrix(np.array([np.pi, 0.0, 0.0]))
-                axis = np.stack([np.cos(lean), np.sin(lean), np.zeros(m)], axis=1) * tilt[:, None]
-                goal_rot = np.einsum("nij,jk,nkl->nil", se3.rotvec_to_matrix(axis), down,
-                                     se3.rotvec_to_matrix(np.stack([np.zeros(m), np.zeros(m), spin], 1)))
-                goal = c + rng.normal(scale=repeatability_mm, size=(m, 3))
-                if stylus_radius_mm is not None:
-                    n = rng.normal(size=(m, 3))
-                    n[:, 2] = np.abs(n[:, 2])
-                    goal += stylus_radius_mm * n / np.linalg.norm(n, axis=1)[:, None]
-                az = np.arctan2(c[1], c[0])
-                q0 = np.tile(np.deg2rad([0.0, -100.0, 100.0, -90.0, -90.0, 0.0]), (m, 1))
-                q0[:, 0] = az
-                q = _solve(chain, k, offset, goal_rot, goal, q0)
-                inside = np.all((q >= lim[:, 0]) & (q <= lim[:, 1]), axis=1)
-                got.extend(q[inside & np.isfinite(q).all(axis=1)])
-            qs.extend(got[:per_socket])
-            points += [f"hole_{h}"] * per_socket
-            names += [setup] * per_socket
+            for b, wrist in enumerate(wrists):
+                want = per_socket * (b + 1) // len(wrists)
+                seed_q = np.deg2rad(WRIST_SEEDS_DEG[wrist])
+                for _ in range(50):
+                    if len(got) >= want:
+                        break
+                    m = 4 * per_socket
+                    tilt = np.deg2rad(rng.uniform(0, max_tilt_deg, m))
+                    spin, lean = rng.uniform(-np.pi, np.pi, m), rng.uniform(-np.pi, np.pi, m)
+                    down = se3.rotvec_to_matrix(np.array([np.pi, 0.0, 0.0]))
+                    axis = np.stack([np.cos(lean), np.sin(lean), np.zeros(m)], axis=1) * tilt[:, None]
+                    goal_rot = np.einsum("nij,jk,nkl->nil", se3.rotvec_to_matrix(axis), down,
+                                         se3.rotvec_to_matrix(np.stack([np.zeros(m), np.zeros(m), spin], 1)))
+                    goal = c + rng.normal(scale=repeatability_mm, size=(m, 3))
+                    if stylus_radius_mm is not None:
+                        n = rng.normal(size=(m, 3))
+                        n[:, 2] = np.abs(n[:, 2])
+                        goal += stylus_radius_mm * n / np.linalg.norm(n, axis=1)[:, None]
+                    q0 = np.tile(seed_q, (m, 1))
+                    q0[:, 0] = np.arctan2(c[1], c[0])
+                    q = _solve(chain, k, offset, goal_rot, goal, q0)
+                    ok = np.isfinite(q).all(axis=1)
+                    ok[ok] &= np.all((q[ok] >= lim[:, 0]) & (q[ok] <= lim[:, 1]), axis=1)
+                    ok[ok] &= np.sign(np.sin(q[ok, 4])) == np.sign(np.sin(seed_q[4]))  # stayed on its branch
+                    got.extend(q[ok][: want - len(got)])
+            qs.extend(got)
+            points += [f"hole_{h}"] * len(got)
+            names += [setup] * len(got)
     return PlateData(np.array(qs), points, names, truth)
 
 
