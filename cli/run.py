@@ -19,17 +19,26 @@ leave the cell's limits or that the cell cannot carry out (a pose out of reach, 
 the routine needs), an ``--out`` folder that cannot be written (checked before anything
 moves), or a dataset that cannot be used. ``--from`` also says when the store recorded the
 dataset with another checksum (``--state-dir``; a store is never created for it).
+
+A routine that waits for the operator (``kinematic-fixture`` with ``move_by: operator``: the plate
+moved between placements) asks on the terminal and waits for Enter, up to its
+``confirm_timeout_s`` (then exit 1, nothing written); with a standard input that is no terminal it
+is refused before anything moves (exit 2): run it through the daemon and the panel's confirm
+button, or with fixed placements.
 """
 from __future__ import annotations
 
 import json
 import os
+import select
+import sys
 
 import numpy as np
 
 from cellcal.config.cells import TOOL_IDS
 from cellcal.config.robot_files import load_robot
 from cellcal.drivers import registry as drivers_registry
+from cellcal.drivers.interfaces import Operator, OperatorTimeout
 from cellcal.routines import registry, runner
 from cellcal.routines.base import (NotForThisCell, PlanRefused, Result, RoutineError, frame_text, gate_line,
                                    jsonable)
@@ -200,12 +209,13 @@ def cmd_run(args) -> int:
                     print(f"{args.routine}: {counted(len(prepared.plan), 'move')} planned; every one is within the "
                           f"limits of {cell.path} (nothing moved)")
                 return 0
+            operator = _terminal_operator(args.routine, prepared.routine)
             writable_folder(args.out, "--out")  # the datasets' place, made once the plan stands: nothing moved yet
             # the robot's claim first: while the service (or another run) holds the robot, say so; nothing moves
             with held(cell, kinds=("robot",)), open_drivers(cell) as drivers:
                 if cell.mounted_source.kind != "file":  # the panel or the tool changer says which tool is on
                     cell, prepared = _mounted(args, cell, drivers, prepared)
-                dataset = runner.measure(prepared, drivers, args.out, print_progress)
+                dataset = runner.measure(prepared, drivers, args.out, print_progress, operator=operator)
             result = runner.solve(args.routine, cell, dataset)
     except PlanRefused as exc:
         raise UsageError(f"{args.cell}: plan refused, nothing moved: {exc}") from None
@@ -221,6 +231,44 @@ def cmd_run(args) -> int:
         if result.tool_frame is not None:
             print("  nothing written to the controller (cellcal run never writes; the daemon writes back)")
     return 0 if result.write_back and result.verdict != "alarm" else 1  # a check's alarm is a cell failure
+
+
+class TerminalOperator(Operator):
+    """The operator at ``cellcal run``'s terminal: asked on standard error, confirms with Enter.
+    What was typed before the question is dropped (a confirm given when none was asked for)."""
+
+    name = "operator at the terminal"
+
+    def __init__(self, stream=None):
+        self.stream = sys.stdin if stream is None else stream
+
+    def confirm(self, message: str, *, step: int, timeout_s: float) -> None:
+        if self.stream.isatty():
+            import termios
+            termios.tcflush(self.stream.fileno(), termios.TCIFLUSH)
+        print(f"cellcal: {message}; press Enter when done (the run stops after {timeout_s:g} s)",
+              file=sys.stderr, flush=True)
+        ready, _, _ = select.select([self.stream], [], [], timeout_s)
+        if not ready:
+            raise OperatorTimeout(self.name, f"no Enter within {timeout_s:g} s (confirm_timeout_s) after asking: "
+                                             f"{message}")
+        if not self.stream.readline():
+            raise RoutineError(f"the terminal's input ended while waiting for the operator ({message})")
+
+
+def _terminal_operator(name: str, routine) -> Operator | None:
+    """The operator to ask for a routine that waits for one (refused up front, UsageError, when
+    standard input is no terminal to ask on); None for every other routine."""
+    if not routine.asks_operator():
+        return None
+    if not sys.stdin.isatty():
+        selector = registry.routine_class(name).selector
+        raise UsageError(f"{routine.cell.path} [{type(routine).section}]: move_by: operator: {name} waits for the "
+                         "operator to move the plate between placements and confirm, and standard input is not a "
+                         "terminal to ask on; run it through the daemon (`cellcal daemon`, routine selector "
+                         f"{selector}, the panel's confirm button), from a terminal, or with the plates fixed at "
+                         "their placements (move_by: fixed); nothing moved")
+    return TerminalOperator()
 
 
 def _mounted(args, cell, drivers, prepared):

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cellcal.drivers.interfaces import DeviceError, DeviceTimeout, RobotState
+from cellcal.drivers.interfaces import DeviceError, DeviceTimeout, Operator, OperatorTimeout, RobotState
 from cellcal.routines import registry, runner, tool_frame
 from cellcal.config.reader import ConfigError
 from cellcal.routines.base import CheckAlarm, PlanRefused, Result, RoutineAborted, RoutineError
@@ -72,6 +72,7 @@ class ResultCode(enum.IntEnum):
     DRIFT_ALARM = 34
     ABORTED = 40
     INTERRUPTED = 41
+    CONFIRM_TIMEOUT = 42
     SERVICE_FAULT = 50
 
 
@@ -96,6 +97,9 @@ RESULT_MEANINGS = {
                             "calibration (the reason gives the numbers): nothing written; calibrate it",
     ResultCode.ABORTED: "aborted by the operator or by a stop of the service; nothing written back",
     ResultCode.INTERRUPTED: "the service died during the run; found at the next start, nothing written back",
+    ResultCode.CONFIRM_TIMEOUT: "the routine waited for the operator's confirm (the plate moved to its next "
+                                "placement) longer than its confirm_timeout_s; motion had stopped, nothing "
+                                "written",
     ResultCode.SERVICE_FAULT: "the service could not keep its own records (state folder, datasets, store); "
                               "nothing written back",
 }
@@ -134,6 +138,8 @@ class Service:
         self._frame_owed: tuple[int, np.ndarray] | None = None  # (run id, the frame from before it)
         self._others_owed = FramesOwed()  # the same for the cell's other robots (robot b of a handshake)
         self._unconfirmed = False  # the panel just came back: a pending start is not taken
+        self._waiting = 0  # the step a routine waits for the operator to confirm (PanelOperator); 0: none waits
+        self._confirmed = threading.Event()  # the confirm button, pressed while a routine waits
         self.state = "idle"
         self.abort = threading.Event()
         self._worker: threading.Thread | None = None
@@ -215,6 +221,7 @@ class Service:
         if self.busy():
             if self._panel("abort_requested"):
                 self.request_abort("abort button")
+            self._take_confirm()
             if self._panel("start_requested"):
                 log.info("start pressed while run %s is going on: refused (result code %d BUSY)",
                          self._run_id, ResultCode.BUSY)
@@ -223,6 +230,7 @@ class Service:
             return
         self.recover()
         aborted = self._panel("abort_requested")  # an abort with nothing running is cleared, not remembered
+        self._take_confirm()
         pressed = self._panel("start_requested")
         if pressed is None:
             return
@@ -251,6 +259,26 @@ class Service:
         if self._panel("start_requested"):
             self._discarded(why)
         self._panel("abort_requested")
+        if self._has_confirm():
+            self._panel("confirm_requested")
+            self._panel("set_waiting", 0)
+
+    def _has_confirm(self) -> bool:
+        """The panel has the confirm button and the waiting lamp (every OperatorPanel has them, a
+        stand-in of a test may not)."""
+        return hasattr(getattr(self.drivers, "panel", None), "confirm_requested")
+
+    def _take_confirm(self) -> None:
+        """The confirm button: it answers a routine waiting for the operator (the abort button,
+        read before it, wins); pressed while none waits it is cleared and ignored."""
+        if not self._has_confirm() or not self._panel("confirm_requested"):
+            return
+        if self._waiting:
+            log.info("run %s: the operator confirmed step %d", self._run_id, self._waiting)
+            self._confirmed.set()
+        else:
+            log.info("confirm pressed while no routine waits for it: cleared, ignored")
+            self._event("confirm_ignored", None if self._run_id is None or not self._active else f"run {self._run_id}")
 
     def _abort_wins(self, why: str) -> None:
         """A start the abort button overrules: nothing starts, and the press is answered
@@ -365,9 +393,12 @@ class Service:
         self._transition(run_id, "running", f"{len(prepared.plan)} moves")
         try:
             dataset = runner.measure(prepared, self.drivers, self.out_dir,
-                                     lambda message: self._progress(run_id, message), abort=self.abort)
+                                     lambda message: self._progress(run_id, message), abort=self.abort,
+                                     operator=PanelOperator(self, run_id))
         except RoutineAborted as exc:
             return self._end(run_id, "aborted", ResultCode.ABORTED, str(exc))
+        except OperatorTimeout as exc:
+            return self._end(run_id, "fault", ResultCode.CONFIRM_TIMEOUT, f"{exc.what}; nothing written")
         except CheckAlarm as exc:
             return self._end(run_id, "fault", ResultCode.CHECK_ALARM, f"tool check alarm: {exc}")
         except DeviceError as exc:
@@ -519,6 +550,9 @@ class Service:
         for kind in type(prepared.routine).needs:
             if getattr(self.drivers, kind, None) is None:
                 return None, None, (ResultCode.SENSOR_FAULT, f"the cell has no {kind} for {routine}")
+        if prepared.routine.asks_operator() and getattr(self.drivers, "panel", None) is None:
+            return None, None, (ResultCode.SENSOR_FAULT, f"{routine} waits for the operator's confirm between "
+                                                         "placements, and the cell has no panel to press it on")
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             probe = self.out_dir / f".cellcal-write-probe-{run_id_tag()}"
@@ -786,6 +820,42 @@ class Service:
         if not wrote or result.tool_frame is None or before is None:
             return None
         return tool_frame.change(result.tool_frame, before, result.determines)
+
+
+class PanelOperator(Operator):
+    """The operator at the panel, as a routine asks them (:class:`~cellcal.drivers.interfaces.Operator`):
+    the waiting lamp lit and the step (the placement) in its register, the message in the log and the
+    status page's progress, until the confirm button (read by the service's panel loop), the abort
+    button (the run ends aborted: abort wins) or the timeout (CONFIRM_TIMEOUT)."""
+
+    name = "operator at the panel"
+    LOOK_S = 0.05  # how often the wait looks at the abort event between confirm presses
+
+    def __init__(self, service: "Service", run_id: int):
+        self.service, self.run_id = service, run_id
+
+    def confirm(self, message: str, *, step: int, timeout_s: float) -> None:
+        service = self.service
+        service._confirmed.clear()
+        service._waiting = int(step)  # before the lamp: a press the lamp asked for is never taken as early
+        service._panel("set_waiting", int(step))
+        service._event("waiting_for_operator", f"run {self.run_id}: {message}")
+        deadline = time.monotonic() + timeout_s
+        try:
+            while True:
+                if service.abort.is_set():
+                    raise RoutineAborted(f"aborted while waiting for the operator ({message})")
+                if service._confirmed.wait(self.LOOK_S):
+                    if service.abort.is_set():  # pressed together with abort: abort wins
+                        raise RoutineAborted(f"aborted while waiting for the operator ({message})")
+                    return
+                if time.monotonic() >= deadline:
+                    raise OperatorTimeout(self.name, f"no confirm within {timeout_s:g} s (confirm_timeout_s) "
+                                                     f"after asking: {message}")
+        finally:
+            service._waiting = 0
+            service._confirmed.clear()
+            service._panel("set_waiting", 0)
 
 
 def run_id_tag() -> str:

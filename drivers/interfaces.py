@@ -241,5 +241,34 @@ class OperatorPanel(abc.ABC):
         registers"): register name -> raw 16-bit value, written before the result code and the
         run counter. A panel without such registers ignores it."""
 
+    def confirm_requested(self) -> bool:
+        """True once per press of the confirm button (the operator has done what a waiting
+        routine asked); the request is cleared when read. A panel without one never confirms."""
+        return False
+
+    def set_waiting(self, step: int) -> None:
+        """The waiting lamp and what the operator is asked to do: `step` (1, 2, ...: the
+        placement the plate is to be moved to) while a routine waits for the confirm button, 0
+        when none waits. A panel without a waiting lamp ignores it."""
+
     def close(self) -> None:
         """Release the connection; idempotent."""
+
+
+class OperatorTimeout(DeviceTimeout):
+    """The operator did not confirm within the time a routine gives (nothing measured since)."""
+
+
+class Operator(abc.ABC):
+    """Someone at the cell a routine can ask to do something and wait for: move a fixture, then
+    confirm. The service asks through the panel (the confirm button, the waiting lamp), ``cellcal
+    run`` on the terminal (Enter)."""
+
+    name = "operator"
+
+    @abc.abstractmethod
+    def confirm(self, message: str, *, step: int, timeout_s: float) -> None:
+        """Ask the operator to do what `message` says and return once they confirm. `step` numbers
+        what is asked (1, 2, ...: a panel shows it, a simulated cell acts on it). Raises
+        :class:`OperatorTimeout` after `timeout_s` without a confirm, and the run's stop (the
+        routine's abort) when the run is aborted meanwhile."""

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from cellcal.reports.identification import error_stats, fit_diagnostics
-from cellcal.solvers.fixture_identify import FixtureIdentification, PointData
+from cellcal.solvers.fixture_identify import FixtureIdentification, PointData, WorkspaceJudgement, judge_workspace
 
 
 def _human(value: float, is_angle: bool) -> float:
@@ -69,6 +69,7 @@ def fixture_json(result: FixtureIdentification, data: PointData, validation: dic
         "fixture_distances": distances,
         "instrument": (None if not u.with_base else
                        {"t_mm": result.base[:3].tolist(), "rotvec_deg": np.rad2deg(result.base[3:]).tolist()}),
+        "workspace": _workspace(model, result),
         **fit_diagnostics(result),
     }
     if validation is not None:
@@ -77,6 +78,12 @@ def fixture_json(result: FixtureIdentification, data: PointData, validation: dic
                            "refitted_points": validation["refitted_points"], "new_setups": validation["new_setups"]}
         out["before"]["validate_mean_mm"] = float(np.mean(validation["before"]))
     return out
+
+
+def _workspace(model, result: FixtureIdentification) -> dict:
+    w = judge_workspace(model, result)
+    return {"expected_error_mm": w.expected_error_mm, "correction_mm": w.correction_mm, "poses": w.poses,
+            "trustworthy": w.trustworthy}
 
 
 def fixture_text(doc: dict, result: FixtureIdentification) -> str:
@@ -116,5 +123,6 @@ def fixture_text(doc: dict, result: FixtureIdentification) -> str:
                      f"(known {d['known_mm']:g} +- {d['sd_mm']:g})")
     lines.append(f"residual noise {doc['noise_mm'] * 1000:.1f} um; {doc['structural_rank']} geometric directions "
                  f"seen, {doc['noise_rank']} above the noise; condition {doc['condition']:.3g}; {doc['seconds']:.2f} s")
+    lines.append(WorkspaceJudgement(**{k: v for k, v in doc["workspace"].items() if k != "trustworthy"}).describe())
     lines.append(f"fit status {doc['status']}: {doc['message']}")
     return "\n".join(lines)

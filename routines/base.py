@@ -23,7 +23,7 @@ import numpy as np
 
 from cellcal.config.cells import Cell
 from cellcal.config.reader import Section
-from cellcal.drivers.interfaces import DeviceError, Robot, Tracker, TriggerInput
+from cellcal.drivers.interfaces import DeviceError, Operator, Robot, Tracker, TriggerInput
 from cellcal.solvers import se3
 from cellcal.routines.drawing import Drawing
 
@@ -95,6 +95,7 @@ class Devices:
     robot: Robot
     trigger: TriggerInput | None = None
     tracker: Tracker | None = None
+    operator: Operator | None = None  # who moves a fixture between setups (Routine.asks_operator)
 
 
 @dataclass(frozen=True)
@@ -334,6 +335,11 @@ class Routine(abc.ABC):
         """What the plan can give, judged before anything moves; None for a routine that
         judges no design before it moves."""
         return None
+
+    def asks_operator(self) -> bool:
+        """True when the run stops and waits for the operator's confirm (``Devices.operator``),
+        as this cell file configures the routine: the caller must give it an operator."""
+        return False
 
     @classmethod
     def with_history(cls, cell: Cell, last_result) -> tuple[Cell, str | None]:

@@ -7,11 +7,18 @@ it: each placement is a setup of its own). For each placement, each socket, the 
 in the socket from N orientations, as ``tcp-npoint`` seats it in the pivot: a linear move to
 `approach_mm` back along the tool axis from where the drawn tip would rest, a compliant
 contact search along the axis that lets the socket's cone guide the tip to its seat (the
-joints of that rest are recorded), and back. The orientations are a spread of tilts about
-the socket (every other seat tilted `max_tilt_deg`, the others half of it, at azimuths
-evenly round the vertical, turned +-`turn_deg` about the tool axis in turn), not the
-D-optimal selection of the tracker routine: large tilts carry most of what the plate can
-see of the arm. The whole plan is checked against the cell's limits before anything moves.
+joints of that rest are recorded), and back. The orientations are chosen for identifiability,
+as the tracker routine chooses its poses: the candidates are tilts of 0, 1/3, 2/3 and all of
+`max_tilt_deg` at azimuths every 30 deg, turned 0 and +-`turn_deg` about the tool axis, on
+the usual wrist and (``wrist_flip``) the flipped one, each kept where the nominal arm reaches
+it within the joint limits, clear of singularities and with a way in from above on the same
+branch; of those the D-optimal seat design (solvers/fixture_design.py: each socket's
+position eliminated) takes `orientations` per socket for all sockets together. A socket's
+seats go wrist branch by wrist branch, from the most upright on to the nearest in joint
+space; a change of wrist goes via home, a turn a straight move cannot make via the seat's
+way in from above. ``design()`` judges the plan before anything moves: the condition of
+what the seats determine and the 1-sigma error they should leave over random poses
+(fixture_identify.predict_seats). The whole plan is checked against the cell's limits before anything moves.
 
 The dataset is the measurement CSV's point form (docs/measurements.md, "Point form": the
 joints, ``setup``, ``point``, ``target``), so ``cellcal identify --data DATASET --fixture
@@ -21,8 +28,18 @@ determine, each placement's sockets, the target offset (the tip's rounding centr
 fixture data cannot tie to the world (the base frame, the parameters it absorbs) is held
 at nominal and reported as a convention. The routine writes no tool frame.
 
-Not yet there: a plate the operator moves between setups (a confirm press on the panel),
-stylus contacts instead of sockets, the networked simulated cell.
+The placements are plates fixed in the cell (``move_by: fixed``, the default) or one plate
+the operator moves between them (``move_by: operator``): before each placement's seats, with
+the arm at home (where the run starts, and where each placement's moves end), the routine
+asks the operator (``Devices.operator``: the daemon's panel, its waiting lamp, placement
+register and confirm button; ``cellcal run``'s terminal) to move the plate there and waits
+for the confirm, at most ``confirm_timeout_s`` (then OperatorTimeout: the run ends, nothing
+written); an abort during the wait ends the run as aborted. The waits are no motion time.
+Both simulated cells (in process, and the fake controller of ``sim-net``) seat the tool in
+the plate's sockets and move the plate to where a placement really lies when the confirm is
+pressed for it.
+
+Not yet there: stylus contacts instead of sockets.
 
 Section ``kinematic_fixture`` of the cell file::
 
@@ -31,14 +48,18 @@ Section ``kinematic_fixture`` of the cell file::
     placements:                           # the setups: the plate's origin (base frame, m) and its yaw
       - {name: p1, at_m: [-0.7, 0.3, 0.3], yaw_deg: 0}
     orientations: 8                       # seats per socket and placement, 4..24
-    max_tilt_deg: 40                      # tilt of the tool from the vertical (every other seat half of it)
-    turn_deg: 60                          # turn about the tool axis, + and - in turn
+    max_tilt_deg: 40                      # largest tilt of the tool from the vertical the design may choose
+    turn_deg: 60                          # turn about the tool axis the design may choose, + and -
+    wrist_flip: true                      # seats on the flipped wrist too (the arm goes home to flip)
     approach_mm: 5                        # where each search starts, back along the axis
     search_speed_mm_s: 10
     repeatability_mm: 0.03                # the arm's stated repeatability
+    move_by: fixed                        # or operator: one plate, moved by hand between the placements
+    confirm_timeout_s: 300                # with move_by: operator, how long each wait for the confirm lasts
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,8 +70,9 @@ from cellcal.config.reader import Section
 from cellcal.config.robot_files import load_robot
 from cellcal.solvers import se3
 from cellcal.solvers.fixture_identify import (MIN_ROWS_PER_POINT, FixtureDataError, FixtureOptions, PointData,
-                                              identify_points)
-from cellcal.solvers.inverse import inverse
+                                              identify_points, judge_workspace, predict_seats)
+from cellcal.solvers.fixture_design import select_seats
+from cellcal.solvers.inverse import dexterity, inverse, inverse_many, tcp_frames
 from cellcal.routines import gates
 from cellcal.routines.base import Design, Move, Parameter, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
 from cellcal.routines.records import Dataset
@@ -59,6 +81,12 @@ from cellcal.routines.tcp_npoint import down_orientation
 LIFT_MM = 40.0  # above each socket's first approach and after its last, clear of the plate
 JOINT_SPEED_RAD_S = 1.0
 MAX_TILT_DEG = 45.0  # beyond, the shank meets a 90 deg socket's rim
+CANDIDATE_AZIMUTH_STEP_DEG = 30.0  # the seat design chooses among tilts at azimuths this far apart
+MIN_DEXTERITY = 0.08  # seats nearer a singularity are not offered (half of a UR's home pose, 0.16)
+DESIGN_EVAL_POSES = 200  # random joint configurations the plan's expected error is judged at
+MOVE_BY = ("fixed", "operator")  # the placements: plates fixed in the cell, or one plate the operator moves
+CONFIRM_TIMEOUT_S = 300.0  # how long the run waits for the operator to move the plate and confirm
+MAX_CONFIRM_TIMEOUT_S = 3600.0
 TARGET = "tip"  # the target column: the centre of the tool tip's rounding, what a socket holds
 
 
@@ -71,12 +99,15 @@ class KinematicFixtureOptions:
     approach_mm: float
     search_speed_mm_s: float
     repeatability_mm: float
+    wrist_flip: bool = True  # seats on both wrist branches (a joint move home between them)
+    move_by: str = "fixed"  # "operator": one plate, moved between placements and confirmed on the panel
+    confirm_timeout_s: float = CONFIRM_TIMEOUT_S
 
 
 class KinematicFixture(StepRoutine):
     name = "kinematic-fixture"
     section = "kinematic_fixture"
-    selector = None
+    selector = 8
     needs = ("robot",)
     text_columns = ("setup", "point", "target")
 
@@ -92,32 +123,129 @@ class KinematicFixture(StepRoutine):
             section.number("turn_deg", 60.0, low=0.0, high=90.0),
             section.number("approach_mm", 5.0, low=2.0, high=travel_mm / 2),
             section.number("search_speed_mm_s", 10.0, above=0.0, high=min(cell.limits["tcp_speed_m_s"] * 1e3, 20.0)),
-            section.number("repeatability_mm", 0.03, above=0.0, high=1.0))
+            section.number("repeatability_mm", 0.03, above=0.0, high=1.0),
+            section.flag("wrist_flip", True),
+            **_moved_by(section))
         section.done()
         return options
 
     # -- plan ------------------------------------------------------------------------
 
-    def orientations(self) -> list[tuple[np.ndarray, dict]]:
-        """(tool frame rotation, what it is) of each seat in one socket."""
+    def candidate_orientations(self) -> list[tuple[np.ndarray, dict]]:
+        """(tool frame rotation, what it is) of every seat the design may choose in one socket: tilts of
+        0, 1/3, 2/3 and all of `max_tilt_deg` at azimuths every 30 deg, each turned -, 0 and +`turn_deg`
+        about the tool axis."""
         o = self.options
         down = down_orientation(self.cell, load_robot(self.cell.robot))
         out = []
-        for k in range(o.orientations):
-            azimuth = 360.0 * k / o.orientations
+        tilts = [(0.0, 0.0)] + [(o.max_tilt_deg * f, az) for f in (1 / 3, 2 / 3, 1.0)
+                                 for az in np.arange(0.0, 360.0, CANDIDATE_AZIMUTH_STEP_DEG)]
+        for tilt_deg, azimuth in tilts:
             phi = np.deg2rad(azimuth)
-            tilt_deg = o.max_tilt_deg if k % 2 == 0 else o.max_tilt_deg / 2.0
             tilt = se3.rotvec_to_matrix(np.deg2rad(tilt_deg) * np.array([np.cos(phi), np.sin(phi), 0.0]))
-            turn = o.turn_deg * (1 if k % 2 == 0 else -1)
-            out.append((tilt @ down @ se3.rot("z", np.deg2rad(turn)),
-                        {"seat": k + 1, "tilt_deg": tilt_deg, "azimuth_deg": azimuth, "turn_deg": turn}))
+            for turn in (-o.turn_deg, 0.0, o.turn_deg) if o.turn_deg > 0 else (0.0,):
+                out.append((tilt @ down @ se3.rot("z", np.deg2rad(turn)),
+                            {"tilt_deg": float(tilt_deg), "azimuth_deg": float(azimuth), "turn_deg": float(turn)}))
         return out
 
+    @functools.cached_property
+    def seat_plan(self) -> dict:
+        """(placement name, point) -> the chosen seats [(rotation, seat info, joints at rest)], wrist
+        branch by branch: `orientations` of each socket's reachable candidates (either wrist branch
+        when `wrist_flip`), chosen together for every socket by the D-optimal seat design
+        (solvers/fixture_design.py) on the nominal model."""
+        cell, o = self.cell, self.options
+        model = load_robot(cell.robot)
+        tool = cell.tool
+        r = tool.radius_m
+        candidates = self.candidate_orientations()
+        limits = model.joint_limits
+        q_all, group, info = [], [], []
+        for setup in o.placed.placements:
+            for point in o.placed.fixture.points:
+                where = f"socket {point} of placement {setup.name}"
+                centre = setup.point_m(o.placed.layout_mm[point]) + [0.0, 0.0, r]
+                rest = np.array([np.concatenate([centre + r * rot[:, 2], se3.matrix_to_rotvec(rot)])
+                                 for rot, _ in candidates])
+                upright = int(np.argmin([c["tilt_deg"] for _, c in candidates]))
+                above = rest[upright].copy()
+                above[:3] -= LIFT_MM / 1e3 * candidates[upright][0][:, 2]
+                q_up = _reach(model, above, cell.home_q_rad, tool.tcp_pose)
+                if q_up is None:
+                    raise PlanRefused(f"{cell.path} [kinematic_fixture]: move 'above {where}': the pose "
+                                      f"{np.round(above[:3], 4).tolist()} m cannot be reached from home; "
+                                      "check the placement's at_m")
+                seeds = [("normal", q_up)]
+                if o.wrist_flip:
+                    flipped = q_up + [0.0, 0.0, 0.0, np.pi, 0.0, np.pi]
+                    flipped[4] = -q_up[4]
+                    flipped = inverse(model, above, flipped, tool.tcp_pose)
+                    if flipped is not None and np.sign(np.sin(flipped[4])) != np.sign(np.sin(q_up[4])):
+                        seeds.append(("flipped", flipped))
+                for branch, seed in seeds:
+                    q = inverse_many(model, rest, seed, tool.tcp_pose)
+                    ok = np.isfinite(q).all(axis=1)
+                    ok[ok] &= np.sign(np.sin(q[ok, 4])) == np.sign(np.sin(seed[4]))
+                    if limits is not None:
+                        ok[ok] &= np.all((q[ok] >= limits[:, 0]) & (q[ok] <= limits[:, 1]), axis=1)
+                    # clear of singularities, and the way in from above on the same branch
+                    ok[ok] &= dexterity(model, q[ok], tool.tcp_pose) >= MIN_DEXTERITY
+                    lifted = rest[ok].copy()
+                    lifted[:, :3] -= (LIFT_MM + o.approach_mm) / 1e3 * np.array([c[0][:, 2] for c in candidates])[ok]
+                    q_above = inverse_many(model, lifted, q[ok], tool.tcp_pose)
+                    ok[ok] &= np.isfinite(q_above).all(axis=1) & (np.abs(q_above - q[ok]).max(axis=1) < 0.5)
+                    for i in np.flatnonzero(ok):
+                        q_all.append(q[i])
+                        group.append((setup.name, point))
+                        info.append((i, branch))
+        q_all = np.array(q_all)
+        keys = [(s.name, p) for s in o.placed.placements for p in o.placed.fixture.points]
+        short = [k for k in keys if sum(g == k for g in group) < o.orientations]
+        if short:
+            raise PlanRefused(f"{cell.path} [kinematic_fixture]: socket {short[0][1]} of placement {short[0][0]}: "
+                              f"only {sum(g == short[0] for g in group)} of the candidate seats are reachable within "
+                              f"the joint limits, {o.orientations} are asked for; check the placement's at_m or "
+                              "lower orientations")
+        labels = np.array([f"{s}/{p}" for s, p in group])
+        design = select_seats(model, q_all, labels, o.orientations, target_offset=tool.tcp_pose[:3] * 1e3)
+        plan: dict = {k: [] for k in keys}
+        for c in design.chosen:
+            i, branch = info[c]
+            rot, seat = candidates[i]
+            plan[group[c]].append((rot, {**seat, "wrist": branch}, q_all[c]))
+        for k, seats in plan.items():
+            seats[:] = _short_round(seats)
+            for n, (_, seat, _) in enumerate(seats):
+                seat["seat"] = n + 1
+        self._design_log_det = design.log_det
+        return plan
+
     def design(self) -> Design:
-        placed = self.options.placed
-        n = len(placed.placements) * len(placed.fixture.points) * self.options.orientations
-        return Design(float("nan"), float("nan"), "mm",
-                      {"seats": n, "placements": len(placed.placements), "points": len(placed.fixture.points)})
+        """The planned seats judged before anything moves: the condition of what they determine and
+        the 1-sigma error they should leave on the arm's target over random joint configurations,
+        at the stated repeatability and the fixture's distances (solvers.fixture_identify.predict_seats)."""
+        o = self.options
+        model = load_robot(self.cell.robot)
+        plan = self.seat_plan
+        keys = list(plan)
+        q = np.array([s[2] for k in keys for s in plan[k]])
+        point = np.array([i for i, k in enumerate(keys) for _ in plan[k]])
+        distances = tuple((keys.index((s, d.a)), keys.index((s, d.b)), d.mm, d.sd_mm)
+                          for s in dict.fromkeys(k[0] for k in keys) for d in o.placed.fixture.distances
+                          if (s, d.a) in keys and (s, d.b) in keys)
+        data = PointData(q, np.zeros(len(q), int), (TARGET,), point, tuple(keys), np.full((len(q), 3), np.nan),
+                         distances)
+        limits = model.joint_limits if model.joint_limits is not None else np.tile([-np.pi, np.pi], (model.n_joints, 1))
+        rng = np.random.default_rng(0)  # the same poses for every judgement of a plan
+        q_eval = rng.uniform(np.maximum(limits[:, 0], -np.pi), np.minimum(limits[:, 1], np.pi),
+                             (DESIGN_EVAL_POSES, model.n_joints))
+        fit_options = FixtureOptions(seating_sd_mm=max(o.placed.fixture.seating_sd_mm, o.repeatability_mm))
+        predicted = predict_seats(model, data, fit_options, q_eval, o.repeatability_mm)
+        branches = sorted({s[1]["wrist"] for k in keys for s in plan[k]})
+        return Design(predicted.condition, predicted.mean_error_mm, "mm",
+                      {"seats": len(q), "placements": len(o.placed.placements), "points": len(o.placed.fixture.points),
+                       "rank": predicted.rank, "wrist_branches": branches,
+                       "log_det": self._design_log_det, "evaluated_at_poses": DESIGN_EVAL_POSES})
 
     def check_design(self) -> Design:
         return self.design()
@@ -131,36 +259,52 @@ class KinematicFixture(StepRoutine):
         speed = cell.limits["tcp_speed_m_s"]
         joint_speed = min(JOINT_SPEED_RAD_S, cell.limits["joint_speed_rad_s"])
         approach = o.approach_mm / 1e3
-        seats = self.orientations()
+        plan = self.seat_plan
         steps: list[tuple[Move, dict | None]] = []
         for setup in o.placed.placements:
             for point in o.placed.fixture.points:
                 where = f"socket {point} of placement {setup.name}"
                 centre = setup.point_m(o.placed.layout_mm[point]) + [0.0, 0.0, r]  # the drawn tip's rounding at rest
-                for i, (rotation, seat) in enumerate(seats):
+                seats = plan[(setup.name, point)]
+                state = None  # the joints the plan has the arm at (as the guard follows it)
+                for i, (rotation, seat, q_rest) in enumerate(seats):
                     axis = rotation[:, 2]
                     at = np.concatenate([centre + r * axis - approach * axis, se3.matrix_to_rotvec(rotation)])
-                    if i == 0:
+                    first_of_branch = i == 0 or seats[i - 1][1]["wrist"] != seat["wrist"]
+                    q_at = None if state is None or first_of_branch else inverse(model, at, state, tool.tcp_pose)
+                    if q_at is None or np.sign(np.sin(q_at[4])) != np.sign(np.sin(q_rest[4])):
+                        # from above: first seat, the other wrist, or a turn a straight move cannot make
+                        if i > 0:
+                            self._lift(steps, where, seats[i - 1][0], speed, accel)
+                        if first_of_branch and i > 0:  # a wrist flip next to the plate may hit it: via home
+                            steps.append((Move.joint(f"home before the {seat['wrist']} wrist at {where}",
+                                                     cell.home_q_rad, joint_speed, joint_accel), None))
                         above = at.copy()
                         above[:3] -= LIFT_MM / 1e3 * axis
-                        q = inverse(model, above, cell.home_q_rad, tool.tcp_pose)
+                        q = inverse(model, above, q_rest, tool.tcp_pose)
                         if q is None:
                             raise PlanRefused(f"{cell.path} [kinematic_fixture]: move 'above {where}': the pose "
                                               f"{np.round(above[:3], 4).tolist()} m cannot be reached from home; "
                                               "check the placement's at_m")
-                        steps.append((Move.joint(f"above {where}", q, joint_speed, joint_accel), None))
+                        steps.append((Move.joint(f"above {where} seat {i + 1}", q, joint_speed, joint_accel), None))
+                        q_at = inverse(model, at, q, tool.tcp_pose)
+                    state = q_at
                     label = f"{where} seat {i + 1}"
                     steps.append((Move.linear(f"approach {label}", at, speed, accel), None))
                     steps.append((Move.contact(label, axis, o.search_speed_mm_s / 1e3, 2 * approach),
                                   {**seat, "setup": setup.name, "point": point}))
                     steps.append((Move.linear(f"retract {label}", at, speed, accel), None))
-                lift = steps[-1][0].pose.copy()
-                lift[:3] -= LIFT_MM / 1e3 * seats[-1][0][:, 2]
-                steps.append((Move.linear(f"lift from {where}", lift, speed, accel), None))
+                self._lift(steps, where, seats[-1][0], speed, accel)
             # home between placements: a straight joint path from one to the next may leave the box
             steps.append((Move.joint(f"home after placement {setup.name}", cell.home_q_rad, joint_speed,
                                      joint_accel), None))
         return steps
+
+    @staticmethod
+    def _lift(steps, where, rotation, speed, accel) -> None:
+        lift = steps[-1][0].pose.copy()
+        lift[:3] -= LIFT_MM / 1e3 * rotation[:, 2]
+        steps.append((Move.linear(f"lift from {where}", lift, speed, accel), None))
 
     # -- measure ---------------------------------------------------------------------
 
@@ -168,8 +312,12 @@ class KinematicFixture(StepRoutine):
         steps = self.steps_of(plan)
         o = self.options
         n = len(o.placed.placements) * len(o.placed.fixture.points) * o.orientations
+        design = self.check_design()
         progress(f"kinematic-fixture: {n} seats, {o.orientations} per socket ({len(o.placed.fixture.points)} sockets) "
-                 f"at {len(o.placed.placements)} placements, tilted {o.max_tilt_deg:g} and {o.max_tilt_deg / 2:g} deg")
+                 f"at {len(o.placed.placements)} placements, chosen for identifiability (tilts up to "
+                 f"{o.max_tilt_deg:g} deg, wrist {' and '.join(design.details['wrist_branches'])}): condition "
+                 f"{design.condition:.3g}, expected error {design.expected_error:.3f} mm (1 sigma) over the workspace "
+                 f"at {o.repeatability_mm:g} mm repeatability")
 
         def missed(move):
             return (f"the contact search along the tool axis went {move.travel_m * 1e3:g} mm without touching the "
@@ -179,17 +327,51 @@ class KinematicFixture(StepRoutine):
         def record(seat, q):
             return {"setup": seat["setup"], "point": seat["point"], "target": TARGET,
                     **{f"q{j + 1}_rad": v for j, v in enumerate(q)},
-                    "seat": seat["seat"], "tilt_deg": seat["tilt_deg"], "azimuth_deg": seat["azimuth_deg"]}
+                    "seat": seat["seat"], "tilt_deg": seat["tilt_deg"], "azimuth_deg": seat["azimuth_deg"],
+                    "turn_deg": seat["turn_deg"], "wrist_flipped": float(seat["wrist"] == "flipped")}
 
         with drawn_tool(robot, self.cell.tool.tcp_pose):
-            rows, cycle_s = self.contact_rows(robot, plan, steps, missed, record)
+            rows, cycle_s = self._placement_by_placement(devices, robot, plan, steps, missed, record, progress)
         progress(f"kinematic-fixture: {len(rows)} seats recorded")
         meta = {"tool_radius_m": self.cell.tool.radius_m, "orientations": o.orientations,
                 "max_tilt_deg": o.max_tilt_deg, "turn_deg": o.turn_deg, "repeatability_mm": o.repeatability_mm,
-                "placements": len(o.placed.placements), "fixture": o.placed.fixture.path, "cycle_time_s": cycle_s}
+                "placements": len(o.placed.placements), "fixture": o.placed.fixture.path, "cycle_time_s": cycle_s,
+                "wrist_flip": o.wrist_flip, "design_condition": design.condition,
+                "design_expected_error_mm": design.expected_error}
         columns = {k: np.array([row[k] for row in rows], dtype=str if k in self.text_columns else float)
                    for k in rows[0]}
         return Dataset(self.name, columns, meta)
+
+    def asks_operator(self) -> bool:
+        return self.options.move_by == "operator"
+
+    def _placement_by_placement(self, devices, robot, plan, steps, missed, record, progress):
+        """The seats of each placement in turn (rows, motion time s). With ``move_by: operator``
+        the arm is at home (where the run starts, and where each placement's moves end) while the
+        operator moves the plate to the next placement and confirms; the wait is no motion time."""
+        placements = self.options.placed.placements
+        if not self.asks_operator():
+            return self.contact_rows(robot, plan, steps, missed, record)
+        chunks, first = [], 0
+        for i, (move, _) in enumerate(steps):
+            if len(chunks) < len(placements) and move.label == f"home after placement {placements[len(chunks)].name}":
+                chunks.append((first, i + 1))
+                first = i + 1
+        if len(chunks) != len(placements) or first != len(steps):
+            raise RoutineError("the plan does not end each placement at home: the plate cannot be moved safely")
+        rows, cycle_s = [], 0.0
+        for k, (setup, (a, b)) in enumerate(zip(placements, chunks)):
+            x, y, z = setup.at_m
+            message = (f"move the plate to placement {setup.name} ({k + 1} of {len(placements)}): its origin at "
+                       f"x {x:.3f} y {y:.3f} z {z:.3f} m, turned {setup.yaw_deg:g} deg about the vertical, as "
+                       "[kinematic_fixture] draws it; then press confirm")
+            progress(f"kinematic-fixture: waiting for the operator: {message}")
+            devices.operator.confirm(message, step=k + 1, timeout_s=self.options.confirm_timeout_s)
+            progress(f"kinematic-fixture: placement {setup.name} confirmed")
+            found, seconds = self.contact_rows(robot, plan[a:b], steps[a:b], missed, record)
+            rows += found
+            cycle_s += seconds
+        return rows, cycle_s
 
     # -- solve -----------------------------------------------------------------------
 
@@ -222,10 +404,51 @@ class KinematicFixture(StepRoutine):
         return _result(cls.name, dataset, model, found, data, options)
 
 
+def _moved_by(section: Section) -> dict:
+    """``move_by`` (how the plate gets to each placement) and ``confirm_timeout_s`` (how long a run
+    waits for the operator's confirm, with ``move_by: operator``)."""
+    move_by = section.choice("move_by", MOVE_BY, "fixed")
+    if move_by != "operator" and "confirm_timeout_s" in section:
+        section.fail("confirm_timeout_s", "only with move_by: operator (fixed placements wait for nobody)")
+    return {"move_by": move_by,
+            "confirm_timeout_s": section.number("confirm_timeout_s", CONFIRM_TIMEOUT_S, above=0.0,
+                                                high=MAX_CONFIRM_TIMEOUT_S)}
+
+
+def _reach(model, pose, home_q, tool_pose):
+    """Joints for a pose from home, or from home turned at the base toward the pose (a far pose
+    the damped solver does not reach from straight home); None when neither converges."""
+    q = inverse(model, pose, home_q, tool_pose)
+    if q is None:
+        home_tcp = tcp_frames(model, home_q, tool_pose)[1][0]
+        turned = np.array(home_q, dtype=float)
+        turned[0] += np.arctan2(pose[1], pose[0]) - np.arctan2(home_tcp[1], home_tcp[0])
+        q = inverse(model, pose, turned, tool_pose, max_iter=200)
+    return q
+
+
+def _short_round(seats: list) -> list:
+    """The seats of one socket, wrist branch by branch (the normal wrist first), each branch from its
+    most upright seat on to the nearest in joint space: small turns between neighbouring seats."""
+    out = []
+    for branch in ("normal", "flipped"):
+        left = [s for s in seats if s[1]["wrist"] == branch]
+        if not left:
+            continue
+        here = min(range(len(left)), key=lambda i: left[i][1]["tilt_deg"])
+        while left:
+            seat = left.pop(here)
+            out.append(seat)
+            if left:
+                here = min(range(len(left)), key=lambda i: float(np.abs(left[i][2] - seat[2]).max()))
+    return out
+
+
 def _result(name, dataset, model, found, data: PointData, options: KinematicFixtureOptions) -> Result:
     u = found.unknowns
     expected = float(np.sqrt(options.repeatability_mm**2 + options.placed.fixture.seating_sd_mm**2))
     rms = float(np.sqrt(np.mean(found.errors_mm**2)))
+    worth = judge_workspace(model, found)
     gate_list = [gates.residual(rms, expected), gates.conditioning(found.condition)]
     params = []
     for i, (n, a) in enumerate(zip(model.param_names, model.param_is_angle)):
@@ -244,6 +467,7 @@ def _result(name, dataset, model, found, data: PointData, options: KinematicFixt
     held = [n for n in found.held_at_nominal if n not in found.absorbed]
     if held:
         notes.append(f"held at nominal (below the noise of these seats; not a failure): {', '.join(held)}")
+    notes.append(worth.describe())
     notes.append("no tool frame is written: the target offset found is the centre of the tip's rounding, "
                  "fitted with the arm; calibrate the tool with tcp-laser, tcp-npoint or tcf")
     extra = {"setups": len({s for s, _ in data.points}), "points": len(data.points), "seats": len(data),
@@ -252,6 +476,11 @@ def _result(name, dataset, model, found, data: PointData, options: KinematicFixt
              "distance_misfit_mm": found.distance_misfit_mm.tolist(),
              "structural_rank": found.structural_rank, "noise_rank": found.noise_rank,
              "held_at_nominal": list(found.held_at_nominal), "conventions": list(found.conventions),
-             "kinematics": found.k.tolist(), "target_offset_mm": offset.tolist(), "identify_s": found.seconds}
+             "kinematics": found.k.tolist(), "target_offset_mm": offset.tolist(), "identify_s": found.seconds,
+             "workspace": {"expected_error_mm": worth.expected_error_mm, "correction_mm": worth.correction_mm,
+                           "poses": worth.poses}}
+    if "design_expected_error_mm" in dataset.meta:  # what the plan promised before anything moved
+        extra["design"] = {"condition": float(dataset.meta["design_condition"]),
+                           "expected_error_mm": float(dataset.meta["design_expected_error_mm"])}
     return Result(name, params, found.errors_mm, expected, found.condition, gate_list, notes=notes, extra=extra,
                   cycle_time_s=dataset.meta.get("cycle_time_s"))

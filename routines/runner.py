@@ -61,13 +61,17 @@ def dataset_path(out_dir: str | Path, name: str) -> Path:
     return Path(out_dir) / f"{name}-{stamp}.csv"
 
 
-def measure(prepared: Prepared, drivers, out_dir: str | Path, progress: Progress, abort=None) -> Dataset:
+def measure(prepared: Prepared, drivers, out_dir: str | Path, progress: Progress, abort=None,
+            operator=None) -> Dataset:
     """Move through the plan and write the dataset; on a device fault or an abort (the
-    `abort` event set), stop and raise."""
+    `abort` event set), stop and raise. `operator`: who the routine asks when it waits for
+    someone at the cell (:meth:`Routine.asks_operator`)."""
     routine = prepared.routine
     robots = {**(getattr(drivers, "robots", None) or {}), "a": drivers.robot}  # drivers.robot is robot a
     robot = GuardedRobot.of_cell(robots, prepared.guard, abort)["a"]
-    devices = Devices(robot=drivers.robot, trigger=drivers.trigger, tracker=drivers.tracker)
+    if operator is None and routine.asks_operator():
+        raise RoutineError(f"{routine.name} waits for the operator between its steps, and nobody was given to ask")
+    devices = Devices(robot=drivers.robot, trigger=drivers.trigger, tracker=drivers.tracker, operator=operator)
     previous = np.asarray(drivers.robot.tcp(), dtype=float)
     try:
         dataset = routine.measure(devices, robot, prepared.plan, progress)

@@ -541,17 +541,79 @@ def predict_seats(model: KinematicModel, data: PointData, options: FixtureOption
     # rows' noise: seating noise_mm per axis; distance rows carry their own weight already
     u_, s, vt = np.linalg.svd(js, full_matrices=False)
     cov = (vt.T / s**2) @ vt * noise_mm**2 * np.outer(scale[keep], scale[keep])
+    je_k = _tip_jacobian(model, u, z, q_eval)[1][:, :, keep]
+    var = np.einsum("nip,pq,niq->n", je_k, cov, je_k)
+    return SeatPrediction(condition=float(s[0] / s[-1]) if s[-1] > 0 else float("inf"),
+                          mean_error_mm=float(np.sqrt(np.mean(var))), rank=int(keep[: u.n_kin].sum()),
+                          estimated=tuple(np.array(model.param_names)[keep[: u.n_kin]]))
+
+
+def _tip_jacobian(model: KinematicModel, u: Unknowns, z: np.ndarray, q_eval) -> tuple[np.ndarray, np.ndarray]:
+    """The first target's position (N, 3) at joints q_eval and its derivative over z (N, 3, size), base
+    frame as the kinematics place it."""
     layout = Layout(model, ("t",))
     x = layout.initial(base=np.zeros(6), offsets=z[u.target(0)][None])
     x[: u.n_kin] = z[: u.n_kin]
     obs = Observations(np.asarray(q_eval, dtype=float), np.zeros((len(q_eval), 3)), np.zeros(len(q_eval), int),
                        ("t",))
-    _, je = jacobian(layout, x, obs)
+    p, je = jacobian(layout, x, obs)
     zcols = np.r_[np.arange(u.n_kin), layout.n_kin + 6 + np.arange(3)]
     je_z = np.zeros((len(q_eval), 3, u.size))
     je_z[:, :, np.r_[np.arange(u.n_kin), u.target(0).start + np.arange(3)]] = je[:, :, zcols]
-    je_k = je_z[:, :, keep]
-    var = np.einsum("nip,pq,niq->n", je_k, cov, je_k)
-    return SeatPrediction(condition=float(s[0] / s[-1]) if s[-1] > 0 else float("inf"),
-                          mean_error_mm=float(np.sqrt(np.mean(var))), rank=int(keep[: u.n_kin].sum()),
-                          estimated=tuple(np.array(model.param_names)[keep[: u.n_kin]]))
+    return p, je_z
+
+
+def random_joints(model: KinematicModel, n: int = 200) -> np.ndarray:
+    """n joint rows uniform within the joint limits (at most +-180 deg), the same every call: where a
+    calibration's use over the workspace is judged without a hidden truth."""
+    limits = model.joint_limits if model.joint_limits is not None else np.tile([-np.pi, np.pi], (model.n_joints, 1))
+    return np.random.default_rng(0).uniform(np.maximum(limits[:, 0], -np.pi), np.minimum(limits[:, 1], np.pi),
+                                           (n, model.n_joints))
+
+
+WORTH_RATIO = 0.5  # a calibration is worth using away from its fixtures when its uncertainty there is at most
+#                   half the correction it makes (it then at least halves the nominal arm's error)
+
+
+@dataclass(frozen=True)
+class WorkspaceJudgement:
+    """What a fixture calibration is worth away from its fixtures, from the data alone."""
+
+    expected_error_mm: float  # 1-sigma error of the calibrated target over the poses (RMS), from the fit's covariance
+    correction_mm: float  # RMS of how far the calibration moves the target from the nominal model there
+    poses: int
+
+    @property
+    def trustworthy(self) -> bool:
+        """The calibration's own uncertainty there is at most half the correction it makes: what is left
+        of the nominal arm's error is then at most about half of it (the uncertainty is what remains)."""
+        return self.expected_error_mm <= WORTH_RATIO * self.correction_mm
+
+    def describe(self) -> str:
+        """What the calibration is worth away from the fixture's points, with a warning when little."""
+        line = (f"over the workspace ({self.poses} random poses): the calibration moves the target by "
+                f"{self.correction_mm:.3f} mm rms, known to {self.expected_error_mm:.3f} mm (1 sigma, from the fit)")
+        if not self.trustworthy:
+            line += ("\nWARNING: the data leave the arm's geometry uncertain by more than half the correction they "
+                     "make: away from the fixture's points the calibrated arm is not much better than nominal (or "
+                     "there is little to correct); add a known distance (two sockets or balls), more placements and "
+                     "wider turns")
+        return line
+
+
+def judge_workspace(model: KinematicModel, result: FixtureIdentification, q_eval=None) -> WorkspaceJudgement:
+    """The fit's covariance carried to the target over random poses (``random_joints``), next to the
+    correction the fit makes there: a calibration whose uncertainty exceeds its correction (e.g. the
+    arm's scale left to one small ball's radius) makes the arm no better away from the fixture, however
+    well it fits and validates at the fixture's points."""
+    q_eval = random_joints(model) if q_eval is None else np.asarray(q_eval, dtype=float)
+    u = result.unknowns
+    p_fit, j = _tip_jacobian(model, u, result.z, q_eval)
+    z0 = result.z.copy()
+    z0[: u.n_kin] = model.nominal
+    p_nom, _ = _tip_jacobian(model, u, z0, q_eval)
+    var = np.einsum("nip,pq,niq->n", j, result.covariance, j)
+    moved = p_fit - p_nom
+    moved = moved - moved.mean(axis=0)  # a shift of everything is the base frame's convention, not a correction
+    return WorkspaceJudgement(float(np.sqrt(np.mean(var))), float(np.sqrt(np.mean(np.sum(moved**2, axis=1)))),
+                              len(q_eval))

@@ -159,6 +159,11 @@ class PanelMap:
     tilt_y_register: int = 26
     tool_selector_register: int = 27  # written by the panel: the tool the start is for (0: the mounted one)
     mounted_tool_register: int = 28  # written by the PLC or tool changer: the tool on the flange (0: none)
+    # a routine waiting for the operator (kinematic-fixture's plate moved by hand): the confirm button,
+    # the waiting lamp, and which placement the plate is to go to (1, 2, ...; 0 while none waits)
+    confirm_request_coil: int = 2
+    waiting_lamp_coil: int = 11
+    placement_register: int = 29
 
     @classmethod
     def of_options(cls, options) -> "PanelMap":
@@ -169,12 +174,12 @@ class PanelMap:
 
     def coils(self) -> list[int]:
         return [self.start_request_coil, self.abort_request_coil, self.busy_lamp_coil,
-                self.done_lamp_coil, self.fault_lamp_coil]
+                self.done_lamp_coil, self.fault_lamp_coil, self.confirm_request_coil, self.waiting_lamp_coil]
 
     def holding_registers(self) -> list[int]:
         return [self.routine_selector_register, self.result_code_register,
                 self.run_counter_register, *self.outcome_registers().values(), self.tool_selector_register,
-                self.mounted_tool_register]
+                self.mounted_tool_register, self.placement_register]
 
     def outcome_registers(self) -> dict[str, int]:
         """The outcome registers by their name in :meth:`OperatorPanel.set_outcome` -> address."""
@@ -212,7 +217,8 @@ class ModbusPanel(OperatorPanel):
                  run_counter_register: int = 2, verdict_register: int = 20, tool_id_register: int = 21,
                  change_x_register: int = 22, change_y_register: int = 23, change_z_register: int = 24,
                  tilt_x_register: int = 25, tilt_y_register: int = 26, tool_selector_register: int = 27,
-                 mounted_tool_register: int = 28):
+                 mounted_tool_register: int = 28, confirm_request_coil: int = 2, waiting_lamp_coil: int = 11,
+                 placement_register: int = 29):
         given = locals()
         addresses = {f.name: given[f.name] for f in dataclasses.fields(PanelMap)}
         self.check_options(port=port, unit_id=unit_id, timeout_s=timeout_s, **addresses)
@@ -234,6 +240,16 @@ class ModbusPanel(OperatorPanel):
             return False
         self._link.write_coil(coil, False)
         return True
+
+    def confirm_requested(self) -> bool:
+        return self._take_request(self.map.confirm_request_coil)
+
+    def set_waiting(self, step: int) -> None:
+        if isinstance(step, bool) or not isinstance(step, int) or not 0 <= step <= REGISTER_MAX:
+            raise ValueError(f"{self.device}: placement {step!r} outside 0..65535")
+        # the placement first: a PLC that sees the lamp light reads which placement it is for
+        self._link.write_register(self.map.placement_register, step)
+        self._link.write_coil(self.map.waiting_lamp_coil, step != 0)
 
     def routine_selector(self) -> int:
         return self._link.read_holding_registers(self.map.routine_selector_register)[0]

@@ -1,6 +1,7 @@
 """The fake UR controller's fake-only JSON port (30199): read the true arm state and the
 hidden truth, the RTDE input registers as held, the sensors' exact edge times; play a
 robot program's start; put the arm somewhere; change the tool on the flange (``mount_tool``);
+move the kinematic-fixture plate to another placement (``place_plate``, the operator's part);
 and inject faults (a protective or emergency
 stop, optionally once the arm has moved for a while, dropped connections, a stalled
 controller, an RTDE input it does not keep). A mixin of :class:`.fake_ur.FakeUrController`,
@@ -98,6 +99,8 @@ class ControlPort:
                 return {"ok": True}
             if cmd == "mount_tool":  # a tool change: {tool: ID} of the cell's table, 0 none
                 return self.mount_tool(request.get("tool"))
+            if cmd == "place_plate":  # the operator moves the kinematic-fixture plate: {step: placement 1, 2, ...}
+                return self.place_plate(request.get("step"))
             if cmd == "set_tcp":  # the controller's tool frame changed behind the service's back (a test's bent tool)
                 if self.arm.moving:
                     return {"ok": False, "error": "the arm is moving"}
@@ -107,7 +110,7 @@ class ControlPort:
                 self.arm.set_tcp(tcp)
                 return {"ok": True}
         return {"ok": False, "error": f"unknown command {cmd!r} (state, truth, tool, edges, inputs, "
-                                          "program_start, fault, add_model, set_q, set_tcp, mount_tool)"}
+                                          "program_start, fault, add_model, set_q, set_tcp, mount_tool, place_plate)"}
 
     def _fire_faults(self) -> None:
         for fault in list(self.faults):

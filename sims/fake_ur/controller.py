@@ -13,7 +13,9 @@ tool frame stored in the input registers (:mod:`cellcal.drivers.ur.registers`).
 Given a cell file (``--cell-file``), it obeys that cell's hidden truth with the in-process
 cell's physics (:mod:`.truth`): it reports with the arm's drawing, while the real tool on
 the arm as built, off by each motion's repeatability, blocks the real beams and touches
-the real stylus. The beams' sensors switch late (latency, jitter); the digital inputs
+the real stylus; a contact search that meets the pivot's or a kinematic-fixture plate's
+socket settles in it (a plate moved by hand lies at one placement at a time:
+``place_plate``). The beams' sensors switch late (latency, jitter); the digital inputs
 sample them once per cycle; the control port's ``edges`` gives each switch's exact time
 (for a networked cell's IO module). Without a cell file the truth is the drawing.
 A tool change (``mount_tool`` on the control port) puts another tool of the cell's table on
@@ -41,7 +43,7 @@ from cellcal.config.robot_files import load_robot
 from cellcal.sims.fake_ur import rtde
 from cellcal.sims.physics.arm_motion import ArmKinematics, JointMove, MovingArm, MotionFault, StopMotion
 from cellcal.sims.physics.scene import SwitchingSensors, scene_from_spec
-from cellcal.sims.inproc.world import PIVOT_SLIDE_SPEED_RAD_S, pivot_socket
+from cellcal.sims.inproc.world import PIVOT_SLIDE_SPEED_RAD_S, fixture_sockets, pivot_socket
 from cellcal.sims.physics.truth import (CellTruth, beam_blocked, beam_edges, meeting_rest_q, meeting_touch, pivot_rest_q, real_tool_body,
                     real_tool_tip, repeat_offset_m, tool_changer_inputs, tool_id_bits, touching, truth_of_cell)
 from cellcal.sims.fake_ur.control import ControlPort
@@ -93,6 +95,8 @@ class FakeUrController(ControlPort):
         self.rng = np.random.default_rng(seed)  # repeatability and sensor jitter
         self.contacts = [c for c in (self.truth.stylus, *self.truth.contacts) if c is not None]
         self.pivot, self._pivot_touch = pivot_socket(self.truth), None
+        # the kinematic-fixture plate's sockets (seated as the pivot is); the socket a search met
+        self.plate_step, self.sockets, self._socket = 1, fixture_sockets(self.truth), None
         self._joint_accel = cell_spec.limits["joint_accel_rad_s2"] if cell_spec is not None else 4.0
         self.arm = MovingArm(ArmKinematics(model), q0, 1.0 / frequency_hz, contact=self._touching)
         self._motion, self._repeat_offset_m = None, np.zeros(3)
@@ -143,7 +147,13 @@ class FakeUrController(ControlPort):
         if self.cell.touching(tcp_position):
             return True
         body = self._body_now()
-        kind = None if self.pivot is None else self.pivot.touch(body[0], self._tool_radius_m)
+        kind = None
+        for seat in ([self.pivot] if self.pivot is not None else []) + self.sockets:
+            kind = seat.touch(body[0], self._tool_radius_m)
+            if kind:
+                if not self.arm.contact_history[-1]:
+                    self._socket = seat
+                break
         if not kind and self._partner is not None:  # robot a's needle, from robot b
             kind = meeting_touch(real_tool_tip(self.truth, self.physics, self.arm.q, body), *self._partner)
             kind = kind and f"meeting {kind}"
@@ -162,7 +172,8 @@ class FakeUrController(ControlPort):
         kind, self._pivot_touch = self._pivot_touch[0], None
         offset = repeat_offset_m(self.truth, self.rng)
         if kind == "seat":
-            q_rest = pivot_rest_q(self.truth, self.physics, self.arm.q, self.pivot.seat_m, offset)
+            seat = self._socket if self._socket is not None else self.pivot
+            q_rest = pivot_rest_q(self.truth, self.physics, self.arm.q, seat.seat_m, offset)
         else:  # robot a's centring cup guides the tip onto robot a's tip
             q_rest = meeting_rest_q(self.truth, self.physics, self.arm.q, self._partner[0], offset)
         self._motion = slide = JointMove(self.arm.q, q_rest, PIVOT_SLIDE_SPEED_RAD_S, self._joint_accel)
@@ -197,6 +208,7 @@ class FakeUrController(ControlPort):
             except ValueError as exc:
                 return {"ok": False, "error": str(exc)}
             self.pivot, self._pivot_touch = pivot_socket(self.truth), None
+            self.sockets, self._socket = fixture_sockets(self.truth, self.plate_step), None
             self._body_for = (None, None, None)  # the body cache is the old tool's
             self._body = self._body_now()
             self._blocked = {id(b): beam_blocked(b, self._body, self._tool_radius_m) for b in self.truth.beams}
@@ -204,6 +216,20 @@ class FakeUrController(ControlPort):
             self.digital_inputs = self._input_bits()
             self.log(f"tool change: tool {tool_id} mounted" if tool_id else "tool change: no tool mounted")
             return {"ok": True, "mounted_tool": tool_id, "digital_inputs": self.digital_inputs}
+
+    def place_plate(self, step) -> dict:
+        """The operator moves the kinematic-fixture plate to placement `step` (1, 2, ...: the cell
+        file's order) as it really lies there (a plate moved by hand: ``move_by: operator``; plates
+        fixed in the cell stay). Refused while the arm moves."""
+        with self.lock:
+            if isinstance(step, bool) or not isinstance(step, int) or step < 1:
+                return {"ok": False, "error": f"step must be a placement number (1, 2, ...), not {step!r}"}
+            if self.arm.moving:
+                return {"ok": False, "error": "the arm is moving: the plate is moved with the arm at rest"}
+            self.plate_step = step
+            self.sockets, self._socket = fixture_sockets(self.truth, step), None
+            self.log(f"the operator moved the plate to placement {step}")
+            return {"ok": True, "step": step, "sockets": len(self.sockets)}
 
     def _input_bits(self) -> int:
         bits = self.cell.input_bits(self.arm.tcp_pose, self.t_s) | tool_id_bits(self.mounted_tool, self.tool_inputs)

@@ -253,6 +253,8 @@ class SimPanel(OperatorPanel):
         self.result_code = 0
         self.run_counter = 0
         self.outcome: dict[str, int] = {}  # the outcome registers' raw values (daemon/outcome.py)
+        self._confirm = False
+        self.waiting = 0  # the waiting lamp's step (the placement register): 0 while no routine waits
 
     # the operator's side
     def press_start(self) -> None:
@@ -260,6 +262,13 @@ class SimPanel(OperatorPanel):
 
     def press_abort(self) -> None:
         self._abort = True
+
+    def press_confirm(self) -> None:
+        """The operator has done what the waiting lamp asks: the plate of a waiting kinematic-fixture
+        run is moved to the placement asked for (in the world, before the press), then confirm."""
+        if self.waiting and self.world is not None:
+            self.world.place_plate(self.waiting)
+        self._confirm = True
 
     def select_routine(self, routine: int) -> None:
         self.routine = int(routine)
@@ -275,6 +284,13 @@ class SimPanel(OperatorPanel):
     def abort_requested(self) -> bool:
         pressed, self._abort = self._abort, False
         return pressed
+
+    def confirm_requested(self) -> bool:
+        pressed, self._confirm = self._confirm, False
+        return pressed
+
+    def set_waiting(self, step: int) -> None:
+        self.waiting = int(step)
 
     def routine_selector(self) -> int:
         return self.routine

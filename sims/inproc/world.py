@@ -99,6 +99,7 @@ class SimWorld:
         self.beams: list[LightBeam] = list(self.truth.beams)
         self.contacts = [c for c in (self.truth.stylus, *self.truth.contacts) if c is not None]
         self.pivot = pivot_socket(self.truth)
+        self.plate_step = 1  # the placement a plate the operator moves is at (CellTruth.plate_moved)
         self.sockets = fixture_sockets(self.truth)  # the kinematic-fixture plate's, each seats as the pivot does
         self._touched: PivotSocket | None = None  # the socket the last contact search met
         self._pivot_fouling: list[np.ndarray] = []
@@ -200,6 +201,13 @@ class SimWorld:
         self._motion, self._repeat_offset_m = slide, offset  # this rest's draw, not a fresh one
         self.run_motion(slide.profile.duration + 1.0, device)
 
+    def place_plate(self, step: int) -> None:
+        """The operator moves the kinematic-fixture plate to placement `step` (1, 2, ...: the cell
+        file's order) as it really lies there; nothing changes for plates fixed in the cell."""
+        self.plate_step = int(step)
+        self.sockets = fixture_sockets(self.truth, self.plate_step)
+        self._touched = None
+
     def foul_pivot(self, offset_m) -> None:
         """Swarf in the socket: the next seat comes to rest `offset_m` (base frame) off."""
         self._pivot_fouling.append(np.asarray(offset_m, dtype=float))
@@ -219,7 +227,7 @@ class SimWorld:
             raise DeviceError(device, "the arm is moving: a tool is changed with the arm at rest")
         self.truth = self.truth.with_tool(tool_id)
         self.pivot = pivot_socket(self.truth)
-        self.sockets = fixture_sockets(self.truth)
+        self.sockets = fixture_sockets(self.truth, self.plate_step)
         self._body = self.tool_body()
         self._blocked = {id(b): beam_blocked(b, self._body, self.tool_radius_m) for b in self.beams}
         self._edges = []  # put there, not moved: no edges
@@ -386,8 +394,10 @@ def _box_in(box: Workspace, base: np.ndarray) -> Workspace:
     return Workspace(local.min(axis=0), local.max(axis=0))
 
 
-def fixture_sockets(truth: CellTruth) -> list[PivotSocket]:
-    """The kinematic-fixture plate's sockets as really placed, as sockets for the mounted tool."""
+def fixture_sockets(truth: CellTruth, step: int = 1) -> list[PivotSocket]:
+    """The kinematic-fixture plate's sockets as really placed, as sockets for the mounted tool (a
+    plate the operator moves: those of placement `step`, :meth:`CellTruth.plate_sockets`)."""
     if truth.tool is None:
         return []
-    return [PivotSocket(np.asarray(point, dtype=float), truth.tool.radius_m) for _, _, point in truth.sockets]
+    return [PivotSocket(np.asarray(point, dtype=float), truth.tool.radius_m)
+            for _, _, point in truth.plate_sockets(step)]

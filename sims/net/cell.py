@@ -33,6 +33,10 @@ a's flange as it really is, shows its id on the robot's digital inputs where the
 wires the tool changer there, and writes it to the panel's mounted-tool register as the
 cell's PLC would (written at the start as well).
 
+The operator who moves a kinematic-fixture plate by hand (``move_by: operator``) is simulated at the
+IO module: a confirm press while the waiting lamp asks for placement k first moves the plate to
+where placement k really lies (:meth:`SimCell.place_plate`, the fake controller's ``place_plate``).
+
 A cell file that does not describe such a cell is refused with a CellFileError naming
 the section; a fake that cannot start (a port in use) raises SimCellError.
 """
@@ -215,6 +219,8 @@ class SimCell:
         self._relay: threading.Thread | None = None
         self._relay_clients: list[ControlClient] = []
         self._tool_id: int | None = None  # after a tool change: the tool mounted since
+        self._plate_client: ControlClient | None = None  # the simulated operator's hands on the plate
+        self._plate_lock = threading.Lock()
         self._truth: CellTruth | None = None
 
     def start(self) -> "SimCell":
@@ -239,6 +245,7 @@ class SimCell:
                                                trigger_base_register=a.trigger_base_register).start()
                 if a.panel:  # the PLC reports the tool on the flange (the cell's `mounted: panel` reads it)
                     self.modbus.set_mounted_tool(self.tool_id)
+                    self.modbus.on_confirm = self.place_plate  # the operator moves the plate, then confirms
                 self._stopping.clear()
                 self._wiring_client = self.fake_ur.client()
                 self._wiring = threading.Thread(target=self._wire_edges, args=(self._wiring_client, self.modbus),
@@ -280,6 +287,18 @@ class SimCell:
             self.modbus.set_mounted_tool(tool_id)
         self._tool_id = tool_id
         return reply
+
+    def place_plate(self, step: int) -> dict:
+        """The operator moves the kinematic-fixture plate to placement `step` (1, 2, ...) as it really
+        lies there (a plate moved by hand, ``move_by: operator``): the fake controller's
+        ``place_plate``. Done by the IO module when the confirm button is pressed while the waiting
+        lamp asks for a placement. Returns the controller's reply."""
+        if self.fake_ur is None:
+            raise SimCellError("the simulated cell is not running")
+        with self._plate_lock:
+            if self._plate_client is None:
+                self._plate_client = self.fake_ur.client()
+            return self._plate_client.request(cmd="place_plate", step=int(step))
 
     def _start_other_robots(self) -> None:
         """A fake controller for each robot besides a, and the relay of robot a's tip to them."""
@@ -363,6 +382,10 @@ class SimCell:
         if self.modbus is not None:
             self.modbus.stop()
             self.modbus = None
+        with self._plate_lock:
+            if self._plate_client is not None:
+                self._plate_client.close()
+                self._plate_client = None
         if self.fake_ur is not None:
             self.fake_ur.stop()
             self.fake_ur = None

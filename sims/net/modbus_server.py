@@ -22,7 +22,9 @@ stopped answering), and :meth:`drop_connections` cuts every client connection.
 from __future__ import annotations
 
 import asyncio
+import sys
 import threading
+from typing import Callable
 
 from pymodbus.constants import ExcCodes
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
@@ -88,6 +90,11 @@ class ModbusCellServer:
         # fault injection, read by the server's loop: replace the objects, do not mutate them
         self.exceptions: dict[int, int] = {}  # function code -> exception code answered instead
         self.silent: frozenset[int] = frozenset()  # function codes left without a reply
+        # the simulated operator: called with the placement asked for when the confirm button is
+        # pressed while the waiting lamp is lit, before the press reaches the table (the plate is
+        # moved first, then confirmed); the lamp and the placement as the daemon last wrote them
+        self.on_confirm: Callable[[int], None] | None = None
+        self._waiting, self._placement = False, 0
 
     def _device(self) -> SimDevice:
         n_coils = (max(self.panel_map.coils()) // 16 + 1) * 16
@@ -162,11 +169,32 @@ class ModbusCellServer:
     # -- fault injection -------------------------------------------------------------
 
     def _faulty_reply(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU:
+        if not sending:
+            self._watch(pdu)
+            return pdu
         code = self.exceptions.get(pdu.function_code & 0x7F) if sending else None
         if code is None:
             return pdu
         return ExceptionResponse(pdu.function_code & 0x7F, code, device_id=pdu.dev_id,
                                  transaction=pdu.transaction_id)
+
+    def _watch(self, request: ModbusPDU) -> None:
+        """A request as it arrives: the daemon's waiting lamp and placement noted, the operator's
+        confirm acted on (:attr:`on_confirm`) while the lamp is lit."""
+        m, code = self.panel_map, request.function_code
+        try:
+            if code == WRITE_REGISTER and request.address == m.placement_register:
+                self._placement = int(request.registers[0])
+            elif code == WRITE_COIL and request.address == m.waiting_lamp_coil:
+                self._waiting = bool(request.bits[0])
+            elif code == WRITE_COIL and request.address == m.confirm_request_coil and request.bits[0]:
+                self._operator_confirms()
+        except Exception as exc:  # never the server's loop: the press still lands, the plate stays
+            print(f"cellcal sim-cell: the simulated operator failed: {exc}", file=sys.stderr)
+
+    def _operator_confirms(self) -> None:
+        if self._waiting and self.on_confirm is not None:
+            self.on_confirm(self._placement)
 
     def _withheld(self, sending: bool, packet: bytes) -> bytes:
         # a Modbus TCP frame: 7 bytes of MBAP header, then the function code
@@ -192,6 +220,11 @@ class ModbusCellServer:
     def press_abort(self) -> None:
         self._set(WRITE_COIL, self.panel_map.abort_request_coil, [True])
 
+    def press_confirm(self) -> None:
+        """The operator has done what the waiting lamp asks (the plate moved, :attr:`on_confirm`)."""
+        self._operator_confirms()
+        self._set(WRITE_COIL, self.panel_map.confirm_request_coil, [True])
+
     def select_routine(self, routine: int) -> None:
         self._set(WRITE_REGISTER, self.panel_map.routine_selector_register, [routine])
 
@@ -211,6 +244,15 @@ class ModbusCellServer:
 
     def abort_request_pending(self) -> bool:
         return bool(self._get(READ_COILS, self.panel_map.abort_request_coil)[0])
+
+    def confirm_request_pending(self) -> bool:
+        return bool(self._get(READ_COILS, self.panel_map.confirm_request_coil)[0])
+
+    def waiting(self) -> int:
+        """The placement a routine waits for the operator to move the plate to (0: none waits), as
+        the waiting lamp and the placement register say."""
+        lit = bool(self._get(READ_COILS, self.panel_map.waiting_lamp_coil)[0])
+        return self._get(READ_HOLDING, self.panel_map.placement_register)[0] if lit else 0
 
     def lamps(self) -> dict[str, bool]:
         m = self.panel_map

@@ -114,6 +114,19 @@ class CellTruth:
     # the kinematic-fixture plate's sockets as really placed: (setup, point id, position m), where a
     # vertical tool's tip rests in each (the plate's drawing in [kinematic_fixture], _fixture_sockets)
     sockets: tuple = ()
+    # one plate the operator moves between the placements (move_by: operator): only the sockets of the
+    # placement it is at are there (plate_sockets); otherwise every placement is a plate of its own
+    plate_moved: bool = False
+
+    def plate_sockets(self, step: int = 1) -> tuple:
+        """The sockets (setup, point id, position m) there are with the plate at placement `step`
+        (1, 2, ...: the cell file's order) when the operator moves one plate; all of them else."""
+        if not self.plate_moved:
+            return self.sockets
+        setups = list(dict.fromkeys(setup for setup, _, _ in self.sockets))
+        if not 1 <= step <= len(setups):
+            return ()  # a placement the cell file does not have: the plate is nowhere the arm reaches
+        return tuple(s for s in self.sockets if s[0] == setups[step - 1])
 
     def with_tool(self, tool_id: int) -> "CellTruth":
         """The same cell with tool `tool_id` of the table really on the flange (a tool change),
@@ -232,7 +245,8 @@ def truth_of_cell(cell: Cell, model: KinematicModel) -> CellTruth:
     sockets = _fixture_sockets(cell, spec)
     return CellTruth(params, tool, beams, stylus, pivot, (), spec.repeatability_mm, spec.trigger_latency_s,
                      spec.trigger_jitter_s, spec.seed, drawn, second, tools,
-                     cell.tool.id if cell.tool is not None else 0, tools_drawn, sockets)
+                     cell.tool.id if cell.tool is not None else 0, tools_drawn, sockets,
+                     (cell.routines.get("kinematic_fixture") or {}).get("move_by") == "operator")
 
 
 FIXTURE_YAW_ERROR_DEG = 0.2  # a plate set down by its drawing is turned this much (1 sigma) off it

@@ -42,16 +42,19 @@ def test_the_routine_runs_and_records_the_point_form(sim_run):
     assert any("base frame" in c for c in result["conventions"])  # named as a convention, never identified
 
 
-def test_the_calibrated_arm_beats_the_nominal_one_over_the_workspace(sim_run):
+def test_the_calibrated_arm_keeps_the_plans_promise_over_the_workspace(sim_run):
     truth = sim_run[2]["sim_truth"]
     assert truth["workspace_poses"] >= 100
     # Errors of 0.5 mm / 0.05 deg over a ~1.3 m reach leave the nominal arm ~1 mm off (0.05 deg at 1 m is
-    # 0.9 mm) even after the best rigid alignment; 64 seats at 0.03 mm repeatability determine 14 or so
-    # directions to a few hundredths of a mm, and the rest (held at nominal, or absorbed by the plate's
-    # frame) extrapolate over poses the plate never saw. Half the nominal error is a clear win that the
-    # seating noise cannot fake; the issue's own goal (<= 0.15 mm) is the bench's to measure.
+    # 0.9 mm) even after the best rigid alignment.
     assert truth["workspace_nominal_mean_mm"] > 0.3
-    assert truth["workspace_mean_mm"] < 0.5 * truth["workspace_nominal_mean_mm"]
+    # The plan promised its 1-sigma error over the workspace before anything moved (first order, every
+    # direction above the noise estimated); the mean of a 3-D error is ~0.9 of its rms, and what the fit
+    # holds at nominal (below the noise) adds a bias the promise leaves out: within 2x of it, and within
+    # the goal of 0.15 mm (64 seats on a 200 mm bar; the bench measures more seeds).
+    design = sim_run[2]["design"]
+    assert design["condition"] > 1 and 0 < design["expected_error_mm"] < 0.15
+    assert truth["workspace_mean_mm"] < min(2.0 * design["expected_error_mm"], 0.15)
 
 
 def test_the_dataset_re_solves_offline_to_the_same_model(sim_run):
@@ -73,7 +76,7 @@ def test_the_dataset_re_solves_offline_to_the_same_model(sim_run):
 
 def test_a_placement_beyond_reach_is_refused_before_anything_moves(tmp_path):
     def far(doc):
-        doc["kinematic_fixture"]["placements"][0]["at_m"] = [-1.15, 0.0, 0.30]  # inside the box, beyond reach
+        doc["kinematic_fixture"]["placements"][0]["at_m"] = [-1.15, 0.95, 0.30]  # inside the box, 1.49 m out: beyond reach
     cell = edited_cell(tmp_path, "sim", far)
     code, _, err = _cellcal("run", "kinematic-fixture", "--cell", str(cell), "--out", str(tmp_path))
     assert code == 2 and "plan refused, nothing moved" in err and "placement p1" in err

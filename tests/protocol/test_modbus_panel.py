@@ -183,3 +183,31 @@ def test_result_code_outside_a_register_is_refused_before_sending(cell_server, p
     with pytest.raises(ValueError, match="result code 70000 outside 0..65535"):
         panel.set_result(70000)
     assert cell_server.run_counter() == 0
+
+
+# --- waiting for the operator: the confirm button, the waiting lamp, the placement register ---------
+
+def test_a_confirm_press_is_reported_once_and_the_waiting_lamp_carries_the_placement(cell_server, panel):
+    assert panel.confirm_requested() is False and cell_server.waiting() == 0
+    panel.set_waiting(2)
+    assert cell_server.waiting() == 2  # lamp (coil 11) lit, register 29 at 2
+    cell_server.press_confirm()
+    assert cell_server.confirm_request_pending() is True
+    assert panel.confirm_requested() is True
+    assert cell_server.confirm_request_pending() is False  # the daemon cleared coil 2
+    panel.set_waiting(0)
+    assert cell_server.waiting() == 0
+
+
+def test_the_simulated_operator_moves_the_plate_only_for_a_press_the_lamp_asks_for(cell_server, panel):
+    """A press from any Modbus client (the PLC's) reaches the simulated operator before the coil is set,
+    with the placement the daemon last wrote; with the lamp dark it moves nothing."""
+    from pymodbus.client import ModbusTcpClient
+    moved = []
+    cell_server.on_confirm = moved.append
+    with ModbusTcpClient("127.0.0.1", port=cell_server.port) as plc:
+        plc.write_coil(PanelMap().confirm_request_coil, True, device_id=1)
+        assert moved == [] and panel.confirm_requested() is True  # pressed, nothing to move
+        panel.set_waiting(3)
+        plc.write_coil(PanelMap().confirm_request_coil, True, device_id=1)
+        assert moved == [3] and panel.confirm_requested() is True

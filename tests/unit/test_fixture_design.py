@@ -11,7 +11,7 @@ from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.sims.physics.workspace import full_workspace
 from cellcal.solvers.fixture_design import RIDGE, information, seat_rows, select_seats
-from cellcal.solvers.fixture_identify import FixtureOptions, PointData, identify_points, predict_seats
+from cellcal.solvers.fixture_identify import FixtureOptions, PointData, identify_points, judge_workspace, predict_seats
 from cellcal.solvers.inverse import dexterity, inverse, inverse_many, tcp_poses
 
 UR10E = load_robot("ur10e")
@@ -112,3 +112,38 @@ def test_dexterity_falls_to_zero_at_a_stretched_elbow():
     stretched[2] = 0.0  # elbow straight: the arm cannot move its wrist outward
     d = dexterity(UR10E, np.stack([home, stretched]), [0.0, 0.0, 0.1, 0.0, 0.0, 0.0])
     assert d[0] > 0.1 and d[1] < 1e-6
+
+
+def _fit(seed, **seat_kw):
+    rng = np.random.default_rng(seed)
+    arm = SimulatedArm(UR10E, rng, repeatability_mm=0.03, target_offsets=[TOOL_MM])
+    distance = seat_kw.pop("distance_mm", None)
+    radius = seat_kw.get("stylus_radius_mm")
+    plate = seat(arm, plate_placements(rng, 4), 12, rng, **seat_kw)
+    keys = list(dict.fromkeys(zip(plate.setup, plate.point)))
+    index = {k: i for i, k in enumerate(keys)}
+    point = np.array([index[k] for k in zip(plate.setup, plate.point)])
+    distances = () if distance is None else tuple((index[(s, "hole_0")], index[(s, "hole_1")], distance, 0.01)
+                                                  for s in dict.fromkeys(plate.setup))
+    data = PointData(plate.q, np.zeros(len(plate.q), int), ("tcp",), point, tuple(keys),
+                     np.full((len(plate.q), 3), np.nan), distances)
+    return arm, identify_points(UR10E, data, FixtureOptions(seating_sd_mm=0.03, stylus_radius_mm=radius))
+
+
+def test_the_workspace_judgement_tells_a_useful_calibration_from_a_local_one():
+    poses = full_workspace(UR10E, 300, np.random.default_rng(0))
+    # balls touched in small turns with nothing known between them: the arm's scale rests on a 4 mm radius
+    arm, local = _fit(1, max_tilt_deg=20.0, stylus_radius_mm=4.0)
+    # two sockets 200 mm apart, wide turns on both wrists
+    arm2, useful = _fit(1, max_tilt_deg=45.0, wrists=("normal", "flipped"), spacing_mm=200.0, distance_mm=200.0)
+    j_local, j_useful = judge_workspace(UR10E, local), judge_workspace(UR10E, useful)
+    # both fit their contacts to the noise: only the judgement (the fit's own covariance, no truth) tells them apart
+    assert local.errors_mm.mean() < 0.06 and useful.errors_mm.mean() < 0.06
+    assert not j_local.trustworthy and j_useful.trustworthy
+    true_local = workspace_errors(arm, local.k, local.offsets[0], poses).mean()
+    nominal = workspace_errors(arm, UR10E.nominal, local.offsets[0], poses).mean()
+    true_useful = workspace_errors(arm2, useful.k, useful.offsets[0], poses).mean()
+    assert true_local > 0.5 * nominal  # ... and the hidden truth agrees: the local one does not halve the error
+    assert true_useful < 0.25 * workspace_errors(arm2, UR10E.nominal, useful.offsets[0], poses).mean()
+    # its expected error is the error it leaves (first order; 300 poses, 3 axes): within a factor of 2
+    assert 0.5 < true_useful / j_useful.expected_error_mm < 2.0

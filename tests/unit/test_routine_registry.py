@@ -23,7 +23,7 @@ from cellcal.routines.registry import RoutineDeclarationError
 
 # the operator panel's routine selector (docs/panel.md), as it has always been
 PANEL = {1: "tcp-laser", 2: "tcp-stylus", 3: "tcp-npoint", 4: "handshake", 5: "tracker", 6: "tcf",
-         7: "tcp-check"}
+         7: "tcp-check", 8: "kinematic-fixture"}
 
 
 class ProbeRoutine(Routine):
