@@ -4,9 +4,11 @@ from __future__ import annotations
 import json
 
 
+from cellcal.config.fixture_files import read_fixture
 from cellcal.config.robot_files import load_robot
 from cellcal.routines.base import jsonable
 from cellcal.measurements.table import check_joint_limits, joint_velocities, read_measurements, repeated_warning
+from cellcal.solvers import point_analysis
 from cellcal.solvers.analyze import AnalyzeOptions, Finding, Scored, Transfer, analyze, transfer
 from cellcal.solvers.identify import LOSSES, IdentificationError
 from cellcal.solvers.effects import CAUSES, Context, approach_directions
@@ -14,6 +16,7 @@ from cellcal.solvers.effects.cyclic_joint_error import order_search
 from cellcal.solvers.physical_sizes import describe
 from cellcal.cli import model_out
 from cellcal.cli import discriminate as discriminate_cmd
+from cellcal.cli import identify_points
 from cellcal.cli.common import ReportError, UsageError, print_progress, whole, writable_folder
 
 MIN_MEASUREMENTS = 30
@@ -39,6 +42,10 @@ def add_parser(sub):
                    help="a second data set (another time, pose set or target): the named effect as fitted on "
                         "--data, with only B's instrument frame and target offsets fitted on B, scored against "
                         "the geometry alone, with how much of B lies inside --data's joint ranges")
+    p.add_argument("--fixture", metavar="FIXTURE.yaml",
+                   help="for rows of the point form (sockets, stylus balls; docs/measurements.md): the fixture's "
+                        "points, known distances and seating noise, as identify --fixture takes them; the "
+                        "baseline is then the fixture calibration, with each point refit in every fold")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     model_out.add_argument(p, analyze=True)
     discriminate_cmd.add_arguments(p)
@@ -51,7 +58,12 @@ def _context(table) -> Context:
 
 
 def _scored(s: Scored) -> dict:
-    return {"cause": s.cause, "where": s.where, "label": s.label, "heldout_mean_mm": s.heldout_mean_mm}
+    out = {"cause": s.cause, "where": s.where, "label": s.label, "heldout_mean_mm": s.heldout_mean_mm}
+    if s.judged is not None:  # its linearised size against the typical maximum of the robot's class
+        out["plausibility"] = s.judged.json()
+        if not s.judged.plausible:
+            out["against"] = f"it {s.judged.text()}"
+    return out
 
 
 def finding_json(f: Finding, n: int) -> dict:
@@ -67,15 +79,19 @@ def finding_json(f: Finding, n: int) -> dict:
         "notes": list(f.notes),
         **discriminate_cmd.tie_json(f),
         "undecided": _undecided_json(f),
+        "decided_by": list(f.decided_by),
+        "robot_class": f.robot_class.json() if f.robot_class is not None else None,
         "n": n,
         "seconds": f.seconds,
     }
     out.update(_coverage_json(f))
     out["heldout_trimmed_pct"] = 100.0 * f.baseline.trim  # largest errors each score leaves out (robust loss)
     if f.second is not None:
-        out["second"] = _scored(f.second)
+        first_pct, second_pct = f.shares_pct
+        out["second"] = {**_scored(f.second), "heldout_share_pct": second_pct}
         out["both"] = {"label": f.both.label, "heldout_mean_mm": f.both.heldout_mean_mm,
-                       "magnitude": f.both.magnitude}
+                       "magnitude": f.both.magnitude,
+                       "heldout_shares_pct": {f.extended.label: first_pct, f.second.label: second_pct}}
     return out
 
 
@@ -162,7 +178,8 @@ def finding_text(f: Finding, robot: str, n: int, not_scored=(), validation=None)
         lines.append(f"finding: an effect, cause undecided -- the best explanation gains {gain:.1f}% on held-out "
                      f"data ({f.undecided.heldout_mean_mm:.4f} mm), but these data cannot tell apart "
                      "the explanations below (cause: none)")
-        lines.append(f"  experiment that decides: {f.decide_by}")
+        if f.decide_by:  # (none when the only explanation that gains was set aside as implausible)
+            lines.append(f"  experiment that decides: {f.decide_by}")
     elif f.cause == "none" and f.indistinguishable:
         lines.append("finding: none -- these data cannot tell apart the explanations below")
     elif f.cause == "none":
@@ -180,16 +197,23 @@ def finding_text(f: Finding, robot: str, n: int, not_scored=(), validation=None)
                     if f.baseline.trim else ""))
     lines += _coverage_text(f)
     if f.second is not None:
-        lines.append(f"second effect: {f.second.label}; both fitted: {f.both.heldout_mean_mm:.4f} mm")
+        first_pct, second_pct = f.shares_pct
+        lines.append(f"second effect: {f.second.label}; both fitted: {f.both.heldout_mean_mm:.4f} mm held-out "
+                     f"(of the gain over geometry alone {first_pct:.0f}% is the first's, "
+                     f"{second_pct:.0f}% the second's)")
     lines += [f"  note: {note}" for note in (*f.notes, *not_scored)]
     if f.grounds and not f.indistinguishable:  # with a tie, its lines say the grounds
         lines.append(f"  grounds: {f.grounds}")
+    if f.decided_by:
+        lines.append(f"  decided by: {', '.join(f.decided_by)}"
+                     + (f" (robot class {f.robot_class.name}: {f.robot_class.reason})" if f.robot_class else ""))
     lines += discriminate_cmd.tie_lines(f)
     if validation is not None:
         lines += validate_text(*validation)
     lines += ["", "candidates (held-out mean error, mm):"]
     for c in f.candidates[:10]:
-        lines.append(f"  {c.heldout_mean_mm:8.4f}  {c.label}")
+        against = f"  -- implausible: {c.judged.text()}" if c.judged is not None and not c.judged.plausible else ""
+        lines.append(f"  {c.heldout_mean_mm:8.4f}  {c.label}{against}")
     if len(f.candidates) > 10:
         lines.append(f"  ... {len(f.candidates) - 10} more (--json lists all)")
     lines.append(f"\n{f.seconds:.1f} s")
@@ -208,7 +232,13 @@ def run(args) -> int:
     check_joint_limits(table, model.joint_limits, model.name)
     if len(table) < MIN_MEASUREMENTS:
         raise UsageError(f"{args.data}: {len(table)} measurements; the analysis needs at least {MIN_MEASUREMENTS}")
-    obs = table.observations()
+    fixture = read_fixture(args.fixture) if args.fixture else None
+    points = fixture is not None or table.is_point.any()
+    if points:  # sockets or balls: the fixture calibration is the baseline (solvers.point_analysis)
+        fixture_fit, point_data = identify_points.fixture_fit_for_analysis(args, model, table, fixture)
+        obs = point_analysis.observations(fixture_fit, point_data)
+    else:
+        obs = table.observations()
     obs_b, ctx_b = _read_validate(args.validate, model) if args.validate else (None, None)
     ctx = _context(table)
     requested = tuple(dict.fromkeys(args.causes))
@@ -221,7 +251,8 @@ def run(args) -> int:
         print_progress(note)
     causes = tuple(c for c in requested if c not in unscorable)
     finding = analyze(model, obs, ctx, AnalyzeOptions(folds=args.folds, causes=causes, loss=args.loss),
-                      progress=print_progress)
+                      progress=print_progress,
+                      geometry=point_analysis.geometry(fixture_fit, point_data, obs) if points else None)
     validation = None
     if obs_b is not None:
         try:
@@ -234,9 +265,22 @@ def run(args) -> int:
     if experiment and experiment["poses"]:
         text += f"\n\nexperiment: {experiment['summary']}\nposes written to {experiment['file']}"
     # the finding first: a report that cannot be written must not lose it
+    if points:
+        g = finding.scorer.geometric_fit
+        point_note = (f"point form: the baseline is the fixture calibration of {len(point_data.points)} points in "
+                      f"{len({s for s, _ in point_data.points})} setups, each point refit in every fold"
+                      + (f"; held at that calibration (only the fixture's distances fix them): "
+                         f"{', '.join(g.held_without_distances)}" if g.held_without_distances else ""))
+        not_scored = [point_note] + not_scored
+        text = point_note + "\n" + text
     if args.json:
         out = finding_json(finding, len(obs))
         out["notes"] = out["notes"] + not_scored
+        if points:
+            out["form"] = "point"
+            out["point_form"] = {"setups": len({s for s, _ in point_data.points}), "points": len(point_data.points),
+                                 "contact": fixture_fit.options.stylus_radius_mm is not None,
+                                 "held_without_distances": list(finding.scorer.geometric_fit.held_without_distances)}
         out["not_scored"] = {c: why for c, why in unscorable.items()}
         if experiment is not None:
             out["discriminate"] = experiment

@@ -175,3 +175,27 @@ def _write_model(args, model, result, cal: MeasurementTable, validation) -> None
     calibrated = from_fit(model, cal.target_names, result.tracker_x(cal.target_names))
     model_out.write_model(args.write_model, calibrated, args.robot,
                           model_out.provenance("identify", args.data, len(cal), heldout, how))
+
+
+def fixture_fit_for_analysis(args, model, table: MeasurementTable, fixture: Fixture | None):
+    """``cellcal analyze`` on point-form rows: the same checks as identify's, then the fixture calibration
+    that is the analysis' geometric baseline. Returns (fit, PointData)."""
+    if (~table.is_point).any():
+        first = int(np.flatnonzero(~table.is_point)[0])
+        raise DatasetError(f"{table.path}:{table.line[first]}: column 'x_mm': a measured position among point rows; "
+                           "analyze takes point rows or measured positions, not both in one analysis: split the file")
+    for flag, given in (("--validate", args.validate), ("--discriminate", getattr(args, "discriminate", None))):
+        if given:
+            raise UsageError(f"{flag} with point-form rows: it carries effects between tracker campaigns (or designs "
+                             "tracker poses); analyze the point rows without it")
+    if args.loss != "linear":
+        raise UsageError(f"--loss {args.loss}: point-form rows are fitted by least squares (leave --loss out)")
+    _check_rows(table, fixture)
+    if fixture is not None:
+        _check_fixture_used(fixture, (table,))
+    keys = _keys(table)
+    _check_setups(table, keys, fixture)
+    options = FixtureOptions(seating_sd_mm=fixture.seating_sd_mm if fixture else FixtureOptions.seating_sd_mm,
+                             stylus_radius_mm=fixture.stylus_radius_mm if fixture else None)
+    data = _data(table, keys, fixture, table.target_names)
+    return identify_points(model, data, options, progress=print_progress), data

@@ -4,7 +4,9 @@
 2. For every candidate term of every named cause (``effects``), fit geometry and
    term jointly, linearised at the geometric fit (``LinearisedScorer``); the
    term's parameters are estimated only where the data can separate them from
-   the geometry (same identifiability rule as ``identify``).
+   the geometry (same identifiability rule as ``identify``). A cause with places (joints, a
+   periodic error's orders) offers one candidate: the places one forward search combines,
+   chosen again inside each fold's training rows and scored by those choices (``selection``).
 3. Score baseline and candidates on held-out data: grouped k-fold
    cross-validation, neighbouring configurations kept in one fold
    (``score_candidates``).
@@ -29,7 +31,7 @@ from typing import Sequence
 
 import numpy as np
 
-from cellcal.solvers import crossval, lsq, physical_sizes, ties
+from cellcal.solvers import crossval, lsq, physical_sizes, plausibility, selection, ties
 from cellcal.solvers.effects import CAUSES, Context, JointBasis, Term
 from cellcal.solvers.identify import Identification, IdentifyOptions, identify, identify_variants
 from cellcal.solvers.extended_model import ExtendedFit, ExtendedModel, embed, fit_extended, norm_scale
@@ -50,6 +52,8 @@ class AnalyzeOptions:
     causes: tuple[str, ...] = tuple(CAUSES)
     prior_mm: float = 1.0
     loss: str = "linear"  # robust loss of every fit, as identify's; the held-out scores trimmed (robust_scoring)
+    nested: bool = True  # a cause with places is scored by its selection made inside each fold (False: the
+    #                      selection made on all rows, scored on the same folds: optimistic; for comparison)
 
 
 @dataclass(frozen=True)
@@ -72,6 +76,7 @@ class Scored:
     #                              when several), see ``Cause.details``
 
     trim: float = 0.0  # fraction of the largest held-out errors the score leaves out (robust loss)
+    judged: object = None  # plausibility.Judgement of its linearised size (None: not judged)
 
     @property
     def heldout_mean_mm(self) -> float:
@@ -99,10 +104,22 @@ class Finding:
     undecided: Scored | None = None  # cause "none" although this, the best contender, gains MIN_GAIN: an
     #                                  effect whose cause these data cannot decide (see indistinguishable)
     decide_by: str = ""  # with undecided: the experiment that decides, in words
+    robot_class: object = None  # plausibility.RobotClass whose typical sizes judged the candidates
+    decided_by: tuple[str, ...] = ()  # the grounds that decided the finding, as words of ``GROUNDS``
 
     @property
     def gain_pct(self) -> float:
         return 100.0 * (1.0 - self.extended.heldout_mean_mm / self.baseline.heldout_mean_mm)
+
+    @property
+    def shares_pct(self) -> tuple[float, float] | None:
+        """With a second effect: each effect's share (percent) of the held-out gain both together reach
+        over geometry alone, the named one's alone and what the second adds to it; None without."""
+        if self.both is None:
+            return None
+        gain = self.baseline.heldout_mean_mm - self.both.heldout_mean_mm
+        first = (self.baseline.heldout_mean_mm - self.extended.heldout_mean_mm) / gain if gain > 0 else 1.0
+        return 100.0 * first, 100.0 * (1.0 - first)
 
 
 @dataclass(frozen=True)
@@ -117,10 +134,12 @@ class Naming:
     contenders: tuple[Scored, ...] = ()  # each cause's preferred candidate, best first (``contenders``);
     #                                      () for made-up namings: then the first single place of each cause
     grounds: str = ""  # why the named one is not the lowest-scored candidate ("" when it is, or none is named)
+    set_aside: tuple[Scored, ...] = ()  # contenders whose size is implausible for the robot's class, best first
+    plausibility: str = ""  # the grounds those were set aside on, when one of them led ("" else)
 
 
 def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = AnalyzeOptions(),
-            progress=None) -> Finding:
+            progress=None, geometry=None) -> Finding:
     """Find, name and size the physical effect the rigid model misses (or ``none``).
 
     Candidates are ranked on the model linearised at the geometric fit (every
@@ -130,45 +149,67 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     started = time.perf_counter()
     say = progress or (lambda msg: None)
     folds = crossval.fold_ids(obs.q, options.folds, options.seed, NEIGHBOUR_RAD)
-    geometric_fit = _geometric_baseline(model, obs, folds, options)
-    parts = {cause: CAUSES[cause].terms(model, geometric_fit.layout, geometric_fit.x, obs, ctx)
+    # geometry: the geometric baseline when it is not identify's (point-form data: point_analysis.geometry,
+    # whose point positions every fold estimates with the geometry)
+    geometric_fit = geometry if geometry is not None else _geometric_baseline(model, obs, folds, options)
+    parts = {cause: CAUSES[cause].terms(model, geometric_fit.layout, geometric_fit.x, obs,
+                                        dataclasses.replace(ctx, folds=folds))
              for cause in options.causes}
     scorer = LinearisedScorer(model, geometric_fit, obs, folds, options.prior_mm,
                               [t for cause in options.causes for t in parts[cause]],
                               RobustScoring.of(options.loss, geometric_fit.residuals_mm))
-    # a cause whose candidates are chosen by cross-validation (orders of a periodic error) composes them
-    terms = [t for cause in options.causes for t in CAUSES[cause].compose(parts[cause], scorer)]
+    # a cause with places offers the forward search's choice (``selection``), scored by the choices made
+    # inside each fold (nested); the others' terms compete as they are
+    places = {cause: CAUSES[cause].search_places(parts[cause]) for cause in options.causes}
+    places = {cause: p for cause, p in places.items() if p is not None}
+    scores = selection.Scores(scorer)
+    searched = [s for s in (selection.select(CAUSES[cause], *p, scores) for cause, p in places.items()) if s]
+    terms = [t for cause in options.causes if cause not in places
+             for t in CAUSES[cause].compose(parts[cause], scorer)]
     say(f"geometric model: {len(obs)} measurements, residual "
         f"{np.linalg.norm(scorer.baseline_residuals_mm, axis=1).mean():.3f} mm mean")
 
     # geometry alone and every candidate in one pass over the rows
-    errors = scorer.heldout_errors_many([()] + [(t,) for t in terms])
+    errors = scorer.heldout_errors_of_steps(np.concatenate(
+        [scorer.steps(())] + [scorer.steps((t,)) for t in terms]
+        + [selection.nested_steps(scores, s) if options.nested else scorer.steps((s.term,)) for s in searched]))
+    terms = terms + [s.term for s in searched]
     baseline = Scored(label="geometry only", cause="none", where={}, heldout_errors=errors[0],
                       theta=np.zeros(0), magnitude={}, x=geometric_fit.x, residuals=scorer.baseline_residuals_mm,
                       trim=scorer.robust.trim)
     say(f"held-out mean, geometry only: {baseline.heldout_mean_mm:.3f} mm")
     candidates = score_candidates(terms, scorer, errors[1:])
     say(f"scored {len(candidates)} candidates")
+    robot_class = plausibility.robot_class(model)  # every candidate's size against what arms of its class show
+    candidates = plausibility.judge_candidates(candidates, scorer, robot_class.name)
     naming = name_cause(candidates, baseline, scorer)
     tied = ties.tied_explanations(naming, baseline, scorer, MIN_GAIN, MIN_MARGIN,
                                   lambda s: _fit_in_full(model, geometric_fit, obs, folds, s.terms, options.prior_mm,
-                                                         s.label, scorer.robust).magnitude)
+                                                         s.label, scorer.robust).magnitude, robot_class.name)
     naming = tied.naming
     undecided = None
-    if naming.named is None and naming.contenders and \
-            1.0 - naming.contenders[0].heldout_mean_mm / baseline.heldout_mean_mm >= MIN_GAIN:
-        undecided = naming.contenders[0]
-    grounds = "; ".join(g for g in (tied.grounds, naming.grounds if naming.named is not None else "") if g)
+    leading = sorted(naming.contenders + naming.set_aside, key=lambda s: s.heldout_mean_mm)
+    if naming.named is None and leading and 1.0 - leading[0].heldout_mean_mm / baseline.heldout_mean_mm >= MIN_GAIN:
+        undecided = leading[0]
+    grounds = "; ".join(g for g in (naming.plausibility, tied.grounds,
+                                    naming.grounds if naming.named is not None else "") if g)
 
     extended, second, both = baseline, None, None
     if naming.named is not None:
         named = naming.named
-        second = find_second_effect(named, terms, naming.candidates, scorer)
+        second = find_second_effect(named, terms, places, scores, options.nested)
         if second is not None:
             both = _fit_in_full(model, geometric_fit, obs, folds, named.terms + second.terms, options.prior_mm,
                                 f"{named.label} + {second.label}", scorer.robust)
         extended = _fit_in_full(model, geometric_fit, obs, folds, named.terms, options.prior_mm, named.label,
                                 scorer.robust)
+        if options.nested and any(named.terms[0] is s.term for s in searched):
+            # what was chosen by a search is scored as it was named: each fold's own choice on that fold
+            extended = dataclasses.replace(extended, heldout_errors=named.heldout_errors)
+        elif geometry is not None:  # the full fit holds the points: score as the candidates were, points refit
+            extended = dataclasses.replace(extended, heldout_errors=scorer.heldout_errors_mm(named.terms))
+        if geometry is not None and both is not None:
+            both = dataclasses.replace(both, heldout_errors=scorer.heldout_errors_mm(named.terms + second.terms))
     say(f"analysis done in {time.perf_counter() - started:.1f} s")
     return Finding(
         cause=extended.cause, where=extended.where, magnitude=extended.magnitude, baseline=baseline,
@@ -176,6 +217,7 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
         seconds=time.perf_counter() - started, notes=naming.notes,
         joint_range_deg=tuple((float(lo), float(hi)) for lo, hi in np.rad2deg([obs.q.min(0), obs.q.max(0)]).T),
         indistinguishable=tied.entries, grounds=grounds, scorer=scorer, undecided=undecided,
+        robot_class=robot_class, decided_by=_decided_by(naming, tied),
         decide_by=ties.decide_by(tied.entries) if undecided is not None else "")
 
 
@@ -230,7 +272,34 @@ def name_cause(candidates: Sequence[Scored], baseline: Scored, scorer: Linearise
     if not candidates:
         return Naming(named=None, candidates=(), margin=0.0)
     ranked = tuple(sorted(candidates, key=lambda s: s.heldout_mean_mm))
-    rivals = tuple(contenders(ranked))
+    every = tuple(contenders(ranked))
+    # a size beyond what arms of the robot's class show is a reason against (``plausibility``): such a lead
+    # does not name its cause when an explanation of plausible size comes within MIN_MARGIN of it (and gains
+    # MIN_GAIN) -- the plausible contenders compete; when none does, the data prefer the lead clearly: it
+    # competes all the same with its size said (``plausibility.STRICT``: nothing is named then)
+    aside = tuple(c for c in every if c.judged is not None and not c.judged.plausible)
+    rivals = tuple(c for c in every if all(c is not a for a in aside))
+    leading = [a for a in aside if (not rivals or a.heldout_mean_mm < rivals[0].heldout_mean_mm)
+               and 1.0 - a.heldout_mean_mm / baseline.heldout_mean_mm >= MIN_GAIN]
+    why_aside = "; ".join(f"{a.label} leads at {a.heldout_mean_mm:.4f} mm held-out but is set aside: it "
+                          f"{a.judged.text()}" for a in leading)
+    close = [r for r in rivals if leading and 1.0 - r.heldout_mean_mm / baseline.heldout_mean_mm >= MIN_GAIN
+             and r.heldout_mean_mm < (1.0 + MIN_MARGIN) * leading[0].heldout_mean_mm]
+    if leading and not close:
+        lead = leading[0]
+        if plausibility.STRICT:
+            why_aside = (f"{lead.label} leads at {lead.heldout_mean_mm:.4f} mm held-out but is set aside: it "
+                         f"{lead.judged.text()}, and no explanation of a plausible size comes within "
+                         f"{100 * MIN_MARGIN:.0f}% of it")
+            return Naming(named=None, candidates=ranked, margin=0.0, notes=(why_aside,), contenders=rivals,
+                          set_aside=aside, plausibility=why_aside)
+        why_aside = (f"{lead.label} {lead.judged.text()}, but no explanation of a plausible size comes within "
+                     f"{100 * MIN_MARGIN:.0f}% of it: it competes all the same")
+        rivals, aside = every, ()
+    if not rivals:
+        note = "every explanation needs a size beyond what arms of this class show: none is named"
+        return Naming(named=None, candidates=ranked, margin=0.0, notes=(note,), set_aside=aside,
+                      plausibility=why_aside)
     best = rivals[0]
     gain = 1.0 - best.heldout_mean_mm / baseline.heldout_mean_mm
     margin = (rivals[1].heldout_mean_mm / best.heldout_mean_mm - 1.0) if len(rivals) > 1 else 1.0
@@ -244,11 +313,36 @@ def name_cause(candidates: Sequence[Scored], baseline: Scored, scorer: Linearise
     if gain < MIN_GAIN:
         note = (f"best candidate {best.label} gains {100 * gain:.1f}% on held-out data, "
                 f"below the {100 * MIN_GAIN:.0f}% needed to name it")
-        return Naming(named=None, candidates=ranked, margin=margin, notes=(note,), contenders=rivals)
+        return Naming(named=None, candidates=ranked, margin=margin, notes=(note,), contenders=rivals,
+                      set_aside=aside, plausibility=why_aside)
     if margin >= MIN_MARGIN:
-        return Naming(named=best, candidates=ranked, margin=margin, contenders=rivals, grounds=grounds)
+        return Naming(named=best, candidates=ranked, margin=margin, contenders=rivals, grounds=grounds,
+                      set_aside=aside, plausibility=why_aside)
     return dataclasses.replace(_settle_tie(best, rivals[1], ranked, baseline, margin, scorer), contenders=rivals,
-                               grounds=grounds)
+                               grounds=grounds, set_aside=aside, plausibility=why_aside)
+
+
+# The grounds a finding can be decided on (``Finding.decided_by``): the held-out gain over geometry alone
+# (MIN_GAIN), the margin over every other cause (MIN_MARGIN), a single place preferred to several
+# (MULTI_GAIN), the simpler of two nested explanations, two effects present together, a tie the data
+# leave open, and the physical plausibility of the sizes needed (``plausibility``).
+GROUNDS = ("gain", "margin", "single place", "nested", "two effects", "tie", "plausibility")
+
+
+def _decided_by(naming: Naming, tied) -> tuple[str, ...]:
+    """The words of GROUNDS that decided: what named the finding, or what left it ``none``."""
+    out = ["gain"]  # what is named gains MIN_GAIN; below it nothing is
+    if naming.named is not None and naming.tie == "":
+        out.append("margin")
+    if naming.named is not None and naming.grounds:
+        out.append("single place")
+    out += {"nested": ["nested"], "both": ["two effects"], "ambiguous": ["tie"], "unseparated": ["tie"]}.get(
+        naming.tie, [])
+    if tied.entries and naming.named is None:
+        out.append("tie")
+    if naming.plausibility or tied.grounds.startswith("named on physical plausibility"):
+        out.append("plausibility")
+    return tuple(dict.fromkeys(out))
 
 
 def _settle_tie(best: Scored, runner_up: Scored, candidates: Sequence[Scored], baseline: Scored, margin: float,
@@ -273,18 +367,30 @@ def _settle_tie(best: Scored, runner_up: Scored, candidates: Sequence[Scored], b
     return Naming(named=None, candidates=ranked, margin=margin, notes=(note,), tie="ambiguous")
 
 
-def find_second_effect(named: Scored, terms: Sequence[Term], candidates: Sequence[Scored],
-                       scorer: LinearisedScorer) -> Scored | None:
+def find_second_effect(named: Scored, terms: Sequence[Term], places: dict, scores: selection.Scores,
+                       nested: bool = True) -> Scored | None:
     """With the named effect in the model, the candidate of another cause that lowers the
-    held-out mean by MIN_GAIN more, or None."""
-    others = [t for t in terms if t.cause != named.cause]
-    errors = scorer.heldout_errors_many([named.terms + (t,) for t in others]) if others else []
-    with_named = [(float(trimmed_mean(e, named.trim)), t) for e, t in zip(errors, others)]
-    with_named.sort(key=lambda pair: pair[0])
-    _prefer_single_place(with_named, lambda pair: pair[0], lambda pair: pair[1])
+    held-out mean by MIN_GAIN more, or None; scored alone. A cause with places is searched
+    again with the named effect in the model (the same forward search, nested as the first)."""
+    scorer = scores.scorer
+    others = [t for t in terms if t.cause != named.cause and t.extra.get("all", True)]
+    searched = [s for s in (selection.select(CAUSES[cause], *p, scores, base=named.terms)
+                            for cause, p in places.items() if cause != named.cause) if s]
+    if not others and not searched:
+        return None
+    steps = ([scorer.steps(named.terms + (t,)) for t in others]
+             + [selection.nested_steps(scores, s, named.terms) if nested else scorer.steps(named.terms + (s.term,))
+                for s in searched])
+    candidates = others + [s.term for s in searched]
+    errors = scorer.heldout_errors_of_steps(np.concatenate(steps + [scorer.steps((t,)) for t in candidates]))
+    with_named = [(float(trimmed_mean(e, named.trim)), t, alone)
+                  for e, t, alone in zip(errors, candidates, errors[len(candidates):])]
+    with_named.sort(key=lambda entry: entry[0])
+    _prefer_single_place(with_named, lambda entry: entry[0], lambda entry: entry[1])
     if not with_named or with_named[0][0] >= (1.0 - MIN_GAIN) * named.heldout_mean_mm:
         return None
-    return next(c for c in candidates if c.terms == (with_named[0][1],))
+    _, term, alone = with_named[0]
+    return score_candidates([term], scorer, [alone])[0]
 
 
 def _prefer_single_place(ranked: list, error, term) -> None:

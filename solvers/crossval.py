@@ -61,6 +61,7 @@ GROUP_BLOCK_ROWS = 2048
 
 
 PATH_BLOCKS_PER_FOLD = 10  # path-ordered data: blocks along the row order per fold
+SUBFOLDS = 2  # each fold's groups dealt into this many sub-folds: the inner folds of a nested selection
 
 
 class FoldIds(np.ndarray):
@@ -69,9 +70,11 @@ class FoldIds(np.ndarray):
     Indexing or arithmetic gives plain fold ids without exclusions."""
 
     exclude: tuple[np.ndarray, ...] | None = None
+    sub: np.ndarray | None = None  # sub-fold of each row (whole groups), None for path-ordered data
 
     def __array_finalize__(self, obj):
         self.exclude = None
+        self.sub = None
 
 
 def fold_ids(q: np.ndarray, folds: int, seed: int = 0, radius_rad: float = 0.0) -> FoldIds:
@@ -92,9 +95,12 @@ def fold_ids(q: np.ndarray, folds: int, seed: int = 0, radius_rad: float = 0.0) 
     if n_groups < folds:
         raise ValueError(f"only {n_groups} distinct configurations: too few for {folds}-fold cross-validation")
     order = np.random.default_rng(seed).permutation(n_groups)
-    fold_of_group = np.empty(n_groups, dtype=int)
+    fold_of_group, sub_of_group = np.empty(n_groups, dtype=int), np.empty(n_groups, dtype=int)
     fold_of_group[order] = np.arange(n_groups) % folds
-    return fold_of_group[group].view(FoldIds)
+    sub_of_group[order] = (np.arange(n_groups) // folds) % SUBFOLDS
+    out = fold_of_group[group].view(FoldIds)
+    out.sub = sub_of_group[group]
+    return out
 
 
 def path_fold_ids(q: np.ndarray, folds: int, seed: int, radius_rad: float) -> FoldIds:
@@ -145,7 +151,21 @@ class FoldFactors:
             for k, rows in enumerate(exclude):
                 self._gap[k, rows] = True
             self._gap_acc = [RFactor(p + 1) for _ in self.ids]
+            # the inner folds of a nested selection leave out the gaps of two folds at once: the rows
+            # of each (fold, which folds' training leaves them out) class kept apart (``inner``)
+            bits = (self._gap * (1 << np.arange(len(self.ids)))[:, None]).sum(0)
+            keys = self.index * (1 << len(self.ids)) + bits
+            self._classes = np.unique(keys[bits > 0])
+            self._class_of = np.full(len(self.folds), -1)
+            self._class_of[bits > 0] = np.searchsorted(self._classes, keys[bits > 0])
+            self._class_acc = [RFactor(p + 1) for _ in self._classes]
+        sub = getattr(folds, "sub", None)  # FoldIds: sub-folds, the inner folds of a nested selection
+        self._sub = None if sub is None or self._gap is not None else np.asarray(sub)
+        if self._sub is not None:
+            self._n_sub = int(self._sub.max()) + 1
+            self._sub_grams = np.zeros((len(self.ids), self._n_sub, p + 1, p + 1))
         self._grams = None
+        self._all_grams = None
 
     def add(self, rows, j: np.ndarray, r: np.ndarray) -> None:
         """Rows (a slice or indices of the measurements): j (n, 3, p), r (n, 3)."""
@@ -157,7 +177,17 @@ class FoldFactors:
         if self._gap is not None:
             for k, acc in enumerate(self._gap_acc):
                 acc.add(block[np.repeat(self._gap[k, rows], 3)])
+            cls = np.repeat(self._class_of[rows], 3)
+            for c in np.unique(cls[cls >= 0]):
+                self._class_acc[c].add(block[cls == c])
+        if self._sub is not None:
+            sub = np.repeat(self._sub[rows], 3)
+            for k in np.unique(fold):
+                for s in range(self._n_sub):
+                    mine = block[(fold == k) & (sub == s)]
+                    self._sub_grams[k, s] += mine.T @ mine
         self._grams = None
+        self._all_grams = None
 
     @property
     def factors(self) -> list[np.ndarray]:
@@ -179,6 +209,65 @@ class FoldFactors:
         g = self._grams[k]
         return g[: self.p, : self.p], g[: self.p, self.p]
 
+    def _fold_grams(self):
+        """([J | r]^T [J | r] of each fold's rows], of every row, [of each gap class's rows])."""
+        if self._all_grams is None:
+            grams = [f.T @ f for f in self.factors]
+            classes = [a.r.T @ a.r for a in self._class_acc] if self._gap is not None else []
+            self._all_grams = (grams, np.sum(grams, axis=0), classes)
+        return self._all_grams
+
+    def outer(self) -> list:
+        """(training Gram, held-out Gram) of [J | r] for each fold: the cross-validation over every row,
+        in the form ``inner`` gives."""
+        grams, _, _ = self._fold_grams()
+        out = []
+        for k in range(len(self.ids)):
+            self.training(k)
+            out.append((self._grams[k], grams[k]))
+        return out
+
+    def inner_parts(self, k: int):
+        """(Gram of fold k's training rows, the sub-fold Grams (folds, sub-folds, p+1, p+1), the (fold,
+        sub-fold) pairs held out in turn): each inner training of ``inner`` is the first less one of the
+        second, without a copy of either; None for path-ordered data, whose inner trainings also leave
+        out gaps (use ``inner``)."""
+        if self._sub is None:
+            return None
+        grams, total, _ = self._fold_grams()
+        pairs = [(j, s) for j in range(len(self.ids)) if j != k for s in range(self._n_sub)
+                 if self._sub_grams[j, s].any()]
+        return total - grams[k], self._sub_grams, np.array(pairs, dtype=int).reshape(-1, 2)
+
+    def inner(self, k: int) -> list:
+        """(training Gram, held-out Gram) of [J | r] for each inner fold of fold k's training rows (k
+        indexes self.ids): the sub-folds of the other folds (``FoldIds.sub``: whole neighbour groups),
+        or for path-ordered data the other folds, each held out in turn from fold k's training rows.
+        There an inner training leaves out the gaps of both folds, an inner held-out fold the rows of
+        fold k's gap: nothing of fold k, or too close to it, enters a choice made for fold k."""
+        grams, total, classes = self._fold_grams()
+        n = len(self.ids)
+        out = []
+        if self._sub is not None:
+            for j in range(n):
+                for held in (self._sub_grams[j] if j != k else ()):
+                    if held.any():  # an empty sub-fold holds nothing out
+                        out.append((total - grams[k] - held, held))
+            return out
+        for j in range(n):
+            if j == k:
+                continue
+            train, held = total - grams[k] - grams[j], grams[j].copy()
+            if self._gap is not None:
+                for key, g in zip(self._classes, classes):
+                    fold, bits = int(key) >> n, int(key) & ((1 << n) - 1)
+                    if fold not in (k, j) and (bits >> k & 1 or bits >> j & 1):
+                        train = train - g
+                    if fold == j and bits >> k & 1:
+                        held = held - g
+            out.append((train, held))
+        return out
+
     def steps(self, cols, penalty=None, deviation=None, lams=(0.0,)) -> np.ndarray:
         """Gauss-Newton steps over the columns cols on each fold's training rows, (len(lams), folds, p),
         zero outside cols. Optional L2 prior lam * sum(penalty * (deviation + step)^2) over cols."""
@@ -192,6 +281,29 @@ class FoldFactors:
             for g, lam in enumerate(lams):
                 out[g, k, cols] = -_solve(normal + lam * np.diag(penalty), grad + lam * penalty * deviation)
         return out
+
+
+def training_rows(folds: np.ndarray, k: int) -> np.ndarray:
+    """Rows of fold k's training (k indexes the sorted fold ids): every other fold, less its gap."""
+    folds_arr = np.asarray(folds)
+    train = folds_arr != np.unique(folds_arr)[k]
+    exclude = getattr(folds, "exclude", None)
+    if exclude is not None:
+        train[exclude[k]] = False
+    return np.flatnonzero(train)
+
+
+def inner_fold_ids(folds: np.ndarray, k: int) -> tuple[np.ndarray, FoldIds]:
+    """(fold k's training rows, their fold ids with the gaps among them): the folds of a choice made
+    inside fold k's training (nested cross-validation), the other folds held out in turn."""
+    rows = training_rows(folds, k)
+    inner = np.asarray(folds)[rows].view(FoldIds)
+    exclude = getattr(folds, "exclude", None)
+    if exclude is not None:
+        at = np.full(len(folds), -1)
+        at[rows] = np.arange(len(rows))
+        inner.exclude = tuple(at[e][at[e] >= 0] for i, e in enumerate(exclude) if i != k)
+    return rows, inner
 
 
 def heldout_errors(columns, r: np.ndarray, factors: FoldFactors, steps: np.ndarray) -> np.ndarray:

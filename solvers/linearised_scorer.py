@@ -31,7 +31,8 @@ class LinearisedScorer:
         self.model, self.geometric_fit, self.obs, self.folds, self.prior_mm = model, geometric_fit, obs, folds, prior_mm
         self.robust = robust
         self.baseline_residuals_mm = geometric_fit.residuals_mm
-        self.n_geometry = int(geometric_fit.free.sum())
+        # the geometry's columns: its free parameters, and with point-form data each point's position
+        self.n_geometry = int(geometric_fit.free.sum()) + getattr(geometric_fit, "n_point_columns", 0)
         self.terms = list(terms)
         self._at: dict[int, slice] = {}
         col = self.n_geometry
@@ -49,11 +50,17 @@ class LinearisedScorer:
     def _columns(self):
         """(rows, [geometry | every term] columns (n, 3, n_columns)) over all rows in blocks."""
         fit, obs = self.geometric_fit, self.obs
+        n_free = int(fit.free.sum())
+        points = getattr(fit, "point_columns", None)  # point-form data: point_analysis.PointGeometry
         for rows, _, jx, jq in jacobian_chunks(fit.layout, fit.x, obs, with_joints=True):
             out = np.empty((len(jx), 3, self.n_columns))
-            out[:, :, : self.n_geometry] = jx[:, :, fit.free]
+            out[:, :, :n_free] = jx[:, :, fit.free]
+            if points is not None:  # each point's position, estimated with the geometry in every fold
+                out[:, :, n_free: self.n_geometry] = points(rows)
             for t in self.terms:
                 out[:, :, self._at[id(t)]] = self._term_columns(t, rows, jx, jq)
+            if points is not None:  # what the rows measure (a contact: the distance along the ball's normal)
+                out = fit.project(rows, out)
             yield rows, out
 
     def _term_columns(self, term: Term, rows, jacobian_x, jacobian_q) -> np.ndarray:
@@ -86,6 +93,14 @@ class LinearisedScorer:
     def heldout_errors_many(self, term_sets) -> np.ndarray:
         """(len(term_sets), N) held-out error of each measurement, for each set of terms with geometry."""
         steps = np.concatenate([self.factors.steps(self.estimated(tuple(ts))) for ts in term_sets])
+        return crossval.heldout_errors(self._columns(), self.baseline_residuals_mm, self.factors, steps)
+
+    def steps(self, terms: tuple[Term, ...]) -> np.ndarray:
+        """(1, folds, p) each fold's step with geometry and these terms, for ``heldout_errors_of_steps``."""
+        return self.factors.steps(self.estimated(tuple(terms)))
+
+    def heldout_errors_of_steps(self, steps: np.ndarray) -> np.ndarray:
+        """(len(steps), N) held-out error of each measurement for each set of fold steps (folds, p)."""
         return crossval.heldout_errors(self._columns(), self.baseline_residuals_mm, self.factors, steps)
 
     def mean_mm(self, errors: np.ndarray) -> np.ndarray:

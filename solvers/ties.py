@@ -12,7 +12,7 @@ misses them by fewer than sqrt(DECIDE_LAMBDA) noise standard deviations over all
 rows (for the closer direction). A held-out lead then comes from how the folds fall
 on a few loosely determined parameters, not from anything the data show. When one of them is named all the same, the grounds are stated: the
 simpler of two nested explanations, or physical plausibility -- the size each
-would need against what robots of this class show (``TYPICAL_MAX``). Only a
+would need against what robots of its class show (``plausibility.TYPICAL_MAX``). Only a
 different experiment can decide a tie that neither settles (``discriminate``).
 """
 from __future__ import annotations
@@ -22,27 +22,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cellcal.solvers import plausibility
+
 # Two explanations whose predictions, each fitted, lie fewer than 2 * 2.33 noise standard deviations
 # apart over all the data (summed squares) cannot be told apart by a decision that errs below 1% either
 # way; the experiment design asks the same of the poses it proposes (``discriminate``).
 DECIDE_LAMBDA = (2.0 * 2.326) ** 2
 MEAN_PER_SIGMA = np.sqrt(8.0 / np.pi)  # mean length of 3-D noise per standard deviation of one coordinate
 
-# Largest size of each effect commonly reported for serial industrial arms: (how the keys of the
-# cause's magnitude end, largest typical value, what it means); the largest of those keys is judged.
-# Gravity deflection of a joint: stiffness 1e4..1e6 N m/rad against gravity torques up to a few
-# kN m, a few hundredths of a degree typical, 0.5 deg an extreme; gear and encoder cyclic errors:
-# an arc minute or two (0.02-0.05 deg), 0.1 deg an extreme; backlash after assembly: below 0.1 deg;
-# thermal growth: steel 12, aluminium 23 ppm/K; a tilt between parallel axes after machining:
-# below 0.5 deg; trigger latency of sensor and IO: below 100 ms.
-TYPICAL_MAX = {
-    "joint_compliance": ("deflection_rms_deg", 0.5, "joint deflection under gravity"),
-    "cyclic_joint_error": ("amplitude_deg", 0.1, "gear or encoder cyclic error"),
-    "backlash": ("backlash_deg", 0.1, "lost motion of an assembled joint"),
-    "thermal_drift": ("expansion_ppm_per_K", 30.0, "thermal expansion of steel or aluminium"),
-    "parallel_axis_tilt": ("tilt_deg", 0.5, "tilt between machined parallel axes"),
-    "trigger_latency": ("latency_ms", 100.0, "sensor and IO latency"),
-}
+# The typical maxima of the default robot class, as (magnitude key suffix, value, what it means): the table
+# itself, per cause and robot class with its reasoning, is ``plausibility.TYPICAL_MAX``.
+TYPICAL_MAX = {cause: (next(iter(q.suffixes)), plausibility.TYPICAL_MAX[cause][plausibility.DEFAULT_CLASS], q.what)
+               for cause, q in plausibility.QUANTITY.items()}
 
 
 @dataclass(frozen=True)
@@ -52,7 +43,8 @@ class Tied:
     scored: object  # analyze.Scored: the candidate as ranked
     why: str  # "same column span as ..." or "held-out error within the margin of ..."
     size: dict = dataclasses.field(default_factory=dict)  # the physical size it would need ({} not fitted)
-    plausible: bool | None = None  # that size within TYPICAL_MAX; None when not judged
+    plausible: bool | None = None  # that size within the class's typical maximum; None when not judged
+    judged: object = None  # plausibility.Judgement of that size
 
     @property
     def cause(self) -> str:
@@ -68,6 +60,8 @@ class Tied:
         if self.size:
             out["size_needed"] = self.size
             out["plausible"] = self.plausible
+        if self.judged is not None:
+            out["plausibility"] = self.judged.json()
         return out
 
 
@@ -78,12 +72,13 @@ class TieReport:
     grounds: str = ""
 
 
-def tied_explanations(naming, baseline, scorer, min_gain: float, min_margin: float, size_of) -> TieReport:
+def tied_explanations(naming, baseline, scorer, min_gain: float, min_margin: float, size_of,
+                      robot_class: str = plausibility.DEFAULT_CLASS) -> TieReport:
     """The explanations of different causes within the margin of the best one, if that one explains
     anything (gains min_gain); none when two effects are both present (``naming.tie == "both"``).
 
     size_of(scored) -> its cause's magnitude, fitted in full; called only for a tie the naming
-    rule left open, to judge plausibility."""
+    rule left open, to judge plausibility against the typical maxima of robot_class."""
     candidates = naming.candidates
     if not candidates or naming.tie == "both":
         return TieReport(naming)
@@ -111,7 +106,7 @@ def tied_explanations(naming, baseline, scorer, min_gain: float, min_margin: flo
         grounds = (f"{naming.named.label} is named as the simpler explanation: the other needs more "
                    f"parameters to say the same on these data")
         return TieReport(naming, tuple(entries), grounds)
-    entries = [_judged(e, size_of(e.scored)) for e in entries]
+    entries = [_judged(e, size_of(e.scored), robot_class) for e in entries]
     plausible = [e for e in entries if e.plausible]
     if len(plausible) != 1 or any(e.plausible is None for e in entries):
         return TieReport(naming, tuple(entries))
@@ -163,14 +158,18 @@ def decide_by(entries) -> str:
 def _unseparated(best, candidates, baseline, scorer, min_gain: float):
     """(the first single-place candidate of another cause, how many noise standard deviations apart the
     two put the data) when it also explains the data (gains min_gain) and they lie fewer than
-    sqrt(DECIDE_LAMBDA) apart, the closer direction counted (either may be the truth); else (None, None).
+    sqrt(DECIDE_LAMBDA) apart, the closer direction counted (either may be the truth), but for a best
+    explanation that contains the other only the other refitted to it; else (None, None).
     The noise is what the best explanation leaves on held-out data."""
     other = next((c for c in candidates if c.cause != best.cause and not c.terms[0].multi), None)
     if other is None or 1.0 - other.heldout_mean_mm / baseline.heldout_mean_mm < min_gain:
         return None, None
     sigma_mm = best.heldout_mean_mm / MEAN_PER_SIGMA
     a, b = best.terms[0], other.terms[0]
-    lam = min(scorer.separation_mm2(a, b), scorer.separation_mm2(b, a)) / sigma_mm**2
+    apart = [scorer.separation_mm2(a, b)]
+    if not scorer.is_nested(b, a):  # the best contains the other: it reproduces the other's predictions on
+        apart.append(scorer.separation_mm2(b, a))  # any data, that direction tells nothing
+    lam = min(apart) / sigma_mm**2
     return (other, float(np.sqrt(lam))) if lam < DECIDE_LAMBDA else (None, None)
 
 
@@ -186,21 +185,10 @@ def _why(c, other, scorer, min_margin: float, apart: float | None = None) -> str
             f"{100 * min_margin:.0f}% margin needed to tell causes apart")
 
 
-def _largest(cause: str, size: dict) -> tuple[str, float] | None:
-    """The size of the cause's kind that TYPICAL_MAX judges, largest first (None: none given)."""
-    suffix = TYPICAL_MAX.get(cause, ("\0",))[0]
-    sizes = [(k, abs(float(v))) for k, v in size.items() if k.endswith(suffix) and isinstance(v, (int, float))]
-    return max(sizes, key=lambda kv: kv[1]) if sizes else None
-
-
-def _judged(entry: Tied, size: dict) -> Tied:
-    largest = _largest(entry.cause, size)
-    plausible = None if largest is None else bool(largest[1] <= TYPICAL_MAX[entry.cause][1])
-    return dataclasses.replace(entry, size=size, plausible=plausible)
+def _judged(entry: Tied, size: dict, robot_class: str) -> Tied:
+    judged = plausibility.judge(entry.cause, size, robot_class)
+    return dataclasses.replace(entry, size=size, plausible=None if judged is None else judged.plausible, judged=judged)
 
 
 def _size_text(e: Tied) -> str:
-    key, value = _largest(e.cause, e.size)
-    _, limit, what = TYPICAL_MAX[e.cause]
-    verdict = "within" if e.plausible else "beyond"
-    return f"{e.label} needs {key} {value:.3g}, {verdict} the {limit:g} typical of {what}"
+    return f"{e.label} {e.judged.text()}"

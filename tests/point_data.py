@@ -42,16 +42,17 @@ def plate_placements(rng, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def _solve(chain, k, offset, goal_rot, goal_pos, q0, iters=60):
+def _solve(chain, k, offset, goal_rot, goal_pos, q0, iters=60, warp=None):
     """Joints putting the target (offset on the flange) at goal_pos with the end frame at goal_rot,
-    for each row (damped Newton on central differences, all rows at once); NaN rows did not converge."""
+    for each row (damped Newton on central differences, all rows at once); NaN rows did not converge.
+    warp: reported joints -> the joints the arm really stands at (a hidden joint-space effect)."""
     q = q0.copy()
     n, nj = q.shape
     h = 1e-6
     steps = np.concatenate([np.zeros((1, nj)), np.eye(nj) * h, -np.eye(nj) * h])
     for _ in range(iters):
         qq = (q[:, None, :] + steps[None]).reshape(-1, nj)
-        rot, org = forward(chain, k, qq)
+        rot, org = forward(chain, k, qq if warp is None else warp(qq))
         rot = rot.reshape(n, 2 * nj + 1, 3, 3)
         pos = (org + np.einsum("nij,j->ni", rot.reshape(-1, 3, 3), offset)).reshape(n, 2 * nj + 1, 3)
         err_p = goal_pos - pos[:, 0]
@@ -76,11 +77,13 @@ WRIST_SEEDS_DEG = {"normal": [0.0, -100.0, 100.0, -90.0, -90.0, 0.0],  # a UR's 
 
 
 def seat(arm: SimulatedArm, placements, per_socket: int, rng, setups=None, repeatability_mm=0.03,
-         max_tilt_deg=35.0, stylus_radius_mm=None, wrists=("normal",), spacing_mm=SPACING_MM) -> PlateData:
+         max_tilt_deg=35.0, stylus_radius_mm=None, wrists=("normal",), spacing_mm=SPACING_MM,
+         warp=None) -> PlateData:
     """Seat the arm's target in both sockets (spacing_mm apart) of each placement, per_socket random
     orientations each, shared out over the wrist branches; with stylus_radius_mm the points are balls
     and the target touches each at a random spot of its upper half. A seat the true arm cannot reach
-    on its branch within the joint limits is drawn again."""
+    on its branch within the joint limits is drawn again. warp: a hidden joint-space effect (reported
+    joints -> the joints the arm really stands at), as ``_solve`` takes it."""
     model = arm.model
     layout: Layout = arm.truth.layout
     x = arm.truth.x
@@ -115,7 +118,7 @@ def seat(arm: SimulatedArm, placements, per_socket: int, rng, setups=None, repea
                         goal += stylus_radius_mm * n / np.linalg.norm(n, axis=1)[:, None]
                     q0 = np.tile(seed_q, (m, 1))
                     q0[:, 0] = np.arctan2(c[1], c[0])
-                    q = _solve(chain, k, offset, goal_rot, goal, q0)
+                    q = _solve(chain, k, offset, goal_rot, goal, q0, warp=warp)
                     ok = np.isfinite(q).all(axis=1)
                     ok[ok] &= np.all((q[ok] >= lim[:, 0]) & (q[ok] <= lim[:, 1]), axis=1)
                     ok[ok] &= np.sign(np.sin(q[ok, 4])) == np.sign(np.sin(seed_q[4]))  # stayed on its branch

@@ -21,12 +21,10 @@ class Backlash(Cause):
                 continue  # always approached from one side: backlash is a constant offset
             basis = JointBasis.single(0.5 * s, j, model.n_joints)
             out.append(Term(self.id, {"joint": j + 1}, (f"b{j + 1}",), joint_basis=basis, units=("rad",)))
-        if len(out) > 1:
-            basis = JointBasis.side_by_side([(t.joint_basis, 1) for t in out], len(obs), model.n_joints)
-            out.append(Term(self.id, {"joints": [t.where["joint"] for t in out]},
-                            tuple(t.names[0] for t in out), joint_basis=basis,
-                            units=("rad",) * len(out), multi=True))
-        return out
+        return out  # several joints together: the analysis' forward search combines them (``search_places``)
+
+    def search_places(self, terms):
+        return (list(terms), []) if terms else None
 
     def magnitude(self, term, theta, joint_delta):
         if "joint" in term.where:

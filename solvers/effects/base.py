@@ -30,6 +30,8 @@ class Context:
     temp_c: np.ndarray | None = None
     payload_kg: np.ndarray | None = None
     dq_rad_s: np.ndarray | None = None  # (N, nj) joint velocity at the sample (trigger data)
+    folds: np.ndarray | None = None  # the analysis' fold of each row (crossval.FoldIds): a cause that chooses
+    #                                  among its terms by the data does so again inside each fold's training
 
     def subset(self, rows) -> "Context":
         pick = lambda a: None if a is None else a[rows]  # noqa: E731
@@ -199,6 +201,23 @@ class Cause:
         """The candidates to rank, from this cause's scored terms; ``scorer.heldout_errors_many``
         (term sets -> held-out errors) lets a cause choose among them by cross-validation."""
         return terms
+
+    def search_places(self, terms: list[Term]):
+        """The single places among this cause's terms that the analysis' forward search combines
+        (``solvers.selection``): (places that start or join a combination, places that only stand alone);
+        None for a cause whose terms compete as they are."""
+        return None
+
+    def combine(self, parts: tuple[Term, ...], n_rows: int, n_joints: int) -> Term:
+        """One term of several single places (joint-space terms), their columns side by side."""
+        if len(parts) == 1:
+            return parts[0]
+        joints = [p.where["joint"] for p in parts]
+        order = np.argsort(joints)
+        parts = tuple(parts[i] for i in order)
+        basis = JointBasis.side_by_side([(p.joint_basis, p.size) for p in parts], n_rows, n_joints)
+        return Term(self.id, {"joints": sorted(joints)}, tuple(n for p in parts for n in p.names), joint_basis=basis,
+                    units=tuple(u for p in parts for u in p.units), multi=True, extra={"parts": parts})
 
     def magnitude(self, term: Term, theta: np.ndarray, joint_delta: np.ndarray | None) -> dict:
         """Physical size of a fitted term, units in the key names."""

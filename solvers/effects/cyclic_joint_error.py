@@ -7,10 +7,11 @@ gears and sensors give orders in the tens, different on each joint.
 Search. For each joint, orders 1 .. ``order_bound`` are scanned by a periodogram of the
 geometric fit's residual projected on the joint's direction of effect (d p / d q_j): the
 least-squares power of each order alone. The ORDER_CANDIDATES strongest orders, picked one
-at a time from what the orders before leave (``pursuit``), become single-order terms that
-the analysis scores together with every other candidate; then
-``compose`` picks, by the analysis' grouped cross-validation, how many of a joint's
-orders to keep (strongest first), and which joints to combine.
+at a time from what the orders before leave (``pursuit``), become single-order terms (places);
+the analysis' forward search (``solvers.selection``) combines (joint, order) places, the
+same search every cause with places gets. The picks are made on all rows and again on each
+fold's training rows alone, so that the nested selection inside a fold chooses only among
+orders that fold's training rows picked.
 
 Order bound: an order n has a half-period of pi / n rad. Poses sampled at random put a
 joint at irregular angles; the order is resolved only where consecutive sampled angles
@@ -29,7 +30,7 @@ from functools import partial
 
 import numpy as np
 
-from cellcal.solvers.crossval import NEIGHBOUR_RAD, fold_ids
+from cellcal.solvers.crossval import NEIGHBOUR_RAD, fold_ids, training_rows
 from cellcal.solvers.measurement_model import jacobian_chunks
 from cellcal.solvers.effects import periodic_spline
 from cellcal.solvers.effects.base import Cause, JointBasis, Term
@@ -37,9 +38,7 @@ from cellcal.solvers.effects.base import Cause, JointBasis, Term
 MIN_RANGE_RAD = np.deg2rad(60.0)  # a joint that barely moves shows no period
 MAX_ORDER = 120  # content measured on real arms reaches ~40; the scan goes well past it
 SPACING_QUANTILE = 0.9
-ORDER_CANDIDATES = 6  # strongest orders per joint that cross-validation chooses among
-KEEP_RTOL = 0.02  # fewer orders win when their held-out mean is within 2% of the best
-JOINT_GAIN = 0.03  # a joint joins a several-joint term only if it lowers the held-out mean 3%
+ORDER_CANDIDATES = 6  # strongest orders per joint (on each fold's training rows) the selection chooses among
 COVERAGE_GAP_RAD = np.deg2rad(10.0)  # a joint angle range no pose visited is outside the coverage
 
 
@@ -108,8 +107,12 @@ def pursuit(q: np.ndarray, projected: np.ndarray, weight: np.ndarray, max_order:
     once the orders picked so far are fitted together (neighbouring orders leak into each other's
     periodogram; the residual of a joint fit does not). All from ``_sums``, with
     sin(a q) e^{i n q} = (e^{i (n + a) q} - e^{i (n - a) q}) / 2i and the like: one pass over the rows."""
-    s, w = _sums(q, projected, weight, max_order)
+    return pursuit_of_sums(*_sums(q, projected, weight, max_order), max_order, count)
 
+
+def pursuit_of_sums(s: np.ndarray, w: np.ndarray, max_order: int, count: int) -> list[int]:
+    """``pursuit`` from the sums ``_sums`` gives (sums of disjoint rows add: a fold's training rows are
+    every row less the fold's own)."""
     def wm(m):  # W(-m) = conj W(m)
         return np.where(m >= 0, w[np.abs(m)], np.conj(w[np.abs(m)]))
 
@@ -169,44 +172,14 @@ class PeriodicJointError:
                 **periodic_spline.coverage_json(self.coverage_rad)}
 
 
-def _orders_per_joint(by_joint: dict, others: dict, scorer) -> dict:
-    """For each joint, its first k orders (k by held-out error, the fewest within KEEP_RTOL of the
-    best) with the other joints' chosen orders (others: joint -> parts) in the model too.
-    Returns joint -> (held-out mean with the others, the joint's own parts)."""
-    trials = [(j, k) for j, parts in by_joint.items() for k in range(1, len(parts) + 1)]
-    beside = {j: sum((p for j2, p in others.items() if j2 != j), ()) for j in by_joint}
-    sets = [beside[j] + tuple(by_joint[j][:k]) for j, k in trials]
-    means = dict(zip(trials, scorer.mean_mm(scorer.heldout_errors_many(sets))))
-    out = {}
-    for j, parts in by_joint.items():
-        best = min(means[(j, k)] for k in range(1, len(parts) + 1))
-        k = min(k for k in range(1, len(parts) + 1) if means[(j, k)] <= (1.0 + KEEP_RTOL) * best)
-        out[j] = (means[(j, k)], tuple(parts[:k]))
-    return out
-
-
-def _pruned(chosen: list[tuple[Term, ...]], scorer) -> list[tuple[Term, ...]]:
-    """Each set of orders without those it does not need: an order whose removal alone raises the
-    held-out mean by less than KEEP_RTOL is dropped (a noise peak that cross-validation let in)."""
-    trials = [(i, k) for i, parts in enumerate(chosen) if len(parts) > 1 for k in [None, *range(len(parts))]]
-    sets = [chosen[i] if k is None else chosen[i][:k] + chosen[i][k + 1:] for i, k in trials]
-    means = dict(zip(trials, scorer.mean_mm(scorer.heldout_errors_many(sets)))) if sets else {}
-    out = []
-    for i, parts in enumerate(chosen):
-        keep = tuple(p for k, p in enumerate(parts)
-                     if len(parts) == 1 or means[(i, k)] > (1.0 + KEEP_RTOL) * means[(i, None)])
-        joints = {p.where["joint"] for p in parts}
-        out.append(keep if keep and {p.where["joint"] for p in keep} == joints else parts)
-    return out
-
-
-def _term(parts: tuple[Term, ...], q: np.ndarray, n_joints: int, spectra: dict) -> Term:
+def _term(parts: tuple[Term, ...], n_rows: int, n_joints: int, spectra: dict) -> Term:
     """One term from single-order parts (any joints), with its coverage."""
     if len(parts) == 1:
         return parts[0]
+    parts = tuple(sorted(parts, key=lambda p: (p.where["joint"], p.where["order"])))
     pairs = [(p.where["joint"], p.where["order"]) for p in parts]
     joints = sorted({j for j, _ in pairs})
-    basis = JointBasis.side_by_side([(p.joint_basis, 2) for p in parts], len(q), n_joints)
+    basis = JointBasis.side_by_side([(p.joint_basis, 2) for p in parts], n_rows, n_joints)
     orders = [sorted(n for j2, n in pairs if j2 == j) for j in joints]
     where = {"joint": joints[0], "orders": orders[0]} if len(joints) == 1 else {"joints": joints, "orders": orders}
     return Term(CyclicJointError.id, where, tuple(n for p in parts for n in p.names), joint_basis=basis,
@@ -218,7 +191,9 @@ class CyclicJointError(Cause):
     id = "cyclic_joint_error"
 
     def terms(self, model, layout, x, obs, ctx):
-        """The strongest orders of every joint that moves enough, one term each."""
+        """The strongest orders of every joint that moves enough, one term each, and its spline; picked
+        on every row and again on each fold's training rows alone (the analysis' nested selection
+        chooses among a fold's own picks: ``extra["all"]``, ``extra["folds"]``)."""
         nj = model.n_joints
         bounds = [order_bound(obs.q[:, j]) for j in range(nj)]
         joints = [j for j in range(nj) if bounds[j] > 0]
@@ -230,63 +205,51 @@ class CyclicJointError(Cause):
             projected[rows] = np.einsum("nij,ni->nj", jq, residual)
             weight[rows] = np.einsum("nij,nij->nj", jq, jq)
         out, spectra = [], {}
-        folds = fold_ids(obs.q, 5, 0, NEIGHBOUR_RAD)
-        for j in joints:
+        folds = ctx.folds if ctx.folds is not None else fold_ids(obs.q, 5, 0, NEIGHBOUR_RAD)
+        every = np.arange(len(obs))
+        left_out = [np.setdiff1d(every, training_rows(folds, k)) for k in range(len(np.unique(np.asarray(folds))))]
+        for j in range(nj):
+            if j not in joints:
+                continue
             qj = obs.q[:, j]
             orders, amplitude, power = periodogram(qj, projected[:, j], weight[:, j], bounds[j])
             spectra[j + 1] = JointSpectrum(j + 1, bounds[j], orders, np.rad2deg(amplitude), power,
                                            (float(np.rad2deg(qj.min())), float(np.rad2deg(qj.max()))))
-            for n in pursuit(qj, projected[:, j], weight[:, j], bounds[j], ORDER_CANDIDATES):
+            total = _sums(qj, projected[:, j], weight[:, j], bounds[j])
+            picked = pursuit_of_sums(*total, bounds[j], ORDER_CANDIDATES)
+            by_fold = []
+            for rows in left_out:  # each fold's training: every row less the fold's own (and its gap)
+                s, w = _sums(qj[rows], projected[rows, j], weight[rows, j], bounds[j])
+                by_fold.append(pursuit_of_sums(total[0] - s, total[1] - w, bounds[j], ORDER_CANDIDATES))
+            for n in dict.fromkeys(picked + [n for p in by_fold for n in p]):
                 basis = JointBasis.of_angle(qj, partial(harmonics, orders=[n]), j, nj, 2)
                 out.append(Term(self.id, {"joint": j + 1, "order": int(n)}, (f"s{j + 1}_{n}", f"c{j + 1}_{n}"),
-                                joint_basis=basis, units=("rad", "rad"), extra={"part": True}))
-            knots = periodic_spline.choose_knots(qj, projected[:, j], weight[:, j], folds, 2 * bounds[j])
-            if knots is not None:  # the same cause as a smooth function of the angle, not a few sinusoids
+                                joint_basis=basis, units=("rad", "rad"),
+                                extra={"part": True, "all": n in picked,
+                                       "folds": frozenset(k for k, p in enumerate(by_fold) if n in p)}))
+            # the same cause as a smooth function of the angle, not a few sinusoids
+            chosen, by_fold = periodic_spline.choose_knots_nested(qj, projected[:, j], weight[:, j], folds,
+                                                                  2 * bounds[j])
+            for knots in dict.fromkeys(k for k in [chosen, *by_fold] if k is not None):
                 out.append(Term(self.id, {"joint": j + 1, "spline_knots": knots},
                                 tuple(f"k{j + 1}_{i}" for i in range(knots)),
                                 joint_basis=JointBasis.of_angle(qj, partial(periodic_spline.basis, knots=knots), j,
                                                                 nj, knots),
-                                units=("rad",) * knots, extra={"spline": True}))
+                                units=("rad",) * knots,
+                                extra={"spline": True, "all": knots == chosen,
+                                       "folds": frozenset(k for k, c in enumerate(by_fold) if c == knots)}))
         for t in out:
             t.extra["spectra"] = spectra
         return out
 
-    def compose(self, terms, scorer):
-        """Per joint, how many of its strongest orders to keep; then which joints to combine, and
-        with the others' errors in the model, each joint's orders again; then each order the
-        combination does not need is dropped. All by the scorer's held-out errors (the analysis'
-        grouped cross-validation)."""
+    def search_places(self, terms):
+        """Each (joint, order) combines with any other; a joint's spline stands alone."""
         if not terms:
-            return []
-        q, nj, spectra = scorer.obs.q, scorer.model.n_joints, terms[0].extra["spectra"]
-        splines = [t for t in terms if t.extra.get("spline")]
-        by_joint: dict[int, list[Term]] = {}
-        for t in terms:  # in the order pursuit picked them within each joint
-            if not t.extra.get("spline"):
-                by_joint.setdefault(t.where["joint"], []).append(t)
-        # ... but led by the order that predicts best alone: pursuit ranks orders on the geometric fit's
-        # residual, which a one-joint-at-a-time sweep's other rows can tilt away from a low order
-        orders = [t for parts in by_joint.values() for t in parts]
-        alone = dict(zip(map(id, orders), scorer.mean_mm(scorer.heldout_errors_many([(t,) for t in orders]))))
-        for parts in by_joint.values():
-            parts.insert(0, parts.pop(min(range(len(parts)), key=lambda k: alone[id(parts[k])])))
-        baseline_mm = scorer.mean_mm(scorer.heldout_errors_many([()]))[0]
-        singles = sorted(_orders_per_joint(by_joint, {}, scorer).values(), key=lambda pair: pair[0])
-        chosen = [parts for _, parts in singles]
-        gaining = [parts for m, parts in singles if m < (1.0 - JOINT_GAIN) * baseline_mm]
-        if len(gaining) >= 2:
-            chain = [sum(gaining[:i], ()) for i in range(2, len(gaining) + 1)]
-            kept, mean = gaining[0], singles[0][0]
-            for parts, m in zip(chain, scorer.mean_mm(scorer.heldout_errors_many(chain))):
-                if m < (1.0 - JOINT_GAIN) * mean:
-                    kept, mean = parts, m
-            if kept != gaining[0]:
-                joints = {p.where["joint"]: () for p in kept}
-                for p in kept:
-                    joints[p.where["joint"]] += (p,)
-                again = _orders_per_joint({j: by_joint[j] for j in joints}, joints, scorer)
-                chosen.append(sum((again[j][1] for j in joints), ()))
-        return [_term(parts, q, nj, spectra) for parts in _pruned(chosen, scorer)] + splines
+            return None
+        return [t for t in terms if not t.extra.get("spline")], [t for t in terms if t.extra.get("spline")]
+
+    def combine(self, parts, n_rows, n_joints):
+        return _term(tuple(parts), n_rows, n_joints, parts[0].extra["spectra"])
 
     def details(self, term, theta, q):
         return {"errors": [e.as_dict() for e in fitted_errors(term, theta, q)], "outside_coverage": OUTSIDE_COVERAGE}

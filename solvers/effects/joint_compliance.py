@@ -13,6 +13,7 @@ import numpy as np
 
 from cellcal.solvers.gravity import gravity_torques, point_mass_regressors, torque_regressors, tree_sites
 from cellcal.solvers.effects.base import Cause, JointBasis, Term
+from cellcal.solvers.effects import elastic_mount
 from cellcal.solvers.effects.elastic_mount import mount_columns
 
 MIN_TORQUE_SPREAD = 1e-6  # a joint whose gravity torque never changes (vertical axis) has no candidate
@@ -68,11 +69,13 @@ class JointCompliance(Cause):
         for i, (where, group) in enumerate(by_chain.items()):
             out.append(self._param_term(model, {"branch": where}, group["basis"], group["names"], len(obs),
                                         mount=mount if i == 0 else None))
-        if len(out) > 1:
+        if len(out) > 1:  # every branch, and the mount's pivot where the data put it: the tilt also shifts the
+            # base horizontally (constant columns: one linear solve per step of the full fit, ``extended_model``)
+            pivot = mount_columns(model, layout, x, obs, list(every_point.values()), shifts=elastic_mount.PIVOT_SHIFT)
             out.append(self._param_term(model, {"branches": list(by_chain)},
                                         [b for g in by_chain.values() for b in g["basis"]],
                                         [n for g in by_chain.values() for n in g["names"]], len(obs), multi=True,
-                                        mount=mount))
+                                        mount=pivot))
         return out
 
     def _param_term(self, model, where, bases, names, n_rows, multi=False, mount=None):
@@ -114,7 +117,7 @@ class JointCompliance(Cause):
         if self._known_masses(model):  # every joint's torque in one pass over the rows
             torques = gravity_torques(model, k, obs.q, [l.mass_kg for l in model.links],
                                       [l.com_mm for l in model.links], payload_kg=ctx.payload_kg)
-        out, all_cols, all_joints = [], [], []
+        out = []
         for j in range(model.n_joints):
             cols, names, units = self._columns(model, k, obs.q, ctx, j, torques)
             if np.ptp(cols, axis=0).max() < MIN_TORQUE_SPREAD:
@@ -122,14 +125,12 @@ class JointCompliance(Cause):
             basis = JointBasis.single(cols, j, model.n_joints)
             out.append(Term(self.id, {"joint": j + 1}, tuple(f"c{j + 1}.{n}" for n in names),
                             joint_basis=basis, units=units))
-            all_cols.append((basis, cols.shape[1]))
-            all_joints.append(j + 1)
-        if len(all_cols) > 1:
-            basis = JointBasis.side_by_side(all_cols, len(obs), model.n_joints)
-            names = tuple(n for t in out for n in t.names)
-            out.append(Term(self.id, {"joints": all_joints}, names, joint_basis=basis,
-                            units=tuple(u for t in out for u in t.units), multi=True))
-        return out
+        return out  # several joints together: the analysis' forward search combines them (``search_places``)
+
+    def search_places(self, terms):
+        """A serial arm's joints, one term each (a tree's branches compete as they are)."""
+        singles = [t for t in terms if "joint" in t.where and t.joint_basis is not None]
+        return (singles, []) if singles and len(singles) == len(terms) else None
 
     def places(self, term):
         """Every deflecting place of the term: a tree's frame rotations and bending axes, a

@@ -6,7 +6,9 @@ B-splines on K knots evenly spaced over the turn (wrapping round at 2 pi). K is 
 effective degrees of freedom; it is chosen from KNOTS (at most twice the joint's order bound:
 knots closer than the sampled angles are not resolved) by grouped cross-validation on the
 joint's own problem: the residual of the geometric fit along the joint's direction of effect,
-folds of neighbouring configurations kept together. The analysis then scores the chosen
+folds of neighbouring configurations kept together (path-ordered data: each fold's training also
+leaves out the rows next to it, ``crossval.FoldIds.exclude``). Inside the analysis' nested
+selection the count is chosen again on each fold's training rows alone. The analysis then scores the chosen
 spline against the rigid model and every other candidate as it scores them all.
 """
 from __future__ import annotations
@@ -14,6 +16,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from cellcal.solvers.crossval import inner_fold_ids
 
 KNOTS = (8, 12, 16, 24, 32, 48, 64)
 RIDGE = 1e-9  # relative: keeps a knot interval without data from making the fit singular
@@ -52,19 +56,57 @@ def choose_knots(qj: np.ndarray, projected: np.ndarray, weight: np.ndarray, fold
     when no count lowers it. projected, weight as for ``cyclic_joint_error.periodogram``; the drop
     on a fold's rows, 2 c.(B^T s) - c.(B^T W B) c with c fitted on the other folds, needs only each
     fold's normal equations."""
+    exclude = getattr(folds, "exclude", None)  # path-ordered data: rows each fold's training also leaves out
     best, best_drop = None, 0.0
     for knots in (k for k in KNOTS if k <= max_knots):
         normal, rhs = _fold_normals(qj, projected, weight, folds, knots)
         all_normal, all_rhs = normal.sum(axis=0), rhs.sum(axis=0)
         drop = 0.0
         for k in range(len(normal)):
-            train = all_normal - normal[k]
+            train, train_rhs = all_normal - normal[k], all_rhs - rhs[k]
+            if exclude is not None and len(exclude[k]):
+                gap = exclude[k]
+                b = basis(qj[gap], knots)
+                train = train - b.T @ (b * weight[gap, None])
+                train_rhs = train_rhs - b.T @ projected[gap]
             train = train + RIDGE * np.trace(train) / knots * np.eye(knots)
-            c = np.linalg.solve(train, all_rhs - rhs[k])
+            c = np.linalg.solve(train, train_rhs)
             drop += float(2.0 * c @ rhs[k] - c @ normal[k] @ c)
         if drop > best_drop:
             best, best_drop = knots, drop
     return best
+
+
+def choose_knots_nested(qj: np.ndarray, projected: np.ndarray, weight: np.ndarray, folds: np.ndarray,
+                        max_knots: int) -> tuple[int | None, list[int | None]]:
+    """(``choose_knots`` on every row, [``choose_knots`` on each fold's training rows alone, the other
+    folds as its inner folds]): the choice the analysis offers, and the one each fold's nested
+    selection sees. Without gaps every inner problem is a sum of the same per-fold normal equations."""
+    ids = np.unique(np.asarray(folds))
+    exclude = getattr(folds, "exclude", None)
+    if exclude is not None and any(len(e) for e in exclude):  # path-ordered data: each fold's own problem
+        return (choose_knots(qj, projected, weight, folds, max_knots),
+                [choose_knots(qj[rows], projected[rows], weight[rows], sub, max_knots)
+                 for rows, sub in (inner_fold_ids(folds, k) for k in range(len(ids)))])
+    n = len(ids)
+    best, best_drop = [None] * (n + 1), [0.0] * (n + 1)  # entry n: every row
+    for knots in (k for k in KNOTS if k <= max_knots):
+        normal, rhs = _fold_normals(qj, projected, weight, folds, knots)
+        all_normal, all_rhs = normal.sum(axis=0), rhs.sum(axis=0)
+        drop = np.zeros((n + 1, n))  # [outer fold or all, held-out fold]
+        for k in range(n + 1):
+            for j in range(n):
+                if j == k:
+                    continue
+                train = all_normal - normal[j] - (normal[k] if k < n else 0.0)
+                train_rhs = all_rhs - rhs[j] - (rhs[k] if k < n else 0.0)
+                train = train + RIDGE * np.trace(train) / knots * np.eye(knots)
+                c = np.linalg.solve(train, train_rhs)
+                drop[k, j] = float(2.0 * c @ rhs[j] - c @ normal[j] @ c)
+        for k, d in enumerate(drop.sum(axis=1)):
+            if d > best_drop[k]:
+                best[k], best_drop[k] = knots, d
+    return best[n], best[:n]
 
 
 def within(qj: np.ndarray, coverage_rad) -> np.ndarray:

@@ -46,7 +46,7 @@ def test_a_tie_is_settled_on_physical_plausibility_and_says_so():
     sizes = {"joint_compliance": {"deflection_rms_deg": 3.0 * limit}, "cyclic_joint_error": {"amplitude_deg": 0.02}}
     report = ties([a, b], sizes=sizes)
     assert report.naming.named is b and report.naming.candidates[0] is a  # the list stays best first
-    assert report.grounds.startswith("named on physical plausibility") and "beyond the 0.5" in report.grounds
+    assert report.grounds.startswith("named on physical plausibility") and f"beyond the {limit:g}" in report.grounds
     assert report.grounds in report.naming.notes
 
 
@@ -127,7 +127,8 @@ def test_sweeps_tie_and_the_proposed_poses_name_the_hidden_cause(cause, tmp_path
     doc = _analyze(data, capsys, "--discriminate", "12", "-o", str(poses), "--payload-kg", "20")
     assert doc["cause"] == "none", doc["notes"]
     assert elbow_pair(doc["indistinguishable"]), doc["indistinguishable"]
-    assert all("margin" in t["why"] or "column span" in t["why"] for t in doc["indistinguishable"])
+    assert all("margin" in t["why"] or "column span" in t["why"] or "apart" in t["why"]
+               for t in doc["indistinguishable"])
     assert doc["discriminate"]["poses"] == 12 and doc["discriminate"]["needed"] <= 12
     plan = doc["discriminate"]
     assert plan["payload_kg"] is None and "payload change not considered" in plan["summary"]

@@ -205,8 +205,9 @@ CASES = [
     ("validating on positions after seatings alone", lambda f, t: identify_with(
         f / "cal.csv", f / "plate.yaml", "--validate", tracker_rows(f, t)), 2,
      ["measured.csv:2: column 'x_mm'", "instrument's frame is unknown"]),
-    ("point rows where positions are needed", lambda f, t: ["analyze", "--robot", "ur10e", "--data", f / "cal.csv"],
-     2, ["cal.csv:2: column 'point'", "needs x_mm, y_mm, z_mm"]),
+    ("point rows to analyze without the fixture's distances", lambda f, t: [
+        "analyze", "--robot", "ur10e", "--data", f / "cal.csv"], 2,
+     ["cal.csv:2: column 'setup'", "no --fixture gives a distance"]),
 ]
 
 

@@ -55,9 +55,11 @@ def test_analyze_names_compliance_with_believable_sizes_below_the_published_held
     assert code == 0
     assert doc["cause"] == "joint_compliance"
     assert doc["baseline"]["heldout_mean_mm"] < 10.6  # published geometric calibration: 10.6 mm
-    # the same 5-fold grouped protocol as the analysis bench, joints and the elastic mount without
-    # CAD masses: 3.23 mm held-out mean (published with CAD masses: 3.3 mm)
-    assert doc["extended"]["heldout_mean_mm"] == pytest.approx(3.23, abs=0.05)
+    # the same 5-fold grouped protocol as the analysis bench, joints and the elastic mount with its pivot
+    # shift, without CAD masses: 3.13 mm held-out mean (3.23 without the shift; published with CAD masses:
+    # 3.3 mm); 0.05 mm is well inside the 0.1 mm the shift gains
+    assert doc["extended"]["heldout_mean_mm"] == pytest.approx(3.13, abs=0.05)
+    assert doc["where"] == {"branches": ["torso", "right", "left"]}
     # sizes a person can believe: deflections only where determined, the rest grouped or bounded
     places = doc["magnitude"]["places"]
     believed = [e for e in places if e["kind"] in ("determined", "group")]

@@ -4,7 +4,8 @@ import pytest
 
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.physical_arm import HiddenEffect
-from cellcal.solvers.analyze import AnalyzeOptions, analyze
+from cellcal.solvers.analyze import AnalyzeOptions, _fit_in_full, analyze
+from cellcal.solvers.effects import CAUSES
 from cellcal.solvers.physical_sizes import DETERMINED_SIGMAS, place_sizes
 from hidden_cases import make_case
 
@@ -32,8 +33,20 @@ def test_determined_stiffnesses_match_the_hidden_ones(two_joint_compliance):
         assert entry["deflection_std_deg"] == pytest.approx(true_std_deg, rel=0.03)
 
 
+def every_joint_fitted(case, finding):
+    """Compliance at every joint fitted to the same data (the analysis names only the joints its forward
+    search chose): the sizes of the places the data show no deflection at."""
+    model, scorer = load_robot("ur10e"), finding.scorer
+    fit, obs = scorer.geometric_fit, case.campaign.obs
+    compliance = CAUSES["joint_compliance"]
+    every = compliance.combine(tuple(compliance.terms(model, fit.layout, fit.x, obs, case.campaign.ctx)), len(obs),
+                               model.n_joints)
+    return _fit_in_full(model, fit, obs, scorer.folds, (every,), 1.0, every.label(), scorer.robust)
+
+
 def test_joints_without_compliance_get_no_stiffness_only_a_bound(two_joint_compliance):
     case, finding = two_joint_compliance
+    finding = every_joint_fitted(case, finding)
     hidden = {f"joint{e.joint + 1}" for e in case.effects}
     others = [e for e in finding.magnitude["places"] if e["places"][0] not in hidden]
     assert others, "the multi-joint term covers more than the two hidden joints"
