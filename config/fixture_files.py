@@ -7,11 +7,14 @@ stylus ball), as docs/measurements.md ("Point form") shows it::
     distances_mm:                           # known distances, each with its standard deviation (mm)
       - [hole_0, hole_1, 50.0, 0.1]         # point a, point b, distance, standard deviation
     seating_sd_mm: 0.03                     # optional: how well the tool returns to a point (default 0.05)
-    stylus_radius_mm: 4.0                   # optional: the points are balls the tool tip touches
+    stylus_radius_mm: 10.0                  # optional: the points are balls the tool tip touches (ball + tip radius)
 
 Distances hold within each setup (one placement of the fixture). With
-``stylus_radius_mm`` every point is the centre of a ball of that radius and each row a
-contact: the tip lies on the ball's surface, not at its centre. Every problem is one
+``stylus_radius_mm`` every point is the centre of a ball and each row a contact: the
+target lies that far from the centre, not at it. The radius is the distance the target
+keeps from the ball's centre when touching: the ball's radius for a point target, the
+ball's radius plus the tip's rounding radius when the target is the rounding's centre (as
+the kinematic-fixture routine's ``tip``). Every problem is one
 :class:`~cellcal.config.reader.ConfigError` naming the file and the key.
 """
 from __future__ import annotations
@@ -161,9 +164,6 @@ def cell_fixture(section: Section, cell_path: str | None) -> CellFixture:
         fixture = fixture_of(inline, f"{section.source} [{section.child_name('fixture')}]")
     else:
         section.fail("fixture", f"expected a fixture file's path or the fixture inline, got {raw!r}")
-    if fixture.stylus_radius_mm is not None:
-        section.fail("fixture", "a stylus fixture (stylus_radius_mm): this routine seats the tool in sockets; "
-                                "touching a stylus is not there yet")
     layout_section = section.section("layout_mm", required=True)
     layout = {}
     for p in fixture.points:

@@ -1,4 +1,4 @@
-"""``kinematic-fixture``: the arm's geometry from seating the tool in a fixture's sockets, no tracker.
+"""``kinematic-fixture``: the arm's geometry from seating the tool in a fixture's sockets (or touching its balls), no tracker.
 
 A plate with two or more sockets at known distances (the fixture of ``cellcal identify
 --fixture``, config/fixture_files.py) lies in the cell at the placements the cell file lists
@@ -39,23 +39,42 @@ Both simulated cells (in process, and the fake controller of ``sim-net``) seat t
 the plate's sockets and move the plate to where a placement really lies when the confirm is
 pressed for it.
 
-Not yet there: stylus contacts instead of sockets.
+A stylus plate (the fixture's ``stylus_radius_mm``, the distance the tip's rounding centre keeps
+from a ball's centre when touching it: the ball's radius plus the tip's) has balls, centred at the
+layout's points (the placement's ``at_m`` height is the balls' centres'), instead of sockets. The
+tip touches each ball once at each of `orientations` spots (at least 6: three only place the
+centre) spread round its upper half (azimuths evenly round, elevations in turn the low, middle and
+high of ``elevation_deg``, so that the contacts place the ball's centre in all three directions;
+the same spot touched again and again would leave its centre to the ball's curvature, see
+solvers/fixture_design.py), one contact: the tip's rounding LIFT_MM over the ball in the
+contact's orientation, a straight move down to `approach_mm` off the spot along its normal (clear of
+the ball on the way), a contact search toward the ball's centre that stops at the touch (no
+settling: the joints there are recorded), back out along the normal and up over the ball. At each
+spot the design chooses the tool's tilt (up to `max_tilt_deg`, every 60 deg round), turn and wrist
+among those that point the tool into the ball (within 70 deg of the contact's direction: the tip,
+not the shank, touches) and reach it on one wrist branch, by the same D-optimal design with each
+ball's centre eliminated exactly (one residual per contact, along the normal). A spot no candidate
+reaches refuses the plan before anything moves, naming it. The simulated cells hold the balls
+where the truth placed them (off their drawing as the sockets are, their radius as drawn) and stop
+a search where the real tip's rounding meets one.
 
 Section ``kinematic_fixture`` of the cell file::
 
-    fixture: plate.yaml                   # or inline: {points: [...], distances_mm: [...], seating_sd_mm: ...}
+    fixture: plate.yaml                   # or inline: {points: [...], distances_mm: [...], seating_sd_mm: ...,
+                                          #   stylus_radius_mm: ... for balls}
     layout_mm: {s0: [0, 0], s1: [50, 0]}  # each point on the plate as drawn (plate frame, z up), mm
     placements:                           # the setups: the plate's origin (base frame, m) and its yaw
       - {name: p1, at_m: [-0.7, 0.3, 0.3], yaw_deg: 0}
-    orientations: 8                       # seats per socket and placement, 4..24
+    orientations: 8                       # seats per socket (contacts per ball: 6..24) and placement, 4..24
     max_tilt_deg: 40                      # largest tilt of the tool from the vertical the design may choose
     turn_deg: 60                          # turn about the tool axis the design may choose, + and -
     wrist_flip: true                      # seats on the flipped wrist too (the arm goes home to flip)
-    approach_mm: 5                        # where each search starts, back along the axis
+    approach_mm: 5                        # where each search starts, back along the axis (a ball: its normal)
     search_speed_mm_s: 10
     repeatability_mm: 0.03                # the arm's stated repeatability
     move_by: fixed                        # or operator: one plate, moved by hand between the placements
     confirm_timeout_s: 300                # with move_by: operator, how long each wait for the confirm lasts
+    elevation_deg: [30, 80]               # a stylus plate only: the lowest and highest spot on each ball, deg up
 """
 from __future__ import annotations
 
@@ -88,6 +107,11 @@ MOVE_BY = ("fixed", "operator")  # the placements: plates fixed in the cell, or 
 CONFIRM_TIMEOUT_S = 300.0  # how long the run waits for the operator to move the plate and confirm
 MAX_CONFIRM_TIMEOUT_S = 3600.0
 TARGET = "tip"  # the target column: the centre of the tool tip's rounding, what a socket holds
+CONTACT_AZIMUTH_STEP_DEG = 60.0  # and the tool's tilts at each, at azimuths this far apart (fewer than a socket's)
+MAX_CONTACT_ANGLE_DEG = 70.0  # the tool axis at most this far from the contact's direction: the tip touches first
+CLEARANCE_MM = 1.0  # the way in from above passes the ball (with the tip's rounding) at least this far off
+MIN_CONTACTS_PER_BALL = 6  # three contacts only place a ball's centre; the rest see the arm
+ELEVATION_DEG = (30.0, 80.0)  # the spots' elevations on the ball, from its equator
 
 
 @dataclass(frozen=True)
@@ -102,6 +126,7 @@ class KinematicFixtureOptions:
     wrist_flip: bool = True  # seats on both wrist branches (a joint move home between them)
     move_by: str = "fixed"  # "operator": one plate, moved between placements and confirmed on the panel
     confirm_timeout_s: float = CONFIRM_TIMEOUT_S
+    elevation_deg: tuple[float, float] = ELEVATION_DEG  # a stylus plate: the spots' elevations on each ball
 
 
 class KinematicFixture(StepRoutine):
@@ -116,8 +141,9 @@ class KinematicFixture(StepRoutine):
         if cell.tool is None:
             section.fail(None, "kinematic-fixture needs the tool as drawn in [tool]")
         travel_mm = cell.limits["contact_travel_m"] * 1e3
+        placed = cell_fixture(section, str(cell.path) if cell.path else None)
         options = KinematicFixtureOptions(
-            cell_fixture(section, str(cell.path) if cell.path else None),
+            placed,
             section.integer("orientations", 8, low=max(4, MIN_ROWS_PER_POINT), high=24),
             section.number("max_tilt_deg", 40.0, above=0.0, high=MAX_TILT_DEG),
             section.number("turn_deg", 60.0, low=0.0, high=90.0),
@@ -125,13 +151,26 @@ class KinematicFixture(StepRoutine):
             section.number("search_speed_mm_s", 10.0, above=0.0, high=min(cell.limits["tcp_speed_m_s"] * 1e3, 20.0)),
             section.number("repeatability_mm", 0.03, above=0.0, high=1.0),
             section.flag("wrist_flip", True),
-            **_moved_by(section))
+            **_moved_by(section), **_contact_options(section, cell, placed.fixture))
         section.done()
         return options
 
     # -- plan ------------------------------------------------------------------------
 
-    def candidate_orientations(self) -> list[tuple[np.ndarray, dict]]:
+    @property
+    def contacts(self) -> bool:
+        """A stylus plate (the fixture's stylus_radius_mm): balls the tip touches, not sockets it seats in."""
+        return self.options.placed.fixture.stylus_radius_mm is not None
+
+    @property
+    def _what(self) -> str:
+        return "ball" if self.contacts else "socket"
+
+    @property
+    def _seats(self) -> str:
+        return "contacts" if self.contacts else "seats"
+
+    def candidate_orientations(self, azimuth_step_deg: float = CANDIDATE_AZIMUTH_STEP_DEG) -> list[tuple[np.ndarray, dict]]:
         """(tool frame rotation, what it is) of every seat the design may choose in one socket: tilts of
         0, 1/3, 2/3 and all of `max_tilt_deg` at azimuths every 30 deg, each turned -, 0 and +`turn_deg`
         about the tool axis."""
@@ -139,7 +178,7 @@ class KinematicFixture(StepRoutine):
         down = down_orientation(self.cell, load_robot(self.cell.robot))
         out = []
         tilts = [(0.0, 0.0)] + [(o.max_tilt_deg * f, az) for f in (1 / 3, 2 / 3, 1.0)
-                                 for az in np.arange(0.0, 360.0, CANDIDATE_AZIMUTH_STEP_DEG)]
+                                 for az in np.arange(0.0, 360.0, azimuth_step_deg)]
         for tilt_deg, azimuth in tilts:
             phi = np.deg2rad(azimuth)
             tilt = se3.rotvec_to_matrix(np.deg2rad(tilt_deg) * np.array([np.cos(phi), np.sin(phi), 0.0]))
@@ -148,28 +187,86 @@ class KinematicFixture(StepRoutine):
                             {"tilt_deg": float(tilt_deg), "azimuth_deg": float(azimuth), "turn_deg": float(turn)}))
         return out
 
+    def spots(self) -> list[tuple[float, float]]:
+        """(elevation, azimuth on the plate) deg of the spots of a ball's upper half the tip touches, one
+        contact each (`orientations` of them): azimuths evenly around, elevations in turn low, middle and
+        high of `elevation_deg`, so the contacts' normals span the ball and place its centre in all three
+        directions (contacts at one spot would place it only along that spot's normal). The design
+        chooses the tool's orientation and wrist at each. Raises PlanRefused for a spot whose way in from
+        above (the tip's rounding LIFT_MM over the ball, then down to `approach_mm` off the spot) would
+        not keep clear of the ball."""
+        o = self.options
+        contact_mm = o.placed.fixture.stylus_radius_mm
+        out = []
+        for k in range(o.orientations):
+            elevation = float(np.linspace(*o.elevation_deg, 3)[k % 3])
+            e = np.deg2rad(elevation)
+            above = np.array([0.0, 0.0, contact_mm + LIFT_MM])
+            start = (contact_mm + o.approach_mm) * np.array([np.cos(e), 0.0, np.sin(e)])
+            if _segment_clearance(above, start) < contact_mm + CLEARANCE_MM:
+                raise PlanRefused(f"{self.cell.path} [kinematic_fixture]: elevation_deg: a spot {elevation:g} deg up the "
+                                  f"ball cannot be reached from above without touching it on the way; raise the lowest "
+                                  "elevation")
+            out.append((elevation, float(360.0 * k / o.orientations)))
+        return out
+
+    def _candidate_poses(self, setup, point):
+        """The candidates at one point: (rotation, seat info) of each, the TCP pose at rest (a socket) or
+        at contact (a ball), the pose its way in must reach on the same wrist branch, the ball's outward
+        normal at each contact (None for a socket), and the pose above the point the arm first reaches."""
+        o, r = self.options, self.cell.tool.radius_m
+        if not self.contacts:
+            candidates = self.candidate_orientations()
+            centre = setup.point_m(o.placed.layout_mm[point]) + [0.0, 0.0, r]
+            rest = np.array([np.concatenate([centre + r * rot[:, 2], se3.matrix_to_rotvec(rot)])
+                             for rot, _ in candidates])
+            axes = np.array([rot[:, 2] for rot, _ in candidates])
+            way_in = rest.copy()
+            way_in[:, :3] -= (LIFT_MM + o.approach_mm) / 1e3 * axes
+            upright = int(np.argmin([c["tilt_deg"] for _, c in candidates]))
+            above = rest[upright].copy()
+            above[:3] -= LIFT_MM / 1e3 * axes[upright]
+            return candidates, rest, way_in, None, above
+        centre = setup.point_m(o.placed.layout_mm[point])  # the ball's centre as drawn
+        contact_m = o.placed.fixture.stylus_radius_mm / 1e3
+        tools = self.candidate_orientations(CONTACT_AZIMUTH_STEP_DEG)
+        candidates, normal = [], []
+        for spot, (elevation, azimuth) in enumerate(self.spots()):
+            e, a = np.deg2rad(elevation), np.deg2rad(azimuth + setup.yaw_deg)
+            n = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+            for rot, seat in tools:
+                # the tip, not the shank, touches first: the tool points into the ball
+                if -n @ rot[:, 2] >= np.cos(np.deg2rad(MAX_CONTACT_ANGLE_DEG)):
+                    candidates.append((rot, {**seat, "elevation_deg": elevation, "spot_azimuth_deg": azimuth,
+                                             "spot": spot, "normal": n}))
+                    normal.append(n)
+        normal = np.array(normal)
+        rot_vecs = np.array([se3.matrix_to_rotvec(rot) for rot, _ in candidates])
+        axes = np.array([rot[:, 2] for rot, _ in candidates])
+        rest = np.concatenate([centre + contact_m * normal + r * axes, rot_vecs], axis=1)
+        way_in = np.concatenate([centre + (contact_m + LIFT_MM / 1e3) * np.array([0.0, 0.0, 1.0]) + r * axes, rot_vecs],
+                                axis=1)
+        down = next(rot for rot, c in tools if c["tilt_deg"] == 0.0 and c["turn_deg"] == 0.0)  # the upright tool
+        above = np.concatenate([centre + [0.0, 0.0, contact_m + LIFT_MM / 1e3] + r * down[:, 2],
+                                se3.matrix_to_rotvec(down)])
+        return candidates, rest, way_in, normal, above
+
     @functools.cached_property
     def seat_plan(self) -> dict:
         """(placement name, point) -> the chosen seats [(rotation, seat info, joints at rest)], wrist
         branch by branch: `orientations` of each socket's reachable candidates (either wrist branch
         when `wrist_flip`), chosen together for every socket by the D-optimal seat design
-        (solvers/fixture_design.py) on the nominal model."""
+        (solvers/fixture_design.py) on the nominal model. A stylus plate: one contact at each spot of a
+        ball (``spots``), the tool's orientation and wrist there chosen by the same design."""
         cell, o = self.cell, self.options
         model = load_robot(cell.robot)
         tool = cell.tool
-        r = tool.radius_m
-        candidates = self.candidate_orientations()
         limits = model.joint_limits
-        q_all, group, info = [], [], []
+        q_all, group, info, normals = [], [], [], []
         for setup in o.placed.placements:
             for point in o.placed.fixture.points:
-                where = f"socket {point} of placement {setup.name}"
-                centre = setup.point_m(o.placed.layout_mm[point]) + [0.0, 0.0, r]
-                rest = np.array([np.concatenate([centre + r * rot[:, 2], se3.matrix_to_rotvec(rot)])
-                                 for rot, _ in candidates])
-                upright = int(np.argmin([c["tilt_deg"] for _, c in candidates]))
-                above = rest[upright].copy()
-                above[:3] -= LIFT_MM / 1e3 * candidates[upright][0][:, 2]
+                where = f"{self._what} {point} of placement {setup.name}"
+                candidates, rest, way_in, normal, above = self._candidate_poses(setup, point)
                 q_up = _reach(model, above, cell.home_q_rad, tool.tcp_pose)
                 if q_up is None:
                     raise PlanRefused(f"{cell.path} [kinematic_fixture]: move 'above {where}': the pose "
@@ -190,28 +287,41 @@ class KinematicFixture(StepRoutine):
                         ok[ok] &= np.all((q[ok] >= limits[:, 0]) & (q[ok] <= limits[:, 1]), axis=1)
                     # clear of singularities, and the way in from above on the same branch
                     ok[ok] &= dexterity(model, q[ok], tool.tcp_pose) >= MIN_DEXTERITY
-                    lifted = rest[ok].copy()
-                    lifted[:, :3] -= (LIFT_MM + o.approach_mm) / 1e3 * np.array([c[0][:, 2] for c in candidates])[ok]
-                    q_above = inverse_many(model, lifted, q[ok], tool.tcp_pose)
-                    ok[ok] &= np.isfinite(q_above).all(axis=1) & (np.abs(q_above - q[ok]).max(axis=1) < 0.5)
+                    q_above = inverse_many(model, way_in[ok], q[ok], tool.tcp_pose)
+                    near = np.isfinite(q_above).all(axis=1) & (np.abs(q_above - q[ok]).max(axis=1) < 0.5)
+                    if limits is not None:  # the way in within the limits too
+                        near[near] &= np.all((q_above[near] >= limits[:, 0]) & (q_above[near] <= limits[:, 1]), axis=1)
+                    ok[ok] &= near
                     for i in np.flatnonzero(ok):
                         q_all.append(q[i])
                         group.append((setup.name, point))
-                        info.append((i, branch))
+                        info.append((candidates[i], branch))
+                        normals.append(normal[i] if normal is not None else None)
         q_all = np.array(q_all)
         keys = [(s.name, p) for s in o.placed.placements for p in o.placed.fixture.points]
         short = [k for k in keys if sum(g == k for g in group) < o.orientations]
         if short:
-            raise PlanRefused(f"{cell.path} [kinematic_fixture]: socket {short[0][1]} of placement {short[0][0]}: "
-                              f"only {sum(g == short[0] for g in group)} of the candidate seats are reachable within "
-                              f"the joint limits, {o.orientations} are asked for; check the placement's at_m or "
+            raise PlanRefused(f"{cell.path} [kinematic_fixture]: {self._what} {short[0][1]} of placement {short[0][0]}: "
+                              f"only {sum(g == short[0] for g in group)} of the candidate {self._seats} are reachable "
+                              f"within the joint limits, {o.orientations} are asked for; check the placement's at_m or "
                               "lower orientations")
         labels = np.array([f"{s}/{p}" for s, p in group])
-        design = select_seats(model, q_all, labels, o.orientations, target_offset=tool.tcp_pose[:3] * 1e3)
+        slots = None
+        if self.contacts:
+            slots = np.array([seat["spot"] for (_, seat), _ in info])
+            for k in keys:
+                lost = sorted(set(range(o.orientations)) - {slots[c] for c in range(len(group)) if group[c] == k})
+                if lost:
+                    elevation, azimuth = self.spots()[lost[0]]
+                    raise PlanRefused(f"{cell.path} [kinematic_fixture]: ball {k[1]} of placement {k[0]}: its spot "
+                                      f"{elevation:g} deg up, {azimuth:g} deg around cannot be touched: no tool "
+                                      "orientation reaches it within the joint limits; check the placement's at_m, "
+                                      "elevation_deg or max_tilt_deg")
+        design = select_seats(model, q_all, labels, o.orientations, target_offset=tool.tcp_pose[:3] * 1e3,
+                              normals=np.array(normals, dtype=float) if self.contacts else None, slots=slots)
         plan: dict = {k: [] for k in keys}
         for c in design.chosen:
-            i, branch = info[c]
-            rot, seat = candidates[i]
+            (rot, seat), branch = info[c]
             plan[group[c]].append((rot, {**seat, "wrist": branch}, q_all[c]))
         for k, seats in plan.items():
             seats[:] = _short_round(seats)
@@ -239,7 +349,8 @@ class KinematicFixture(StepRoutine):
         rng = np.random.default_rng(0)  # the same poses for every judgement of a plan
         q_eval = rng.uniform(np.maximum(limits[:, 0], -np.pi), np.minimum(limits[:, 1], np.pi),
                              (DESIGN_EVAL_POSES, model.n_joints))
-        fit_options = FixtureOptions(seating_sd_mm=max(o.placed.fixture.seating_sd_mm, o.repeatability_mm))
+        fit_options = FixtureOptions(seating_sd_mm=max(o.placed.fixture.seating_sd_mm, o.repeatability_mm),
+                                     stylus_radius_mm=o.placed.fixture.stylus_radius_mm)
         predicted = predict_seats(model, data, fit_options, q_eval, o.repeatability_mm)
         branches = sorted({s[1]["wrist"] for k in keys for s in plan[k]})
         return Design(predicted.condition, predicted.mean_error_mm, "mm",
@@ -262,7 +373,12 @@ class KinematicFixture(StepRoutine):
         plan = self.seat_plan
         steps: list[tuple[Move, dict | None]] = []
         for setup in o.placed.placements:
+            q_from = np.asarray(cell.home_q_rad, dtype=float)  # each placement starts at home
             for point in o.placed.fixture.points:
+                if self.contacts:
+                    q_from = self._contact_steps(steps, setup, point, model, (speed, accel, joint_speed, joint_accel),
+                                                 q_from)
+                    continue
                 where = f"socket {point} of placement {setup.name}"
                 centre = setup.point_m(o.placed.layout_mm[point]) + [0.0, 0.0, r]  # the drawn tip's rounding at rest
                 seats = plan[(setup.name, point)]
@@ -300,6 +416,61 @@ class KinematicFixture(StepRoutine):
                                      joint_accel), None))
         return steps
 
+    def _contact_steps(self, steps, setup, point, model, speeds, q_from) -> np.ndarray:
+        """The moves of one ball's contacts, wrist branch by branch: for each, the tip's rounding to
+        LIFT_MM over the ball in the contact's orientation (a turn there by a straight move when it stays
+        on its wrist, else a joint move; a change of wrist via home), down a straight line to
+        `approach_mm` off the spot along its normal (clear of the ball: ``spots``), the contact search
+        toward the ball's centre, back along the normal and up over the ball again. A joint move whose
+        tip (on the nominal arm) would pass nearer a ball of the placement than CLEARANCE_MM refuses the
+        plan. q_from: the joints the arm is at before; returns those it ends at."""
+        cell, o = self.cell, self.options
+        tool, r = cell.tool, cell.tool.radius_m
+        speed, accel, joint_speed, joint_accel = speeds
+        where = f"ball {point} of placement {setup.name}"
+        centre = setup.point_m(o.placed.layout_mm[point])
+        contact_m, approach = o.placed.fixture.stylus_radius_mm / 1e3, o.approach_mm / 1e3
+        seats = self.seat_plan[(setup.name, point)]
+        balls = np.array([setup.point_m(o.placed.layout_mm[p]) for p in o.placed.fixture.points])
+
+        def joint_move(label, q_to):
+            clear = _joint_path_clearance(model, q_from, q_to, tool.tcp_pose, r, balls) - contact_m
+            if clear < CLEARANCE_MM / 1e3:
+                raise PlanRefused(f"{cell.path} [kinematic_fixture]: move '{label}': a joint move that would pass "
+                                  f"{clear * 1e3:.1f} mm from a ball of placement {setup.name}; check the placement's "
+                                  "at_m and layout_mm, or set wrist_flip: false")
+            steps.append((Move.joint(label, q_to, joint_speed, joint_accel), None))
+
+        state = None
+        for i, (rotation, seat, q_rest) in enumerate(seats):
+            axis, n = rotation[:, 2], seat["normal"]
+            rotvec = se3.matrix_to_rotvec(rotation)
+            above = np.concatenate([centre + [0.0, 0.0, contact_m + LIFT_MM / 1e3] + r * axis, rotvec])
+            start = np.concatenate([centre + (contact_m + approach) * n + r * axis, rotvec])
+            first_of_branch = i == 0 or seats[i - 1][1]["wrist"] != seat["wrist"]
+            label = f"{where} contact {i + 1}"
+            q_above = None if state is None or first_of_branch else inverse(model, above, state, tool.tcp_pose)
+            limits = model.joint_limits
+            if (q_above is not None and np.sign(np.sin(q_above[4])) == np.sign(np.sin(q_rest[4]))
+                    and (limits is None or np.all((q_above >= limits[:, 0]) & (q_above <= limits[:, 1])))):
+                steps.append((Move.linear(f"over {label}", above, speed, accel), None))
+            else:
+                if first_of_branch and i > 0:  # a wrist flip next to the plate may hit it: via home
+                    joint_move(f"home before the {seat['wrist']} wrist at {where}", np.asarray(cell.home_q_rad, float))
+                    q_from = np.asarray(cell.home_q_rad, dtype=float)
+                q_above = inverse(model, above, q_rest, tool.tcp_pose)
+                if q_above is None:
+                    raise PlanRefused(f"{cell.path} [kinematic_fixture]: move 'over {label}': the pose "
+                                      f"{np.round(above[:3], 4).tolist()} m cannot be reached; check the placement's at_m")
+                joint_move(f"over {label}", q_above)
+            state = q_from = q_above
+            steps.append((Move.linear(f"approach {label}", start, speed, accel), None))
+            steps.append((Move.contact(label, -n, o.search_speed_mm_s / 1e3, 2 * approach),
+                          {**seat, "setup": setup.name, "point": point}))
+            steps.append((Move.linear(f"retract {label}", start, speed, accel), None))
+            steps.append((Move.linear(f"lift from {label}", above, speed, accel), None))
+        return q_from
+
     @staticmethod
     def _lift(steps, where, rotation, speed, accel) -> None:
         lift = steps[-1][0].pose.copy()
@@ -313,26 +484,30 @@ class KinematicFixture(StepRoutine):
         o = self.options
         n = len(o.placed.placements) * len(o.placed.fixture.points) * o.orientations
         design = self.check_design()
-        progress(f"kinematic-fixture: {n} seats, {o.orientations} per socket ({len(o.placed.fixture.points)} sockets) "
+        progress(f"kinematic-fixture: {n} {self._seats}, {o.orientations} per {self._what} "
+                 f"({len(o.placed.fixture.points)} {self._what}s) "
                  f"at {len(o.placed.placements)} placements, chosen for identifiability (tilts up to "
                  f"{o.max_tilt_deg:g} deg, wrist {' and '.join(design.details['wrist_branches'])}): condition "
                  f"{design.condition:.3g}, expected error {design.expected_error:.3f} mm (1 sigma) over the workspace "
                  f"at {o.repeatability_mm:g} mm repeatability")
 
         def missed(move):
-            return (f"the contact search along the tool axis went {move.travel_m * 1e3:g} mm without touching the "
-                    "socket: are the placement's at_m and the plate's layout_mm in [kinematic_fixture] right, and "
-                    "the plate there?")
+            along = "toward the ball's centre" if self.contacts else "along the tool axis"
+            return (f"the contact search {along} went {move.travel_m * 1e3:g} mm without touching the "
+                    f"{self._what}: are the placement's at_m and the plate's layout_mm in [kinematic_fixture] right, "
+                    "and the plate there?")
 
         def record(seat, q):
+            spot = ({"elevation_deg": seat["elevation_deg"], "spot_azimuth_deg": seat["spot_azimuth_deg"]}
+                    if self.contacts else {})
             return {"setup": seat["setup"], "point": seat["point"], "target": TARGET,
                     **{f"q{j + 1}_rad": v for j, v in enumerate(q)},
                     "seat": seat["seat"], "tilt_deg": seat["tilt_deg"], "azimuth_deg": seat["azimuth_deg"],
-                    "turn_deg": seat["turn_deg"], "wrist_flipped": float(seat["wrist"] == "flipped")}
+                    "turn_deg": seat["turn_deg"], "wrist_flipped": float(seat["wrist"] == "flipped"), **spot}
 
         with drawn_tool(robot, self.cell.tool.tcp_pose):
             rows, cycle_s = self._placement_by_placement(devices, robot, plan, steps, missed, record, progress)
-        progress(f"kinematic-fixture: {len(rows)} seats recorded")
+        progress(f"kinematic-fixture: {len(rows)} {self._seats} recorded")
         meta = {"tool_radius_m": self.cell.tool.radius_m, "orientations": o.orientations,
                 "max_tilt_deg": o.max_tilt_deg, "turn_deg": o.turn_deg, "repeatability_mm": o.repeatability_mm,
                 "placements": len(o.placed.placements), "fixture": o.placed.fixture.path, "cycle_time_s": cycle_s,
@@ -396,7 +571,7 @@ class KinematicFixture(StepRoutine):
         data = PointData(dataset.stack(*names), np.zeros(len(dataset), int), (TARGET,),
                          np.array([index[k] for k in zip(setups.tolist(), points.tolist())]), tuple(keys),
                          np.full((len(dataset), 3), np.nan), distances)
-        fit_options = FixtureOptions(seating_sd_mm=fixture.seating_sd_mm)
+        fit_options = FixtureOptions(seating_sd_mm=fixture.seating_sd_mm, stylus_radius_mm=fixture.stylus_radius_mm)
         try:
             found = identify_points(model, data, fit_options)
         except (FixtureDataError, ValueError) as exc:
@@ -413,6 +588,29 @@ def _moved_by(section: Section) -> dict:
     return {"move_by": move_by,
             "confirm_timeout_s": section.number("confirm_timeout_s", CONFIRM_TIMEOUT_S, above=0.0,
                                                 high=MAX_CONFIRM_TIMEOUT_S)}
+
+
+def _contact_options(section: Section, cell: Cell, fixture) -> dict:
+    """``elevation_deg`` (a stylus plate only: [lowest, highest] elevation of the spots the tip touches,
+    deg above each ball's equator), and the stylus radius checked against the tool's tip."""
+    if fixture.stylus_radius_mm is None:
+        if "elevation_deg" in section:
+            section.fail("elevation_deg", "only with a stylus fixture (stylus_radius_mm): sockets have no spots")
+        return {}
+    if section.integer("orientations", 8) < MIN_CONTACTS_PER_BALL:
+        section.fail("orientations", f"a stylus plate needs at least {MIN_CONTACTS_PER_BALL} contacts per ball (three only "
+                                     "place its centre)")
+    tip_mm = cell.tool.radius_m * 1e3
+    if fixture.stylus_radius_mm <= tip_mm:
+        section.fail("fixture", f"stylus_radius_mm {fixture.stylus_radius_mm:g} is where the tip's rounding centre "
+                                f"touches (the ball's radius plus the tip's, {tip_mm:g} mm): it must exceed the tip's")
+    raw = section.raw("elevation_deg") if "elevation_deg" in section else list(ELEVATION_DEG)
+    ok = (isinstance(raw, list) and len(raw) == 2
+          and all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in raw))
+    if not ok or not 0.0 < raw[0] < raw[1] <= 90.0:
+        section.fail("elevation_deg", f"expected [lowest, highest] elevation of the spots on the ball's upper half, "
+                                      f"deg, 0 < lowest < highest <= 90, got {raw!r}")
+    return {"elevation_deg": (float(raw[0]), float(raw[1]))}
 
 
 def _reach(model, pose, home_q, tool_pose):
@@ -460,7 +658,9 @@ def _result(name, dataset, model, found, data: PointData, options: KinematicFixt
     std_offset = found.std[u.target(0)]
     params += [Parameter(f"target.{TARGET}.{c}", float(offset[j]), float(std_offset[j]), "mm")
                for j, c in enumerate("xyz")]
-    notes = [f"{len(data)} seats at {len(data.points)} sockets in {len({s for s, _ in data.points})} placements; "
+    contacts = options.placed.fixture.stylus_radius_mm is not None
+    notes = [f"{len(data)} {'contacts' if contacts else 'seats'} at {len(data.points)} "
+             f"{'balls' if contacts else 'sockets'} in {len({s for s, _ in data.points})} placements; "
              f"{found.noise_rank} of {int(model.n_params)} geometric parameters identified above the noise "
              f"({found.structural_rank} structurally)"]
     notes += [f"convention (held, never identified): {c}" for c in found.conventions]
@@ -484,3 +684,19 @@ def _result(name, dataset, model, found, data: PointData, options: KinematicFixt
                            "expected_error_mm": float(dataset.meta["design_expected_error_mm"])}
     return Result(name, params, found.errors_mm, expected, found.condition, gate_list, notes=notes, extra=extra,
                   cycle_time_s=dataset.meta.get("cycle_time_s"))
+
+
+def _joint_path_clearance(model, q0, q1, tool_pose, tip_radius_m, centres, samples: int = 24) -> float:
+    """Smallest distance (m) of the nominal tip's rounding centre from any of `centres` along the joint move
+    q0 -> q1 (straight in joint space, as a joint move goes)."""
+    qs = np.asarray(q0, dtype=float) + np.linspace(0.0, 1.0, samples)[:, None] * (np.asarray(q1) - np.asarray(q0))
+    rot, tcp = tcp_frames(model, qs, tool_pose)
+    tips = tcp - tip_radius_m * rot[:, :, 2]
+    return float(np.linalg.norm(tips[:, None, :] - np.asarray(centres)[None], axis=2).min())
+
+
+def _segment_clearance(a, b) -> float:
+    """Smallest distance of the origin (a ball's centre) from the segment a-b."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    t = float(np.clip(-a @ (b - a) / max((b - a) @ (b - a), 1e-30), 0.0, 1.0))
+    return float(np.linalg.norm(a + t * (b - a)))

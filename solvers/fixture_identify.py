@@ -272,7 +272,7 @@ class _Problem:
         pts = z[self.u.points_slice].reshape(-1, 3)
         return np.array([np.linalg.norm(pts[a] - pts[b]) - mm for a, b, mm, _ in self.data.distances])
 
-    def fit(self, z0, free) -> tuple[np.ndarray, object]:
+    def fit(self, z0, free, tol: float = 1e-12) -> tuple[np.ndarray, object]:
         idx = np.flatnonzero(free)
 
         def full(v):
@@ -287,7 +287,7 @@ class _Problem:
             return self.evaluate(full(v))[1][:, idx]
 
         sol = least_squares(fun, z0[idx], jac=jac, method="lm" if len(idx) <= self.n_res else "trf",
-                            x_scale=self.scale()[idx], ftol=1e-12, xtol=1e-12, gtol=1e-12)
+                            x_scale=self.scale()[idx], ftol=tol, xtol=tol, gtol=tol)
         return full(sol.x), sol
 
     def scale(self) -> np.ndarray:
@@ -512,6 +512,9 @@ def refit_points(model: KinematicModel, k, offsets, base, data: PointData, known
     return prob.row_errors(z), z[u.points_slice].reshape(-1, 3)
 
 
+PREDICT_TOL = 1e-6  # relative tolerance of the contact prediction's fit of the balls and the target
+
+
 @dataclass(frozen=True)
 class SeatPrediction:
     """What a planned set of seats should give, from the nominal model at the planned joints."""
@@ -531,10 +534,12 @@ def predict_seats(model: KinematicModel, data: PointData, options: FixtureOption
     prob = _Problem(model, data, options, with_base=False)
     u = prob.u
     z = prob.start()
-    _, j = prob.evaluate(z)
-    scale = prob.scale()
     nuisance = np.zeros(u.size, bool)
     nuisance[u.n_kin:] = True
+    if prob.contact:  # the linear start is a socket's: each ball's centre and the target fitted to the contacts
+        z, _ = prob.fit(z, nuisance, tol=PREDICT_TOL)  # the normals to 1e-6 are more than a prediction needs
+    _, j = prob.evaluate(z)
+    scale = prob.scale()
     # what the fit would estimate: the directions above the noise (as identify_points decides)
     keep = identifiability.analyse(j * scale, nuisance, ~nuisance, noise_mm=noise_mm, prior_mm=options.prior_mm).keep
     js = j[:, keep] * scale[keep]

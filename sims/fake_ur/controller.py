@@ -14,8 +14,8 @@ Given a cell file (``--cell-file``), it obeys that cell's hidden truth with the 
 cell's physics (:mod:`.truth`): it reports with the arm's drawing, while the real tool on
 the arm as built, off by each motion's repeatability, blocks the real beams and touches
 the real stylus; a contact search that meets the pivot's or a kinematic-fixture plate's
-socket settles in it (a plate moved by hand lies at one placement at a time:
-``place_plate``). The beams' sensors switch late (latency, jitter); the digital inputs
+socket settles in it, one that meets a stylus plate's ball stops there (a plate moved by
+hand lies at one placement at a time: ``place_plate``). The beams' sensors switch late (latency, jitter); the digital inputs
 sample them once per cycle; the control port's ``edges`` gives each switch's exact time
 (for a networked cell's IO module). Without a cell file the truth is the drawing.
 A tool change (``mount_tool`` on the control port) puts another tool of the cell's table on

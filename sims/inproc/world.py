@@ -22,7 +22,9 @@ latency and a jitter drawn uniformly from [-jitter, +jitter].
 The pivot is a conical socket (:class:`PivotSocket`). A contact search that meets it
 ends as a compliant one (force mode) does: the cone guides the tip's rounding to its
 seat and the arm comes to rest there, off by its repeatability; a tip that lands on the
-flat beside the socket stays where it landed.
+flat beside the socket stays where it landed. The kinematic-fixture plate's sockets seat
+the same way; a stylus plate's balls (:class:`FixtureBall`) stop the search where the
+tip's rounding meets one, nothing guiding it further.
 
 A tool change (:meth:`SimWorld.mount_tool`) puts another tool of the cell's table on the
 flange as it really is; where the cell file wires the tool changer's id to the robot's digital
@@ -151,7 +153,8 @@ class SimWorld:
 
     def pivot_touch(self) -> str | None:
         """'seat' or 'face' when the real tip's rounding touches the pivot fixture (see
-        :meth:`PivotSocket.touch`), None when clear or the cell has no pivot."""
+        :meth:`PivotSocket.touch`), 'ball' when it touches a stylus plate's ball (no settling),
+        None when clear or the cell has no pivot."""
         for socket in ([self.pivot] if self.pivot is not None else []) + self.sockets:
             touch = socket.touch(self._body[0], self.tool_radius_m)
             if touch is not None:
@@ -394,9 +397,27 @@ def _box_in(box: Workspace, base: np.ndarray) -> Workspace:
     return Workspace(local.min(axis=0), local.max(axis=0))
 
 
-def fixture_sockets(truth: CellTruth, step: int = 1) -> list[PivotSocket]:
+@dataclass(frozen=True)
+class FixtureBall:
+    """A stylus plate's ball as built: a contact search stops where the tip's rounding touches it
+    (sphere on sphere); nothing guides the tip, so the arm rests where it stopped."""
+
+    centre_m: np.ndarray
+    radius_m: float
+
+    def touch(self, centre_m, radius_m: float) -> str | None:
+        """'ball' when a rounding of `radius_m` centred at `centre_m` touches the ball, None when clear."""
+        gap = np.linalg.norm(np.asarray(centre_m, dtype=float) - self.centre_m) - self.radius_m - radius_m
+        return "ball" if gap <= 0.0 else None
+
+
+def fixture_sockets(truth: CellTruth, step: int = 1) -> list:
     """The kinematic-fixture plate's sockets as really placed, as sockets for the mounted tool (a
-    plate the operator moves: those of placement `step`, :meth:`CellTruth.plate_sockets`)."""
+    plate the operator moves: those of placement `step`, :meth:`CellTruth.plate_sockets`); a stylus
+    plate's balls (:class:`FixtureBall`), which a search touches without settling."""
+    if truth.plate_ball_radius_m is not None:
+        return [FixtureBall(np.asarray(point, dtype=float), truth.plate_ball_radius_m)
+                for _, _, point in truth.plate_sockets(step)]
     if truth.tool is None:
         return []
     return [PivotSocket(np.asarray(point, dtype=float), truth.tool.radius_m)

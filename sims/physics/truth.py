@@ -117,6 +117,9 @@ class CellTruth:
     # one plate the operator moves between the placements (move_by: operator): only the sockets of the
     # placement it is at are there (plate_sockets); otherwise every placement is a plate of its own
     plate_moved: bool = False
+    # a stylus plate (the fixture's stylus_radius_mm): each of `sockets` is a ball's centre, the ball this
+    # radius (the fixture's contact radius less the drawn tool's tip radius; true as drawn); None: sockets
+    plate_ball_radius_m: float | None = None
 
     def plate_sockets(self, step: int = 1) -> tuple:
         """The sockets (setup, point id, position m) there are with the plate at placement `step`
@@ -246,7 +249,8 @@ def truth_of_cell(cell: Cell, model: KinematicModel) -> CellTruth:
     return CellTruth(params, tool, beams, stylus, pivot, (), spec.repeatability_mm, spec.trigger_latency_s,
                      spec.trigger_jitter_s, spec.seed, drawn, second, tools,
                      cell.tool.id if cell.tool is not None else 0, tools_drawn, sockets,
-                     (cell.routines.get("kinematic_fixture") or {}).get("move_by") == "operator")
+                     (cell.routines.get("kinematic_fixture") or {}).get("move_by") == "operator",
+                     _plate_ball_radius_m(cell))
 
 
 FIXTURE_YAW_ERROR_DEG = 0.2  # a plate set down by its drawing is turned this much (1 sigma) off it
@@ -254,7 +258,8 @@ FIXTURE_YAW_ERROR_DEG = 0.2  # a plate set down by its drawing is turned this mu
 
 def _fixture_sockets(cell: Cell, spec: SimTruthSpec) -> tuple:
     """The kinematic-fixture plate of the cell file's [kinematic_fixture] as really placed, from the seed's
-    own stream (seed, 4), so adding it changes nothing else of the truth: one plate, its sockets off their
+    own stream (seed, 4), so adding it changes nothing else of the truth: one plate, its sockets (a stylus
+    plate: its balls' centres, at the placement's height) off their
     drawing by the fixture's distance standard deviations (half of it per coordinate and socket), each
     placement `fixture_error_mm` (a random direction) and about 0.2 deg of yaw off where the file puts it."""
     raw = cell.routines.get("kinematic_fixture")
@@ -270,6 +275,19 @@ def _fixture_sockets(cell: Cell, spec: SimTruthSpec) -> tuple:
                          setup.yaw_deg + rng.normal(0.0, FIXTURE_YAW_ERROR_DEG))
         out += [(setup.name, p, real.point_m(layout[p])) for p in placed.fixture.points]
     return tuple(out)
+
+
+def _plate_ball_radius_m(cell: Cell) -> float | None:
+    """The balls' radius of a stylus plate in [kinematic_fixture] (None: a socket plate, or none): the
+    fixture's stylus_radius_mm is where the tip's rounding centre touches, so the ball is that less the
+    tool's tip radius."""
+    raw = cell.routines.get("kinematic_fixture")
+    if raw is None:
+        return None
+    radius_mm = cell_fixture(Section(str(cell.path), "kinematic_fixture", raw), str(cell.path)).fixture.stylus_radius_mm
+    if radius_mm is None:
+        return None
+    return max(radius_mm / 1e3 - (cell.tool.radius_m if cell.tool is not None else 0.0), 0.0)
 
 
 def _real_tool(drawn_tool, spec: SimTruthSpec, rng: np.random.Generator) -> ToolBody | None:

@@ -10,8 +10,9 @@ from point_data import plate_placements, seat, workspace_errors  # tests/point_d
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.sims.physics.workspace import full_workspace
-from cellcal.solvers.fixture_design import RIDGE, information, seat_rows, select_seats
+from cellcal.solvers.fixture_design import RIDGE, contact_rows, information, seat_rows, select_seats
 from cellcal.solvers.fixture_identify import FixtureOptions, PointData, identify_points, judge_workspace, predict_seats
+from cellcal.solvers.chain import forward
 from cellcal.solvers.inverse import dexterity, inverse, inverse_many, tcp_poses
 
 UR10E = load_robot("ur10e")
@@ -147,3 +148,75 @@ def test_the_workspace_judgement_tells_a_useful_calibration_from_a_local_one():
     assert true_useful < 0.25 * workspace_errors(arm2, UR10E.nominal, useful.offsets[0], poses).mean()
     # its expected error is the error it leaves (first order; 300 poses, 3 axes): within a factor of 2
     assert 0.5 < true_useful / j_useful.expected_error_mm < 2.0
+
+
+# -- stylus contacts: one residual per row, along the ball's normal ------------------------------------
+
+BALL_MM = 12.0  # ball radius plus the tip's rounding: the distance the target keeps from the centre
+
+
+def _contact_pool(seed, per_ball=24, placements=2):
+    rng = np.random.default_rng(seed)
+    arm = SimulatedArm(UR10E, rng, repeatability_mm=0.03, target_offsets=[TOOL_MM])
+    plate = seat(arm, plate_placements(rng, placements), per_ball, rng, max_tilt_deg=45.0, stylus_radius_mm=BALL_MM,
+                 wrists=("normal", "flipped"), spacing_mm=200.0)
+    group = np.array([f"{s}/{p}" for s, p in zip(plate.setup, plate.point)])
+    # the true arm's target at each contact: on its ball, along the ball's normal there
+    tips = forward_target(arm, plate.q)
+    normals = tips - np.array([plate.true_points[(s, p)] for s, p in zip(plate.setup, plate.point)])
+    return plate, group, normals / np.linalg.norm(normals, axis=1)[:, None]
+
+
+def forward_target(arm, q):
+    layout = arm.truth.layout
+    rot, org = forward(UR10E.chains[UR10E.default_chain], arm.truth.x[: layout.n_kin], q)
+    return org + rot @ arm.truth.x[layout.target(0)]
+
+
+def test_contact_information_is_the_full_problem_with_every_ball_centre_eliminated():
+    plate, group, normals = _contact_pool(5, per_ball=6)
+    rows, pj = contact_rows(seat_rows(UR10E, plate.q, TOOL_MM)[0], normals)
+    n, p = len(rows), rows.shape[2]
+    points = list(dict.fromkeys(group.tolist()))
+    full = np.zeros((n, p + 3 * len(points)))  # residual = n^T (tip - c) - r: d/dc = -n^T
+    full[:, :p] = rows[:, 0]
+    for i, g in enumerate(group):
+        full[i, p + 3 * points.index(g): p + 3 * points.index(g) + 3] = -normals[i]
+    m = full.T @ full
+    schur = m[:p, :p] - m[:p, p:] @ np.linalg.solve(m[p:, p:], m[p:, :p])
+    got = information(rows, group, np.arange(n), pj) - RIDGE * np.eye(p)
+    # the same products of O(1) entries, summed in another order; the 3x3 inverses of six contacts'
+    # normals (spread over a half ball, condition ~10) lose at most a few digits more than the sums
+    assert np.abs(got - schur).max() <= 1e-8 * np.abs(schur).max()
+
+
+def test_three_contacts_of_a_ball_only_place_its_centre():
+    plate, group, normals = _contact_pool(6, per_ball=4)
+    rows, pj = contact_rows(seat_rows(UR10E, plate.q, TOOL_MM)[0], normals)
+    three = np.concatenate([np.flatnonzero(group == g)[:3] for g in dict.fromkeys(group)])
+    four = np.concatenate([np.flatnonzero(group == g)[:4] for g in dict.fromkeys(group)])
+    scale = np.abs(information(rows, group, four, pj)).max()
+    # three residuals, three unknowns of the centre: nothing left but rounding of the O(1) products
+    assert np.abs(information(rows, group, three, pj) - RIDGE * np.eye(rows.shape[2])).max() <= 1e-9 * scale
+    assert scale > 1e3 * RIDGE  # a fourth contact does carry something
+
+
+def test_designed_contacts_hold_more_information_than_random_ones():
+    plate, group, normals = _contact_pool(7)
+    rng = np.random.default_rng(0)
+    randoms = {f"r{k}": np.concatenate([rng.choice(np.flatnonzero(group == g), 8, replace=False)
+                                        for g in dict.fromkeys(group)]) for k in range(20)}
+    design = select_seats(UR10E, plate.q, group, 8, target_offset=TOOL_MM, compare=randoms, normals=normals)
+    assert len(design.chosen) == 8 * len(set(group))
+    assert all((group[design.chosen] == g).sum() == 8 for g in set(group))  # balanced over the balls
+    # log det differs between selections by units (each factor e in volume); rounding moves it by ~1e-10
+    assert design.log_det > max(design.log_det_of.values()) + 1.0
+
+
+def test_contacts_given_slots_take_each_slot_at_most_once_per_ball():
+    plate, group, normals = _contact_pool(8, per_ball=16)
+    slots = np.arange(len(group)) % 8  # e.g. eight spots of each ball, two candidate contacts at each
+    design = select_seats(UR10E, plate.q, group, 8, target_offset=TOOL_MM, normals=normals, slots=slots)
+    for g in set(group):
+        mine = design.chosen[group[design.chosen] == g]
+        assert len(mine) == 8 and len(set(slots[mine])) == 8

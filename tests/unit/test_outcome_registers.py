@@ -42,7 +42,8 @@ def test_the_change_of_a_tip_only_result_leaves_the_tilt_undetermined():
 
 
 def test_outcome_registers_are_addresses_of_their_own():
-    assert len(set(PanelMap().holding_registers())) == len(PanelMap().holding_registers()) == 12
+    # selector, result code, run counter, the 7 outcome registers, tool selector, mounted tool and placement
+    assert len(set(PanelMap().holding_registers())) == len(PanelMap().holding_registers()) == 13
     with pytest.raises(DriverConfigError, match="share an address"):
         ModbusPanel.check_options(port=502, unit_id=1, timeout_s=1.0,
                                   **{**PanelMap().__dict__, "tilt_y_register": 1})
