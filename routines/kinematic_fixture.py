@@ -101,6 +101,7 @@ LIFT_MM = 40.0  # above each socket's first approach and after its last, clear o
 JOINT_SPEED_RAD_S = 1.0
 MAX_TILT_DEG = 45.0  # beyond, the shank meets a 90 deg socket's rim
 CANDIDATE_AZIMUTH_STEP_DEG = 30.0  # the seat design chooses among tilts at azimuths this far apart
+WRISTS = ("normal", "flipped")  # the wrist branches, in the order a placement's seats take them
 MIN_DEXTERITY = 0.08  # seats nearer a singularity are not offered (half of a UR's home pose, 0.16)
 DESIGN_EVAL_POSES = 200  # random joint configurations the plan's expected error is judged at
 MOVE_BY = ("fixed", "operator")  # the placements: plates fixed in the cell, or one plate the operator moves
@@ -364,57 +365,73 @@ class KinematicFixture(StepRoutine):
     def steps(self) -> list[tuple[Move, dict | None]]:
         cell, o = self.cell, self.options
         model = load_robot(cell.robot)
-        tool = cell.tool
-        r = tool.radius_m
         accel, joint_accel = cell.limits["tcp_accel_m_s2"], cell.limits["joint_accel_rad_s2"]
         speed = cell.limits["tcp_speed_m_s"]
         joint_speed = min(JOINT_SPEED_RAD_S, cell.limits["joint_speed_rad_s"])
-        approach = o.approach_mm / 1e3
         plan = self.seat_plan
         steps: list[tuple[Move, dict | None]] = []
         for setup in o.placed.placements:
             q_from = np.asarray(cell.home_q_rad, dtype=float)  # each placement starts at home
-            for point in o.placed.fixture.points:
-                if self.contacts:
+            if self.contacts:
+                for point in o.placed.fixture.points:
                     q_from = self._contact_steps(steps, setup, point, model, (speed, accel, joint_speed, joint_accel),
                                                  q_from)
-                    continue
-                where = f"socket {point} of placement {setup.name}"
-                centre = setup.point_m(o.placed.layout_mm[point]) + [0.0, 0.0, r]  # the drawn tip's rounding at rest
-                seats = plan[(setup.name, point)]
-                state = None  # the joints the plan has the arm at (as the guard follows it)
-                for i, (rotation, seat, q_rest) in enumerate(seats):
-                    axis = rotation[:, 2]
-                    at = np.concatenate([centre + r * axis - approach * axis, se3.matrix_to_rotvec(rotation)])
-                    first_of_branch = i == 0 or seats[i - 1][1]["wrist"] != seat["wrist"]
-                    q_at = None if state is None or first_of_branch else inverse(model, at, state, tool.tcp_pose)
-                    if q_at is None or np.sign(np.sin(q_at[4])) != np.sign(np.sin(q_rest[4])):
-                        # from above: first seat, the other wrist, or a turn a straight move cannot make
-                        if i > 0:
-                            self._lift(steps, where, seats[i - 1][0], speed, accel)
-                        if first_of_branch and i > 0:  # a wrist flip next to the plate may hit it: via home
-                            steps.append((Move.joint(f"home before the {seat['wrist']} wrist at {where}",
-                                                     cell.home_q_rad, joint_speed, joint_accel), None))
-                        above = at.copy()
-                        above[:3] -= LIFT_MM / 1e3 * axis
-                        q = inverse(model, above, q_rest, tool.tcp_pose)
-                        if q is None:
-                            raise PlanRefused(f"{cell.path} [kinematic_fixture]: move 'above {where}': the pose "
-                                              f"{np.round(above[:3], 4).tolist()} m cannot be reached from home; "
-                                              "check the placement's at_m")
-                        steps.append((Move.joint(f"above {where} seat {i + 1}", q, joint_speed, joint_accel), None))
-                        q_at = inverse(model, at, q, tool.tcp_pose)
-                    state = q_at
-                    label = f"{where} seat {i + 1}"
-                    steps.append((Move.linear(f"approach {label}", at, speed, accel), None))
-                    steps.append((Move.contact(label, axis, o.search_speed_mm_s / 1e3, 2 * approach),
-                                  {**seat, "setup": setup.name, "point": point}))
-                    steps.append((Move.linear(f"retract {label}", at, speed, accel), None))
-                self._lift(steps, where, seats[-1][0], speed, accel)
+            else:
+                # every socket on the usual wrist, then (via home, once per placement) on the flipped one
+                # in the reverse order: the fewest long moves
+                points = list(o.placed.fixture.points)
+                on_wrist = None  # the wrist the arm has been seating on at this placement
+                for b, wrist in enumerate(WRISTS):
+                    for point in points if b == 0 else points[::-1]:
+                        seats = [seat for seat in plan[(setup.name, point)] if seat[1]["wrist"] == wrist]
+                        if seats:
+                            self._socket_steps(steps, setup, point, seats, model, on_wrist not in (None, wrist),
+                                               (speed, accel, joint_speed, joint_accel))
+                            on_wrist = wrist
             # home between placements: a straight joint path from one to the next may leave the box
             steps.append((Move.joint(f"home after placement {setup.name}", cell.home_q_rad, joint_speed,
                                      joint_accel), None))
         return steps
+
+    def _socket_steps(self, steps, setup, point, seats, model, via_home: bool, speeds) -> None:
+        """The moves of one socket's seats on one wrist branch: above the first seat by a joint move (via
+        home first when the wrist changes: a flip next to the plate may hit it), each seat's approach,
+        compliant search and retract, a turn between seats by a straight move where the arm stays on its
+        branch (else lift and come in from above again), and a lift at the end."""
+        cell, o = self.cell, self.options
+        tool, r = cell.tool, cell.tool.radius_m
+        speed, accel, joint_speed, joint_accel = speeds
+        approach = o.approach_mm / 1e3
+        where = f"socket {point} of placement {setup.name}"
+        centre = setup.point_m(o.placed.layout_mm[point]) + [0.0, 0.0, r]  # the drawn tip's rounding at rest
+        state = None  # the joints the plan has the arm at (as the guard follows it)
+        for i, (rotation, seat, q_rest) in enumerate(seats):
+            axis = rotation[:, 2]
+            at = np.concatenate([centre + r * axis - approach * axis, se3.matrix_to_rotvec(rotation)])
+            q_at = None if state is None else inverse(model, at, state, tool.tcp_pose)
+            if q_at is None or np.sign(np.sin(q_at[4])) != np.sign(np.sin(q_rest[4])):
+                # from above: the first seat, or a turn a straight move cannot make
+                if i > 0:
+                    self._lift(steps, where, seats[i - 1][0], speed, accel)
+                elif via_home:
+                    steps.append((Move.joint(f"home before the {seat['wrist']} wrist at placement {setup.name}",
+                                             cell.home_q_rad, joint_speed, joint_accel), None))
+                above = at.copy()
+                above[:3] -= LIFT_MM / 1e3 * axis
+                q = inverse(model, above, q_rest, tool.tcp_pose)
+                if q is None:
+                    raise PlanRefused(f"{cell.path} [kinematic_fixture]: move 'above {where}': the pose "
+                                      f"{np.round(above[:3], 4).tolist()} m cannot be reached from home; "
+                                      "check the placement's at_m")
+                steps.append((Move.joint(f"above {where} seat {seat['seat']}", q, joint_speed, joint_accel), None))
+                q_at = inverse(model, at, q, tool.tcp_pose)
+            state = q_at
+            label = f"{where} seat {seat['seat']}"
+            steps.append((Move.linear(f"approach {label}", at, speed, accel), None))
+            steps.append((Move.contact(label, axis, o.search_speed_mm_s / 1e3, 2 * approach),
+                          {**seat, "setup": setup.name, "point": point}))
+            steps.append((Move.linear(f"retract {label}", at, speed, accel), None))
+        self._lift(steps, where, seats[-1][0], speed, accel)
 
     def _contact_steps(self, steps, setup, point, model, speeds, q_from) -> np.ndarray:
         """The moves of one ball's contacts, wrist branch by branch: for each, the tip's rounding to
@@ -629,7 +646,7 @@ def _short_round(seats: list) -> list:
     """The seats of one socket, wrist branch by branch (the normal wrist first), each branch from its
     most upright seat on to the nearest in joint space: small turns between neighbouring seats."""
     out = []
-    for branch in ("normal", "flipped"):
+    for branch in WRISTS:
         left = [s for s in seats if s[1]["wrist"] == branch]
         if not left:
             continue

@@ -43,9 +43,10 @@ FLOOR_FACTOR = 1.15
 
 
 def variant(tmp_path: Path, tracker: dict, name: str = "cell.yaml", arm_errors: bool = True,
-            base: str = "sim") -> Path:
-    """The shipped cell with the arm off its drawing and its own [tracker] section."""
-    changes = {"tracker": replaced(tracker), **({"sim_truth": ARM_ERRORS} if arm_errors else {})}
+            base: str = "sim", limits: dict | None = None) -> Path:
+    """The shipped cell with the arm off its drawing and its own [tracker] section (and limits)."""
+    changes = {"tracker": replaced(tracker), **({"sim_truth": ARM_ERRORS} if arm_errors else {}),
+               **({"limits": limits} if limits else {})}
     return edited_cell(tmp_path, base, changes, name=name)
 
 
@@ -375,11 +376,14 @@ def test_a_tracker_that_cannot_see_the_arm_is_refused_before_anything_moves(tmp_
 @pytest.mark.slow
 def test_the_campaign_through_the_network_fakes_reaches_the_same_floor(tmp_path, campaign, start_sim_net):
     """The same cell behind ur_rtde, the tracker socket and the fake UR controller, which obey
-    the same hidden truth: the same plan, the same identification quality (about 2 min: the
-    fake controller moves in real time)."""
+    the same hidden truth: the same plan, the same identification quality (about a minute: the
+    fake controller moves in real time, here at twice the shipped joint speed)."""
     from cellcal.sims.physics.truth import truth_of_cell
 
-    cell, _ = start_sim_net(load_cell(variant(tmp_path, SECTION, base="sim-net")))  # tests/conftest.py
+    # the plan (its poses) does not depend on the speed limits, the time in real-time motion does: the
+    # joints at twice the shipped cell's speed (the fake controller follows what the cell allows)
+    fast = {"joint_speed_rad_s": 3.0, "joint_accel_rad_s2": 8.0}
+    cell, _ = start_sim_net(load_cell(variant(tmp_path, SECTION, base="sim-net", limits=fast)))  # tests/conftest.py
     prepared = runner.prepare("tracker", cell)
     with open_drivers(cell) as drivers:
         dataset = runner.measure(prepared, drivers, tmp_path / "runs", lambda message: None)
