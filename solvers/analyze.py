@@ -130,7 +130,8 @@ class Naming:
     candidates: tuple[Scored, ...]  # best (lowest held-out mean) first, whatever was named
     margin: float  # how much higher (fraction) the best other cause's held-out error is
     notes: tuple[str, ...] = ()
-    tie: str = ""  # how a near-tie was settled: "nested", "both" (two effects), "ambiguous" or "unseparated"
+    tie: str = ""  # how a near-tie was settled: "nested", "both" (two effects), "ambiguous", "unseparated" or
+    #                "unsteady" (a nested lead the models chosen on all rows do not bear out: ``ties._unsteady``)
     contenders: tuple[Scored, ...] = ()  # each cause's preferred candidate, best first (``contenders``);
     #                                      () for made-up namings: then the first single place of each cause
     grounds: str = ""  # why the named one is not the lowest-scored candidate ("" when it is, or none is named)
@@ -185,7 +186,8 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     naming = name_cause(candidates, baseline, scorer)
     tied = ties.tied_explanations(naming, baseline, scorer, MIN_GAIN, MIN_MARGIN,
                                   lambda s: _fit_in_full(model, geometric_fit, obs, folds, s.terms, options.prior_mm,
-                                                         s.label, scorer.robust).magnitude, robot_class.name)
+                                                         s.label, scorer.robust).magnitude, robot_class.name,
+                                  frozenset(id(s.term) for s in searched) if options.nested else frozenset())
     naming = tied.naming
     undecided = None
     leading = sorted(naming.contenders + naming.set_aside, key=lambda s: s.heldout_mean_mm)
@@ -336,7 +338,8 @@ def _decided_by(naming: Naming, tied) -> tuple[str, ...]:
         out.append("margin")
     if naming.named is not None and naming.grounds:
         out.append("single place")
-    out += {"nested": ["nested"], "both": ["two effects"], "ambiguous": ["tie"], "unseparated": ["tie"]}.get(
+    out += {"nested": ["nested"], "both": ["two effects"], "ambiguous": ["tie"], "unseparated": ["tie"],
+            "unsteady": ["tie"]}.get(
         naming.tie, [])
     if tied.entries and naming.named is None:
         out.append("tie")

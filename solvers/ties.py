@@ -10,7 +10,9 @@ margin. A lead beyond the margin is a tie too when the data themselves do not
 separate the two: each fitted to the data, the other refitted to its predictions
 misses them by fewer than sqrt(DECIDE_LAMBDA) noise standard deviations over all
 rows (for the closer direction). A held-out lead then comes from how the folds fall
-on a few loosely determined parameters, not from anything the data show. When one of them is named all the same, the grounds are stated: the
+on a few loosely determined parameters, not from anything the data show. So too a lead
+won by a search's steadiness (``_unsteady``): scored with each fold's own choice of places,
+one cause leads by the margin, scored as the models chosen on all rows it does not. When one of them is named all the same, the grounds are stated: the
 simpler of two nested explanations, or physical plausibility -- the size each
 would need against what robots of its class show (``plausibility.TYPICAL_MAX``). Only a
 different experiment can decide a tie that neither settles (``discriminate``).
@@ -23,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cellcal.solvers import plausibility
+from cellcal.solvers.robust_scoring import trimmed_mean
 
 # Two explanations whose predictions, each fitted, lie fewer than 2 * 2.33 noise standard deviations
 # apart over all the data (summed squares) cannot be told apart by a decision that errs below 1% either
@@ -73,12 +76,13 @@ class TieReport:
 
 
 def tied_explanations(naming, baseline, scorer, min_gain: float, min_margin: float, size_of,
-                      robot_class: str = plausibility.DEFAULT_CLASS) -> TieReport:
+                      robot_class: str = plausibility.DEFAULT_CLASS, searched=frozenset()) -> TieReport:
     """The explanations of different causes within the margin of the best one, if that one explains
     anything (gains min_gain); none when two effects are both present (``naming.tie == "both"``).
 
     size_of(scored) -> its cause's magnitude, fitted in full; called only for a tie the naming
-    rule left open, to judge plausibility against the typical maxima of robot_class."""
+    rule left open, to judge plausibility against the typical maxima of robot_class. searched: the ids
+    of the terms a forward search chose (scored with each fold's own choice: ``_unsteady``)."""
     candidates = naming.candidates
     if not candidates or naming.tie == "both":
         return TieReport(naming)
@@ -92,13 +96,22 @@ def tied_explanations(naming, baseline, scorer, min_gain: float, min_margin: flo
     apart = None
     if len(picked) == 1 and naming.named is picked[0]:  # named by the margin: do the data themselves separate them?
         runner_up, apart = _unseparated(picked[0], rivals, baseline, scorer, min_gain)
-        if runner_up is None:
-            return TieReport(naming)
+        if runner_up is not None:
+            note = (f"{picked[0].label} leads {runner_up.label} by {100 * naming.margin:.1f}% held-out, but fitted "
+                    f"to these data their predictions lie only {apart:.1f} noise standard deviations apart, "
+                    f"{np.sqrt(DECIDE_LAMBDA):.2f} needed to tell them apart")
+            naming = dataclasses.replace(naming, named=None, tie="unseparated", notes=naming.notes + (note,))
+        else:
+            runner_up, fixed = _unsteady(picked[0], rivals, baseline, scorer, min_gain, min_margin, searched)
+            if runner_up is None:
+                return TieReport(naming)
+            note = (f"{picked[0].label} leads {runner_up.label} by {100 * naming.margin:.1f}% held-out with each "
+                    f"fold choosing its own places, but as the models chosen on all rows they are "
+                    f"{100 * fixed:.1f}% apart, {100 * min_margin:.0f}% needed: the lead comes from how steadily "
+                    f"each cause's places are chosen on fewer rows, not from what either explains")
+            naming = dataclasses.replace(naming, named=None, tie="unsteady", notes=naming.notes + (note,))
+            apart = -fixed  # said by _why as the margin of the models chosen on all rows
         picked.append(runner_up)
-        note = (f"{picked[0].label} leads {runner_up.label} by {100 * naming.margin:.1f}% held-out, but fitted to "
-                f"these data their predictions lie only {apart:.1f} noise standard deviations apart, "
-                f"{np.sqrt(DECIDE_LAMBDA):.2f} needed to tell them apart")
-        naming = dataclasses.replace(naming, named=None, tie="unseparated", notes=naming.notes + (note,))
     if len(picked) < 2:
         return TieReport(naming)
     entries = [Tied(c, _why(c, picked[1] if c is picked[0] else picked[0], scorer, min_margin, apart)) for c in picked]
@@ -155,6 +168,26 @@ def decide_by(entries) -> str:
             f"{how[1]}); `cellcal analyze --discriminate N -o POSES.csv` proposes such poses and how many suffice")
 
 
+def _unsteady(best, rivals, baseline, scorer, min_gain: float, min_margin: float, searched):
+    """(a contender of another cause, the fractional margin between the two) when either was chosen by a
+    forward search (its held-out errors those of each fold's own choice of places, ``selection``) and,
+    scored as the models chosen on all rows, the two lie within min_margin of each other (the contender
+    gaining min_gain); else (None, None). Inside a fold's fewer rows the search of one cause may pick
+    another place now and then (compliance of a joint the fold barely sees) while a rival's pick stays
+    put: that costs the first its nested score, and says how steady its choice is, not that the other
+    explains the data better."""
+    if not searched:
+        return None, None
+    others = [c for c in rivals if c.cause != best.cause]
+    if not others or not any(id(c.terms[0]) in searched for c in (best, *others)):
+        return None, None
+    errors = scorer.heldout_errors_many([c.terms for c in (best, *others)])
+    fixed = np.array([float(trimmed_mean(e, c.trim)) for e, c in zip(errors, (best, *others))])
+    margins = np.where(1.0 - fixed[1:] / baseline.heldout_mean_mm >= min_gain, fixed[1:] / fixed[0] - 1.0, np.inf)
+    i = int(np.argmin(margins))
+    return (others[i], float(margins[i])) if margins[i] < min_margin else (None, None)
+
+
 def _unseparated(best, candidates, baseline, scorer, min_gain: float):
     """(the first single-place candidate of another cause, how many noise standard deviations apart the
     two put the data) when it also explains the data (gains min_gain) and they lie fewer than
@@ -177,6 +210,10 @@ def _why(c, other, scorer, min_margin: float, apart: float | None = None) -> str
     a, b = c.terms[0], other.terms[0]
     if scorer.is_nested(a, b) or scorer.is_nested(b, a):
         return f"same column span as {other.label}: on these data one model contains the other"
+    if apart is not None and apart <= 0.0:  # ``_unsteady``: minus the margin of the models chosen on all rows
+        return (f"as the models chosen on all rows, held-out errors {100 * -apart:.1f}% from those of "
+                f"{other.label}, within the {100 * min_margin:.0f}% margin needed to tell causes apart (the "
+                f"lead with each fold's own choice of places comes from how steadily they are chosen)")
     if apart is not None:
         return (f"fitted to these data, its predictions and those of {other.label} lie {apart:.1f} noise "
                 f"standard deviations apart, fewer than the {np.sqrt(DECIDE_LAMBDA):.2f} needed to tell them apart")

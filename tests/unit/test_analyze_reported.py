@@ -112,6 +112,40 @@ def test_sweeps_with_a_tied_gain_report_an_effect_of_undecided_cause_with_the_ex
     assert listed == sorted(listed) and len(listed) >= 2
 
 
+def _heavy_sweeps(seed: int, targets: int):
+    """A heavy arm measured joint by joint, simulated: an IRB4600 with hidden geometric errors and compliance hidden
+    at joints 2 and 3 (0.3 mm each), measured one joint at a time, 6 angles a joint (36 poses), at 1 or 3
+    targets. The elbow's gravity torque is a first harmonic of its angle in its own sweep, so compliance
+    of joint 3 and a first-order periodic error of it explain these data alike; joint 2's 30 degree sweep
+    shows its compliance too little to add."""
+    model = load_robot(SWEEP_ROBOT)
+    effects = (HiddenEffect("joint_compliance", 1, rms_mm=0.3), HiddenEffect("joint_compliance", 2, rms_mm=0.3))
+    arm = PhysicalArm(model, np.random.default_rng(seed), effects, repeatability_mm=BASE_REPEATABILITY_MM,
+                      tracker=TrackerNoise(0.015, 0.006), target_names=tuple(f"t{i}" for i in range(targets)))
+    q = np.repeat(joint_sweeps(model, 6, SWEEP_SPAN_DEG), targets, axis=0)
+    run = arm.campaign(q, target=np.tile(np.arange(targets), len(q) // targets))
+    return model, run
+
+
+@pytest.mark.parametrize("seed,targets", [(1, 1), (3, 1), (0, 3)])
+def test_heavy_arm_sweeps_with_compliance_at_two_joints_report_the_tie_not_a_periodic_error(seed, targets):
+    """On one target, the periodic error's pick (joint 3, order 1) stays put in every fold while the
+    compliance search now and then picks a joint a fold's rows barely show: the nested scores put the
+    periodic error 12-17% ahead, but as the models chosen on all rows the two lie within the 8% margin.
+    Naming the periodic error would name the wrong cause; the finding is the tie, with the experiment."""
+    model, run = _heavy_sweeps(seed, targets)
+    finding = analyze(model, run.obs, run.ctx)
+    assert finding.cause == "none", (finding.cause, finding.notes)
+    assert finding.undecided is not None
+    assert 1.0 - finding.undecided.heldout_mean_mm / finding.baseline.heldout_mean_mm >= MIN_GAIN
+    tied = {(t.cause, t.scored.where.get("joint")) for t in finding.indistinguishable}
+    assert tied == {("joint_compliance", 3), ("cyclic_joint_error", 3)}, tied
+    assert "tie" in finding.decided_by and "joint_compliance follows the gravity torque" in finding.decide_by
+    if targets == 1:  # the nested lead is beyond the margin: the tie is the models chosen on all rows'
+        assert any("with each fold choosing its own places" in n for n in finding.notes), finding.notes
+        assert any("chosen on all rows" in t.why for t in finding.indistinguishable)
+
+
 def test_effect_free_data_stay_plain_none(tmp_path, capsys):
     model = load_robot(SWEEP_ROBOT)
     arm = PhysicalArm(model, np.random.default_rng(5), (), repeatability_mm=BASE_REPEATABILITY_MM,
