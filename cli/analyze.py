@@ -72,7 +72,8 @@ def finding_json(f: Finding, n: int) -> dict:
         "where": f.where,
         "magnitude": f.magnitude,
         "baseline": {"heldout_mean_mm": f.baseline.heldout_mean_mm},
-        "extended": {"heldout_mean_mm": f.extended.heldout_mean_mm},
+        "extended": {"heldout_mean_mm": f.extended.heldout_mean_mm,
+                     **({"prior_weights": list(f.extended.prior_weights)} if f.extended.prior_weights else {})},
         "gain_pct": f.gain_pct,
         "margin_pct": 100.0 * f.margin,
         "candidates": [_scored(c) for c in f.candidates],
@@ -195,6 +196,9 @@ def finding_text(f: Finding, robot: str, n: int, not_scored=(), validation=None)
     lines.append(f"held-out mean error: geometry only {f.baseline.heldout_mean_mm:.4f} mm, {with_effect}"
                  + (f", each without its largest {100 * f.baseline.trim:.0f}% (robust loss)"
                     if f.baseline.trim else ""))
+    if f.undecided is None and f.extended.prior_weights:
+        lines.append("  the effect's prior (no effect) weighed inside each fold's training rows, relative to each "
+                     "column's squared norm: " + ", ".join(f"{w:g}" for w in f.extended.prior_weights))
     lines += _coverage_text(f)
     if f.second is not None:
         first_pct, second_pct = f.shares_pct

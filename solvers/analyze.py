@@ -77,6 +77,7 @@ class Scored:
 
     trim: float = 0.0  # fraction of the largest held-out errors the score leaves out (robust loss)
     judged: object = None  # plausibility.Judgement of its linearised size (None: not judged)
+    prior_weights: tuple = ()  # fitted in full: each fold's weight of the prior "no effect" (``_heldout``)
 
     @property
     def heldout_mean_mm(self) -> float:
@@ -207,9 +208,10 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
                                 scorer.robust)
         if options.nested and any(named.terms[0] is s.term for s in searched):
             # what was chosen by a search is scored as it was named: each fold's own choice on that fold
-            extended = dataclasses.replace(extended, heldout_errors=named.heldout_errors)
+            extended = dataclasses.replace(extended, heldout_errors=named.heldout_errors, prior_weights=())
         elif geometry is not None:  # the full fit holds the points: score as the candidates were, points refit
-            extended = dataclasses.replace(extended, heldout_errors=scorer.heldout_errors_mm(named.terms))
+            extended = dataclasses.replace(extended, heldout_errors=scorer.heldout_errors_mm(named.terms),
+                                           prior_weights=())
         if geometry is not None and both is not None:
             both = dataclasses.replace(both, heldout_errors=scorer.heldout_errors_mm(named.terms + second.terms))
     say(f"analysis done in {time.perf_counter() - started:.1f} s")
@@ -430,14 +432,27 @@ def _geometric_baseline(model, obs, folds, options) -> Identification:
     return min((above_noise, structural), key=heldout_mean_mm)
 
 
-def _heldout(columns, residuals_mm: np.ndarray, folds: np.ndarray, robust: RobustScoring = LINEAR) -> np.ndarray:
+def _heldout(columns, residuals_mm: np.ndarray, folds: np.ndarray, robust: RobustScoring = LINEAR,
+             effect_at: np.ndarray | None = None, weights: list | None = None) -> np.ndarray:
     """(N,) held-out errors of a linearised model with every column estimated. columns()
-    yields (rows, Jacobian rows (n, 3, p)) over all rows in blocks; it is called twice."""
+    yields (rows, Jacobian rows (n, 3, p)) over all rows in blocks; it is called twice.
+    effect_at: the effect parameters' values at the linearisation point, after the geometry's
+    columns: their prior "no effect" is weighed by a nested ridge (``crossval.ridge_steps``),
+    each fold's weight appended to `weights`."""
     factors = None
     for rows, j in columns():
         factors = factors or crossval.FoldFactors(folds, j.shape[2])
         factors.add(rows, *robust.weighted(rows, j, residuals_mm[rows]))
-    return crossval.heldout_errors(columns(), residuals_mm, factors, factors.steps(np.arange(factors.p)))[0]
+    if effect_at is None or not len(effect_at):
+        steps = factors.steps(np.arange(factors.p))
+    else:
+        n_geometry = factors.p - len(effect_at)
+        penalised = np.arange(factors.p) >= n_geometry
+        steps, chosen = crossval.ridge_steps(factors, np.arange(factors.p), penalised,
+                                             np.r_[np.zeros(n_geometry), effect_at])
+        if weights is not None:
+            weights.extend(float(w) for w in chosen)
+    return crossval.heldout_errors(columns(), residuals_mm, factors, steps)[0]
 
 
 def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[Term, ...], prior_mm: float,
@@ -462,8 +477,10 @@ def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[
     for t in structural:
         without[model.n_params: t.model.n_params] = 0.0
     effect_mm = (fit.residuals_mm + obs.xyz_mm) - predict(layout, without, obs)
+    effect_at = fit.z[fit.estimated][fit.model.n_free:]  # the effect's estimated parameters, fitted
+    weights: list[float] = []
     if len(terms) != 1:
-        heldout_errors_mm = _heldout(fit.jacobian_chunks, fit.residuals_mm, folds, robust)
+        heldout_errors_mm = _heldout(fit.jacobian_chunks, fit.residuals_mm, folds, robust, effect_at, weights)
     else:
         # the size that needs no model to read: how far the effect moves the targets, less what a
         # geometric calibration absorbs anyway (the part the geometric columns can reproduce)
@@ -480,14 +497,14 @@ def _fit_in_full(model, geometric_fit: Identification, obs, folds, terms: tuple[
                 beyond[rows] = effect_mm[rows] - j[:, :, :n_free] @ coef
                 yield rows, j
 
-        heldout_errors_mm = _heldout(columns, fit.residuals_mm, folds, robust)
+        heldout_errors_mm = _heldout(columns, fit.residuals_mm, folds, robust, effect_at, weights)
         effect_mm = beyond
         magnitude = {**magnitude, "effect_beyond_geometry_rms_mm": float(np.sqrt(np.mean(
             np.sum(effect_mm**2, axis=1))))}
     return Scored(label=label, cause=terms[0].cause, where=terms[0].where, heldout_errors=heldout_errors_mm,
                   trim=robust.trim, theta=fit.theta, magnitude=magnitude, x=fit.x, terms=terms,
                   residuals=fit.residuals_mm, effect_mm=effect_mm, joint_delta=fit.model.joint_delta(fit.theta),
-                  details=details)
+                  details=details, prior_weights=tuple(weights))
 
 
 def _details(terms: tuple[Term, ...], fit: ExtendedFit, obs) -> dict:

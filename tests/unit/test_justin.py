@@ -56,9 +56,12 @@ def test_analyze_names_compliance_with_believable_sizes_below_the_published_held
     assert doc["cause"] == "joint_compliance"
     assert doc["baseline"]["heldout_mean_mm"] < 10.6  # published geometric calibration: 10.6 mm
     # the same 5-fold grouped protocol as the analysis bench, joints and the elastic mount with its pivot
-    # shift, without CAD masses: 3.13 mm held-out mean (3.23 without the shift; published with CAD masses:
-    # 3.3 mm); 0.05 mm is well inside the 0.1 mm the shift gains
-    assert doc["extended"]["heldout_mean_mm"] == pytest.approx(3.13, abs=0.05)
+    # shift, without CAD masses, the prior on the effect's 281 parameters weighed inside each fold's
+    # training rows: 3.076 mm held-out mean (3.13 with no prior, 3.23 without the shift; published with CAD
+    # masses: 3.3 mm). The goal is 3.1 mm; one fold choosing a neighbouring prior weight moves the mean by
+    # under 0.01 mm, so 0.02 mm is room for another machine's rounding without hiding a lost prior or shift
+    assert doc["extended"]["heldout_mean_mm"] <= 3.1
+    assert doc["extended"]["heldout_mean_mm"] == pytest.approx(3.08, abs=0.02)
     assert doc["where"] == {"branches": ["torso", "right", "left"]}
     # sizes a person can believe: deflections only where determined, the rest grouped or bounded
     places = doc["magnitude"]["places"]
