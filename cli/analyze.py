@@ -46,6 +46,11 @@ def add_parser(sub):
                    help="for rows of the point form (sockets, stylus balls; docs/measurements.md): the fixture's "
                         "points, known distances and seating noise, as identify --fixture takes them; the "
                         "baseline is then the fixture calibration, with each point refit in every fold")
+    p.add_argument("--strict-sizes", action="store_true",
+                   help="name no cause whose fitted size is beyond what arms of the robot's class show, however "
+                        "clear its lead (then: an effect, cause undecided). Default: such a lead is set aside "
+                        "when an explanation of plausible size comes within the 8%% margin, else named with its "
+                        "size given as the reason against it")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     model_out.add_argument(p, analyze=True)
     discriminate_cmd.add_arguments(p)
@@ -254,7 +259,8 @@ def run(args) -> int:
     for note in not_scored:
         print_progress(note)
     causes = tuple(c for c in requested if c not in unscorable)
-    finding = analyze(model, obs, ctx, AnalyzeOptions(folds=args.folds, causes=causes, loss=args.loss),
+    finding = analyze(model, obs, ctx, AnalyzeOptions(folds=args.folds, causes=causes, loss=args.loss,
+                                                      strict_sizes=args.strict_sizes),
                       progress=print_progress,
                       geometry=point_analysis.geometry(fixture_fit, point_data, obs) if points else None)
     validation = None

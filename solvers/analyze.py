@@ -54,6 +54,7 @@ class AnalyzeOptions:
     loss: str = "linear"  # robust loss of every fit, as identify's; the held-out scores trimmed (robust_scoring)
     nested: bool = True  # a cause with places is scored by its selection made inside each fold (False: the
     #                      selection made on all rows, scored on the same folds: optimistic; for comparison)
+    strict_sizes: bool = plausibility.STRICT  # a lead of implausible size never names its cause (``name_cause``)
 
 
 @dataclass(frozen=True)
@@ -184,7 +185,7 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     say(f"scored {len(candidates)} candidates")
     robot_class = plausibility.robot_class(model)  # every candidate's size against what arms of its class show
     candidates = plausibility.judge_candidates(candidates, scorer, robot_class.name)
-    naming = name_cause(candidates, baseline, scorer)
+    naming = name_cause(candidates, baseline, scorer, options.strict_sizes)
     tied = ties.tied_explanations(naming, baseline, scorer, MIN_GAIN, MIN_MARGIN,
                                   lambda s: _fit_in_full(model, geometric_fit, obs, folds, s.terms, options.prior_mm,
                                                          s.label, scorer.robust).magnitude, robot_class.name,
@@ -265,14 +266,17 @@ def contenders(candidates: Sequence[Scored]) -> list[Scored]:
 # -- naming: which cause, if any, the data supports ---------------------------------------------------------
 
 
-def name_cause(candidates: Sequence[Scored], baseline: Scored, scorer: LinearisedScorer) -> Naming:
+def name_cause(candidates: Sequence[Scored], baseline: Scored, scorer: LinearisedScorer,
+               strict_sizes: bool | None = None) -> Naming:
     """The naming rule over the candidates (any order; the Naming lists them best first).
 
     Each cause competes with its ``contenders`` entry. The best contender is named when
     it beats geometry alone by MIN_GAIN and the contender of every other cause by
     MIN_MARGIN. Below MIN_GAIN the answer is ``none``; within MIN_MARGIN the tie is
-    settled by ``_settle_tie``.
+    settled by ``_settle_tie``. strict_sizes (None: ``plausibility.STRICT``): a lead of a size beyond
+    what arms of the robot's class show names nothing even when no plausible explanation comes close.
     """
+    strict_sizes = plausibility.STRICT if strict_sizes is None else strict_sizes
     if not candidates:
         return Naming(named=None, candidates=(), margin=0.0)
     ranked = tuple(sorted(candidates, key=lambda s: s.heldout_mean_mm))
@@ -280,7 +284,7 @@ def name_cause(candidates: Sequence[Scored], baseline: Scored, scorer: Linearise
     # a size beyond what arms of the robot's class show is a reason against (``plausibility``): such a lead
     # does not name its cause when an explanation of plausible size comes within MIN_MARGIN of it (and gains
     # MIN_GAIN) -- the plausible contenders compete; when none does, the data prefer the lead clearly: it
-    # competes all the same with its size said (``plausibility.STRICT``: nothing is named then)
+    # competes all the same with its size said (``strict_sizes``: nothing is named then)
     aside = tuple(c for c in every if c.judged is not None and not c.judged.plausible)
     rivals = tuple(c for c in every if all(c is not a for a in aside))
     leading = [a for a in aside if (not rivals or a.heldout_mean_mm < rivals[0].heldout_mean_mm)
@@ -291,7 +295,7 @@ def name_cause(candidates: Sequence[Scored], baseline: Scored, scorer: Linearise
              and r.heldout_mean_mm < (1.0 + MIN_MARGIN) * leading[0].heldout_mean_mm]
     if leading and not close:
         lead = leading[0]
-        if plausibility.STRICT:
+        if strict_sizes:
             why_aside = (f"{lead.label} leads at {lead.heldout_mean_mm:.4f} mm held-out but is set aside: it "
                          f"{lead.judged.text()}, and no explanation of a plausible size comes within "
                          f"{100 * MIN_MARGIN:.0f}% of it")

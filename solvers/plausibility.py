@@ -66,7 +66,7 @@ LIGHT_REACH_MM, HEAVY_REACH_MM = 1500.0, 3500.0
 # A lead of implausible size that no explanation of plausible size comes close to (within the naming margin):
 # False, it competes all the same, its size said in the grounds (the data show an effect only it explains; a
 # robot file that misleads the class, or a simulation, can make it so); True, it names nothing (an effect of
-# undecided cause)
+# undecided cause). The default of ``AnalyzeOptions.strict_sizes``; `cellcal analyze --strict-sizes` sets it
 STRICT = False
 
 

@@ -1,17 +1,19 @@
 """Typical sizes per cause and robot class: the table, its page, the robot's class, and the naming that uses it."""
 import dataclasses
+import json
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from cellcal.cli.analyze import finding_json
+from cellcal.cli.main import main
 from cellcal.config.robot_files import load_robot
+from cellcal.measurements.table import write_measurements
 from cellcal.sims.physics.physical_arm import HiddenEffect
 from cellcal.sims.physics.workspace import full_workspace
 from cellcal.solvers import plausibility
-from cellcal.solvers.analyze import GROUNDS, analyze, name_cause
+from cellcal.solvers.analyze import GROUNDS, name_cause
 from cellcal.solvers.effects import CAUSES
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -69,15 +71,14 @@ def test_an_implausible_lead_names_nothing_and_the_next_plausible_contender_comp
     assert naming.set_aside == (lead,) and "set aside" in naming.plausibility
     assert f"beyond the {limit:g} deg" in naming.plausibility
 
-def test_an_implausible_lead_that_nothing_plausible_replaces_competes_with_its_size_said(monkeypatch):
+def test_an_implausible_lead_that_nothing_plausible_replaces_competes_with_its_size_said():
     limit = plausibility.TYPICAL_MAX["joint_compliance"]["collaborative"]
     lead = _judged(scored("joint_compliance", 0.50), 3.0 * limit)
     weak = _judged(scored("cyclic_joint_error", 0.70), 0.02)  # plausible, but 40% behind the lead
     naming = name_cause([lead, weak], BASELINE, StubScorer())
     assert naming.named is lead and naming.set_aside == ()
     assert "no explanation of a plausible size comes within 8% of it" in naming.plausibility
-    monkeypatch.setattr(plausibility, "STRICT", True)  # the strict reading: nothing is named
-    strict = name_cause([lead, weak], BASELINE, StubScorer())
+    strict = name_cause([lead, weak], BASELINE, StubScorer(), strict_sizes=True)  # the strict reading: nothing
     assert strict.named is None and strict.set_aside == (lead,) and "set aside" in strict.plausibility
 
 
@@ -88,15 +89,18 @@ def test_a_plausible_lead_is_named_as_before():
 
 
 @pytest.mark.parametrize("rms_mm,plausible,strict", [(1.0, True, False), (20.0, False, False), (20.0, False, True)])
-def test_compliance_on_a_collaborative_arm_is_judged_by_its_size(rms_mm, plausible, strict, monkeypatch):
+def test_compliance_on_a_collaborative_arm_is_judged_by_its_size(rms_mm, plausible, strict, tmp_path, capsys):
     """UR10e, 60 random poses, compliance of joint 2 moving the tool by rms_mm: 1 mm is a deflection of
-    about 0.05 deg, 20 mm about 1 deg, twice what collaborative arms show (and nothing else explains it)."""
-    monkeypatch.setattr(plausibility, "STRICT", strict)
+    about 0.05 deg, 20 mm about 1 deg, twice what collaborative arms show (and nothing else explains it).
+    Through the command, `--strict-sizes` for the strict reading."""
     model = load_robot("ur10e")
     arm = _arm(model, 0, (HiddenEffect("joint_compliance", 1, rms_mm=rms_mm),), 1.0)
     run = arm.campaign(full_workspace(model, 60, np.random.default_rng(3)))
-    f = analyze(model, run.obs, run.ctx)
-    doc = finding_json(f, len(run.obs))
+    data = tmp_path / "data.csv"
+    write_measurements(data, q_rad=run.obs.q, xyz_mm=run.obs.xyz_mm)
+    assert main(["analyze", "--robot", "ur10e", "--data", str(data), "--json",
+                 *(["--strict-sizes"] if strict else [])]) == 0
+    doc = json.loads(capsys.readouterr().out)
     top = doc["candidates"][0]
     assert top["cause"] == "joint_compliance" and top["where"] == {"joint": 2}
     assert doc["robot_class"]["name"] == "collaborative"
