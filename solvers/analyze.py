@@ -154,7 +154,8 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     folds = crossval.fold_ids(obs.q, options.folds, options.seed, NEIGHBOUR_RAD)
     # geometry: the geometric baseline when it is not identify's (point-form data: point_analysis.geometry,
     # whose point positions every fold estimates with the geometry)
-    geometric_fit = geometry if geometry is not None else _geometric_baseline(model, obs, folds, options)
+    geometric_fit, nested_baseline = (geometry, None) if geometry is not None else \
+        _geometric_baseline(model, obs, folds, options)
     parts = {cause: CAUSES[cause].terms(model, geometric_fit.layout, geometric_fit.x, obs,
                                         dataclasses.replace(ctx, folds=folds))
              for cause in options.causes}
@@ -177,7 +178,10 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
         [scorer.steps(())] + [scorer.steps((t,)) for t in terms]
         + [selection.nested_steps(scores, s) if options.nested else scorer.steps((s.term,)) for s in searched]))
     terms = terms + [s.term for s in searched]
-    baseline = Scored(label="geometry only", cause="none", where={}, heldout_errors=errors[0],
+    # the baseline as its choice of variant made inside each fold scores it (the candidates keep the
+    # all-rows choice as their geometry: the same linearisation point for every one)
+    base_errors = nested_baseline if nested_baseline is not None and options.nested else errors[0]
+    baseline = Scored(label="geometry only", cause="none", where={}, heldout_errors=base_errors,
                       theta=np.zeros(0), magnitude={}, x=geometric_fit.x, residuals=scorer.baseline_residuals_mm,
                       trim=scorer.robust.trim)
     say(f"held-out mean, geometry only: {baseline.heldout_mean_mm:.3f} mm")
@@ -231,7 +235,7 @@ def heldout_with_terms(model, obs: Observations, terms: Sequence[Term],
     """(N,) held-out errors of geometry plus these terms, scored as ``analyze`` scores its candidates
     (same folds, same geometric fit): what a model of known structure reaches on these data."""
     folds = crossval.fold_ids(obs.q, options.folds, options.seed, NEIGHBOUR_RAD)
-    geometric_fit = _geometric_baseline(model, obs, folds, options)
+    geometric_fit = _geometric_baseline(model, obs, folds, options)[0]
     return LinearisedScorer(model, geometric_fit, obs, folds, options.prior_mm, terms).heldout_errors_mm(tuple(terms))
 
 
@@ -416,24 +420,38 @@ def _prefer_single_place(ranked: list, error, term) -> None:
 # -- fits: the geometric baseline, and geometry plus terms fitted in full -----------------------------------
 
 
-def _geometric_baseline(model, obs, folds, options) -> Identification:
+def _geometric_baseline(model, obs, folds, options) -> tuple[Identification, np.ndarray | None]:
     """The geometric fit to compare against: the parameters above the noise, or every
     structurally identifiable one, whichever predicts held-out data better. (When an
-    unmodelled effect dominates the residual, the noise criterion is too strict.)"""
+    unmodelled effect dominates the residual, the noise criterion is too strict.)
+
+    Returns (the fit chosen on all rows' folds, the candidates' linearisation point; the baseline's
+    held-out errors (N,) with the choice made again inside each fold's training rows, or None
+    when the two variants are one). Chosen on the same folds it is scored on, the baseline would
+    look better than a user would find it, which errs against naming an effect."""
     variants = (IdentifyOptions(regularize="none", prior_mm=options.prior_mm, loss=options.loss),
                 IdentifyOptions(regularize="cv", prior_mm=options.prior_mm, loss=options.loss))
     above_noise, structural = identify_variants(model, obs, variants)  # one nominal and first fit for both
     if np.array_equal(above_noise.free, structural.free):
-        return above_noise
+        return above_noise, None
 
     robust = RobustScoring.of(options.loss, above_noise.residuals_mm)
 
-    def heldout_mean_mm(fit: Identification) -> float:
-        return robust.mean_mm(_heldout(lambda: ((rows, j[:, :, fit.free])
-                                                for rows, _, j in jacobian_chunks(fit.layout, fit.x, obs)),
-                                       fit.residuals_mm, folds, robust))
+    def scored(fit: Identification):
+        def columns():
+            return ((rows, j[:, :, fit.free]) for rows, _, j in jacobian_chunks(fit.layout, fit.x, obs))
+        factors = None
+        for rows, j in columns():
+            factors = factors or crossval.FoldFactors(folds, j.shape[2])
+            factors.add(rows, *robust.weighted(rows, j, fit.residuals_mm[rows]))
+        errors = crossval.heldout_errors(columns(), fit.residuals_mm, factors, factors.steps(np.arange(factors.p)))[0]
+        return errors, np.array([factors.inner_sse(k) for k in range(len(factors.ids))])
 
-    return min((above_noise, structural), key=heldout_mean_mm)
+    (e_noise, inner_noise), (e_struct, inner_struct) = scored(above_noise), scored(structural)
+    fit = above_noise if robust.mean_mm(e_noise) <= robust.mean_mm(e_struct) else structural
+    fold_index = np.unique(np.asarray(folds), return_inverse=True)[1].ravel()
+    nested = np.where((inner_noise <= inner_struct)[fold_index], e_noise, e_struct)
+    return fit, nested
 
 
 def _heldout(columns, residuals_mm: np.ndarray, folds: np.ndarray, robust: RobustScoring = LINEAR,

@@ -268,6 +268,16 @@ class FoldFactors:
             out.append((train, held))
         return out
 
+    def inner_sse(self, k: int) -> float:
+        """Held-out sum of squares of the inner folds of fold k's training rows (``inner``), every column
+        estimated on each inner training: how a model does on fold k's training rows alone, for a choice
+        between models made for fold k."""
+        out = 0.0
+        for train, held in self.inner(k):
+            w = np.append(-_solve(train[: self.p, : self.p], train[: self.p, self.p]), 1.0)
+            out += float(w @ held @ w)
+        return out
+
     def steps(self, cols, penalty=None, deviation=None, lams=(0.0,)) -> np.ndarray:
         """Gauss-Newton steps over the columns cols on each fold's training rows, (len(lams), folds, p),
         zero outside cols. Optional L2 prior lam * sum(penalty * (deviation + step)^2) over cols."""

@@ -47,9 +47,11 @@ def frame_on_controller(net: Net) -> np.ndarray:
 
 def test_ctrl_c_on_cellcal_run_gives_back_the_frame_from_before_the_run(cell_net, tmp_path):
     net = cell_net
+    # SIGINT as a terminal delivers it: a suite started in the background of a shell without job control
+    # inherits SIGINT ignored, and Python keeps an ignored SIGINT ignored (the run would go on to the end)
     run = subprocess.Popen([sys.executable, "-m", "cellcal.cli.main", "run", "tcp-npoint", "--cell", str(net.path),
                             "--out", str(tmp_path / "runs")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                           text=True)
+                           text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + RUN_TIMEOUT_S
     while not net.state()["moving"]:
         assert time.monotonic() < deadline and run.poll() is None, run.stderr.read()

@@ -1,6 +1,7 @@
-"""The prior weight of an effect's parameters, chosen inside each fold's training rows
-(``crossval.ridge_steps``): nothing of a fold decides its own weight, the weight helps where
-the training rows barely see some directions, and costs nothing where they see every one."""
+"""Choices made inside each fold's training rows: the prior weight of an effect's parameters
+(``crossval.ridge_steps``: nothing of a fold decides its own weight, the weight helps where the
+training rows barely see some directions, and costs nothing where they see every one), and the
+inner score the baseline's variant is chosen by for each fold (``FoldFactors.inner_sse``)."""
 import numpy as np
 
 from cellcal.solvers import crossval
@@ -76,3 +77,27 @@ def test_the_weight_helps_where_directions_are_barely_seen_and_costs_nothing_whe
     # the seeds where the folds fall unevenly (2 and 3 of these six): the plain step's held-out mean there is
     # ten times the noise; weighed, it is the noise
     assert sum(h > 5 for h in helped) >= 1, helped
+
+
+def test_the_inner_score_a_fold_chooses_by_is_its_training_rows_cross_validated_and_nothing_of_its_own():
+    # FoldFactors.inner_sse, by which the baseline's variant is chosen for each fold: the held-out sum of
+    # squares of fold k's training rows, each other fold's sub-folds held out in turn, straight from the rows
+    j, r, folds, p_g, p_e = problem(1, hidden=False)
+    f = factors_of(j, r, folds)
+    fold, sub = np.asarray(folds), np.asarray(folds.sub)
+    a, b = j.reshape(len(r), 3, -1), r
+    for k in range(5):
+        expected = 0.0
+        for other in range(5):
+            for s in np.unique(sub):
+                held = (fold == other) & (sub == s)
+                if other == k or not held.any():
+                    continue
+                train = (fold != k) & ~held
+                x = np.linalg.lstsq(a[train].reshape(-1, a.shape[2]), -b[train].ravel(), rcond=None)[0]
+                expected += float(np.sum((a[held].reshape(-1, a.shape[2]) @ x + b[held].ravel()) ** 2))
+        # the same normal equations solved two ways: agreement to 1e-9 of the sum (condition ~10 here)
+        assert abs(f.inner_sse(k) - expected) <= 1e-9 * expected
+        r2 = r.copy()
+        r2[fold == k] += 100.0  # fold k's own rows say anything at all: its inner score stays
+        assert abs(factors_of(j, r2, folds).inner_sse(k) - f.inner_sse(k)) <= 1e-9 * expected
