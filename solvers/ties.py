@@ -93,7 +93,7 @@ def tied_explanations(naming, baseline, scorer, min_gain: float, min_margin: flo
     if 1.0 - lowest_mm / baseline.heldout_mean_mm < min_gain:
         return TieReport(naming)
     picked = [c for c in rivals if c.heldout_mean_mm < lowest_mm * (1.0 + min_margin)]
-    apart = None
+    apart = fixed = None
     if len(picked) == 1 and naming.named is picked[0]:  # named by the margin: do the data themselves separate them?
         runner_up, apart = _unseparated(picked[0], rivals, baseline, scorer, min_gain)
         if runner_up is not None:
@@ -106,15 +106,15 @@ def tied_explanations(naming, baseline, scorer, min_gain: float, min_margin: flo
             if runner_up is None:
                 return TieReport(naming)
             note = (f"{picked[0].label} leads {runner_up.label} by {100 * naming.margin:.1f}% held-out with each "
-                    f"fold choosing its own places, but as the models chosen on all rows they are "
-                    f"{100 * fixed:.1f}% apart, {100 * min_margin:.0f}% needed: the lead comes from how steadily "
-                    f"each cause's places are chosen on fewer rows, not from what either explains")
+                    f"fold choosing its own places, but as the models chosen on all rows their held-out errors "
+                    f"lie {100 * abs(fixed):.1f}% apart, {100 * min_margin:.0f}% needed: the lead comes from how "
+                    f"steadily each cause's places are chosen on fewer rows, not from what either explains")
             naming = dataclasses.replace(naming, named=None, tie="unsteady", notes=naming.notes + (note,))
-            apart = -fixed  # said by _why as the margin of the models chosen on all rows
         picked.append(runner_up)
     if len(picked) < 2:
         return TieReport(naming)
-    entries = [Tied(c, _why(c, picked[1] if c is picked[0] else picked[0], scorer, min_margin, apart)) for c in picked]
+    entries = [Tied(c, _why(c, picked[1] if c is picked[0] else picked[0], scorer, min_margin, apart, fixed))
+               for c in picked]
     if naming.named is not None:  # the simpler of two nested explanations
         grounds = (f"{naming.named.label} is named as the simpler explanation: the other needs more "
                    f"parameters to say the same on these data")
@@ -206,12 +206,15 @@ def _unseparated(best, candidates, baseline, scorer, min_gain: float):
     return (other, float(np.sqrt(lam))) if lam < DECIDE_LAMBDA else (None, None)
 
 
-def _why(c, other, scorer, min_margin: float, apart: float | None = None) -> str:
+def _why(c, other, scorer, min_margin: float, apart: float | None = None, fixed: float | None = None) -> str:
+    """Why c ties with other: the same column span; `apart` noise standard deviations between their fitted
+    predictions (``_unseparated``); `fixed`, the margin of the models chosen on all rows (``_unsteady``);
+    else held-out errors within the margin."""
     a, b = c.terms[0], other.terms[0]
     if scorer.is_nested(a, b) or scorer.is_nested(b, a):
         return f"same column span as {other.label}: on these data one model contains the other"
-    if apart is not None and apart <= 0.0:  # ``_unsteady``: minus the margin of the models chosen on all rows
-        return (f"as the models chosen on all rows, held-out errors {100 * -apart:.1f}% from those of "
+    if fixed is not None:
+        return (f"as the models chosen on all rows, held-out errors {100 * abs(fixed):.1f}% from those of "
                 f"{other.label}, within the {100 * min_margin:.0f}% margin needed to tell causes apart (the "
                 f"lead with each fold's own choice of places comes from how steadily they are chosen)")
     if apart is not None:
