@@ -22,12 +22,12 @@ from threadpoolctl import threadpool_limits
 
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.physical_arm import HiddenEffect
-from cellcal.solvers import crossval
-from cellcal.solvers.analyze import NEIGHBOUR_RAD, AnalyzeOptions, analyze
-from cellcal.solvers.extended_model import fit_extended
+from cellcal.solvers.estimation import crossval
+from cellcal.solvers.analysis.analyze import NEIGHBOUR_RAD, AnalyzeOptions, analyze
+from cellcal.solvers.analysis.extended_model import fit_extended
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from hidden_cases import make_case  # noqa: E402  (a test fixture, not part of the package)
+from support.hidden_cases import make_case  # noqa: E402  (a test fixture, not part of the package)
 
 ROBOTS = ("ur10e", "abb-irb4600", "elite-ec66")
 
@@ -37,7 +37,7 @@ def naive_seconds_per_candidate(model, case, finding, sample=3):
     obs = case.campaign.obs
     folds = crossval.fold_ids(obs.q, 5, 0, NEIGHBOUR_RAD)
     geo = finding.baseline
-    from cellcal.solvers.identify import IdentifyOptions, identify
+    from cellcal.solvers.identification.identify import IdentifyOptions, identify
 
     base = identify(model, obs, IdentifyOptions(regularize="none"))
     terms = [c.terms[0] for c in finding.candidates if c.terms and c.terms[0].model is None][:sample]
@@ -81,20 +81,20 @@ def main(argv=None) -> int:
         justin = Path(__file__).resolve().parents[2] / "shared" / "data" / "dlr-agile-justin" / "measurements.csv"
         if justin.exists():  # the real data set: 500 poses x 2 markers on a tree
             from cellcal.measurements.importers import dlr_justin
-            from cellcal.solvers.effects import Context, approach_directions
-            from cellcal.solvers.measurement_model import Observations
+            from cellcal.solvers.analysis.effects import Context, approach_directions
+            from cellcal.solvers.identification.measurement_model import Observations
 
             fields = dlr_justin(justin)
             obs = Observations(fields["q_rad"], fields["xyz_mm"], fields["target"], fields["target_names"])
             model = load_robot("agile-justin")
             # baseline in the same run: the geometric calibration alone, the first step of the analysis
-            from cellcal.solvers.identify import IdentifyOptions, identify
+            from cellcal.solvers.identification.identify import IdentifyOptions, identify
 
             c0 = time.process_time()
             identify(model, obs, IdentifyOptions(regularize="cv"))
             geometric_cpu = time.process_time() - c0
             # the elastic mount's pivot shift off (the baseline, as before it was offered) and on, same run
-            from cellcal.solvers.effects import elastic_mount
+            from cellcal.solvers.analysis.effects import elastic_mount
 
             for shift in (False, True):
                 elastic_mount.PIVOT_SHIFT = shift

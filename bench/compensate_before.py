@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cellcal.solvers import se3
-from cellcal.solvers.chain import pose_jacobians
-from cellcal.solvers.robot_model import KinematicModel
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.geometry.chain import pose_jacobians
+from cellcal.solvers.geometry.robot_model import KinematicModel
 
 OK, UNREACHABLE, JOINT_LIMITS, SINGULAR = "ok", "unreachable", "joint_limits", "near_singularity"
 ROT_WEIGHT_MM = 1000.0  # orientation error weighed as mm per rad (a 1 m lever)

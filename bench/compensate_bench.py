@@ -15,7 +15,7 @@ joints (nominal driving) and base-frame targets taken as if in the calibrated mo
 frame (the old reading of "the robot base frame").
 
 Speed: N targets spread over the workspace (position and orientation, each with its branch)
-compensated by ``solvers.compensate.compensate`` (all rows at once), by the solver before issue 22
+compensated by ``solvers.compensation.compensate.compensate`` (all rows at once), by the solver before issue 22
 (``bench/compensate_before.py``, all rows at once) and by ``compensate_each`` (the same algorithm,
 one target per call, the obvious loop). The loop runs on a subset
 (``--loop-targets``) and its time per target is scaled to N; both solutions are compared row
@@ -37,9 +37,9 @@ from bench import compensate_before
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.physical_arm import HiddenEffect, PhysicalArm
 from cellcal.sims.physics.workspace import full_workspace
-from cellcal.solvers.analyze import AnalyzeOptions, analyze
-from cellcal.solvers.calibrated_model import from_fit
-from cellcal.solvers.compensate import (OK, compensate, compensate_each, fit_controller_frame, rigid_frames,
+from cellcal.solvers.analysis.analyze import AnalyzeOptions, analyze
+from cellcal.solvers.compensation.calibrated_model import from_fit
+from cellcal.solvers.compensation.compensate import (OK, compensate, compensate_each, fit_controller_frame, rigid_frames,
                                         targets_in_model_frame)
 
 TOOL_MM = np.array([0.0, 0.0, 100.0])
@@ -157,7 +157,7 @@ def speed(n_targets: int, loop_targets: int, repeats: int, seed: int) -> bool:
           f"{np.nanmean(np.rad2deg(batch.correction_rad[ok])):.3f} deg (before issue 22: "
           f"{int((before.status == OK).sum())} ok)")
     print(f"{'method':34s}{'wall s':>10s}{'CPU s':>10s}{'per target ms':>16s}{'ratio':>10s}")
-    print(f"{'batched (solvers.compensate)':34s}{batch_s:10.3f}{batch_cpu:10.3f}{1e3 * batch_s / n_targets:16.4f}"
+    print(f"{'batched (solvers.compensation.compensate)':34s}{batch_s:10.3f}{batch_cpu:10.3f}{1e3 * batch_s / n_targets:16.4f}"
           f"{1.0:10.1f}")
     print(f"{'before issue 22, batched':34s}{before_s:10.3f}{before_cpu:10.3f}{1e3 * before_s / n_targets:16.4f}"
           f"{before_s / batch_s:10.1f}")

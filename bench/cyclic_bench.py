@@ -21,11 +21,11 @@ from threadpoolctl import threadpool_limits
 
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.physical_arm import HiddenEffect
-from cellcal.solvers.analyze import analyze
-from cellcal.solvers.effects import cyclic_joint_error
+from cellcal.solvers.analysis.analyze import analyze
+from cellcal.solvers.analysis.effects import cyclic_joint_error
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from hidden_cases import make_case  # noqa: E402  (a test fixture, not part of the package)
+from support.hidden_cases import make_case  # noqa: E402  (a test fixture, not part of the package)
 
 BUDGET_S = 30.0
 

@@ -19,7 +19,7 @@ from collections import Counter
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from daemon_harness import Daemon, Net, one_run, resources, settled  # noqa: E402  (the suite's harness)
+from support.daemon_harness import Daemon, Net, one_run, resources, settled  # noqa: E402  (the suite's harness)
 
 from cellcal.daemon.store import Store  # noqa: E402
 

@@ -25,13 +25,13 @@ from threadpoolctl import threadpool_limits
 
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.workspace import full_workspace
-from cellcal.solvers.analyze import analyze
-from cellcal.solvers.discriminate import design
-from cellcal.solvers.effects import Context, approach_directions
-from cellcal.solvers.measurement_model import Observations
+from cellcal.solvers.analysis.analyze import analyze
+from cellcal.solvers.analysis.discriminate import design
+from cellcal.solvers.analysis.effects import Context, approach_directions
+from cellcal.solvers.identification.measurement_model import Observations
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from hidden_cases import SWEEP_ROBOT, elbow_pair, sweep_case  # noqa: E402  (a test fixture, not part of the package)
+from support.hidden_cases import SWEEP_ROBOT, elbow_pair, sweep_case  # noqa: E402  (a test fixture, not part of the package)
 
 CAUSES = ("joint_compliance", "cyclic_joint_error")
 ELBOW = 3  # 1-based, as the finding says it

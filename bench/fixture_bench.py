@@ -2,10 +2,10 @@
 
 A UR10e with the usual hidden geometric errors (up to 0.5 mm and 0.05 deg, ``SimulatedArm``),
 repeatability 0.03 mm, seats its target (about 100 mm off the flange) in both sockets of a plate
-at ``--placements`` positions around it (``tests/point_data.py``). Each socket offers a pool of
+at ``--placements`` positions around it (``tests/support/point_data.py``). Each socket offers a pool of
 ``--pool`` random orientations (tilt up to ``--tilt`` from straight down, on each wrist branch of
 ``--wrists``); of those, ``--per-socket`` are taken at random, and as many by the seat design the
-``kinematic-fixture`` routine uses (``solvers/fixture_design.py``: D-optimal, points eliminated).
+``kinematic-fixture`` routine uses (``solvers/fixtures/fixture_design.py``: D-optimal, points eliminated).
 ``identify_points`` calibrates on each, with the plate's distance known to ``--sd`` mm, for every
 socket spacing of ``--spacing`` (the arm's scale is fixed only by that distance). The same arm is
 then calibrated from a tracker campaign of as many poses (D-optimal from the full workspace,
@@ -37,15 +37,15 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np  # noqa: E402
 
-from point_data import plate_placements, seat, workspace_errors  # noqa: E402
+from support.point_data import plate_placements, seat, workspace_errors  # noqa: E402
 
 from cellcal.config.robot_files import load_robot  # noqa: E402
 from cellcal.sims.physics.kinematic_arm import SimulatedArm  # noqa: E402
 from cellcal.sims.physics.workspace import full_workspace  # noqa: E402
-from cellcal.solvers.fixture_design import select_seats  # noqa: E402
-from cellcal.solvers.fixture_identify import FixtureOptions, PointData, identify_points  # noqa: E402
-from cellcal.solvers.identify import IdentifyOptions, identify  # noqa: E402
-from cellcal.solvers.pose_design import select_poses  # noqa: E402
+from cellcal.solvers.fixtures.fixture_design import select_seats  # noqa: E402
+from cellcal.solvers.fixtures.fixture_identify import FixtureOptions, PointData, identify_points  # noqa: E402
+from cellcal.solvers.identification.identify import IdentifyOptions, identify  # noqa: E402
+from cellcal.solvers.identification.pose_design import select_poses  # noqa: E402
 
 
 def _fit(model, arm, plate, rows, spacing, sd, poses) -> dict:

@@ -24,7 +24,7 @@ alignment by eye of ``--eye-mm`` (0.3 mm RMS by default: our assumption, the pap
 no figure) to every touch and meeting of the procedure. A third takes the true tips (a
 perfect TCP), isolating what the four-point frame alone costs.
 
-Ours: one fit of the frame and both tips on all 12 meetings (``solvers.handshake``), and,
+Ours: one fit of the frame and both tips on all 12 meetings (``solvers.tool_frames.handshake``), and,
 for comparison on the seed's point count, on the first four alone. The table: mean and
 worst error of robot b's base origin (mm) and rotation (deg), and of the needle tips (mm),
 over the cells. Every number to bench/results/handshake.json.
@@ -45,10 +45,11 @@ if __package__ in (None, ""):  # run as a script: make `bench` importable
 
 from cellcal.config.robot_files import load_robot  # noqa: E402
 from cellcal.daemon.cells import load_cell, open_drivers  # noqa: E402
-from cellcal.routines import runner  # noqa: E402
-from cellcal.solvers import handshake as hs  # noqa: E402
-from cellcal.solvers import pivot, se3  # noqa: E402
-from cellcal.solvers.inverse import tcp_frames  # noqa: E402
+from cellcal.routines.framework import runner  # noqa: E402
+from cellcal.solvers.tool_frames import handshake as hs  # noqa: E402
+from cellcal.solvers.tool_frames import pivot  # noqa: E402
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.geometry.inverse import tcp_frames  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SEEDS = (11, 3, 5, 19, 29)

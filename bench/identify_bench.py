@@ -47,8 +47,8 @@ from bench.pybotics_runner import PyboticsUnavailable, run_pybotics
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.sims.physics.workspace import full_workspace
-from cellcal.solvers.identify import IdentifyOptions, identify, initial_base_and_targets
-from cellcal.solvers.measurement_model import Layout, Observations, predict
+from cellcal.solvers.identification.identify import IdentifyOptions, identify, initial_base_and_targets
+from cellcal.solvers.identification.measurement_model import Layout, Observations, predict
 
 ROBOT = "abb-irb4600"
 RESULTS = Path(__file__).resolve().parent / "results" / "identify.json"

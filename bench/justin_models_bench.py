@@ -47,11 +47,12 @@ from threadpoolctl import threadpool_limits
 
 from cellcal.config.robot_files import load_robot
 from cellcal.measurements.importers import dlr_justin
-from cellcal.solvers import crossval, se3
-from cellcal.solvers.analyze import NEIGHBOUR_RAD, AnalyzeOptions, _geometric_baseline
-from cellcal.solvers.effects.elastic_mount import mount_columns
-from cellcal.solvers.gravity import point_mass_regressors, tree_sites
-from cellcal.solvers.measurement_model import Observations, jacobian_chunks
+from cellcal.solvers.estimation import crossval
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.analysis.analyze import NEIGHBOUR_RAD, AnalyzeOptions, _geometric_baseline
+from cellcal.solvers.analysis.effects.elastic_mount import mount_columns
+from cellcal.solvers.geometry.gravity import point_mass_regressors, tree_sites
+from cellcal.solvers.identification.measurement_model import Observations, jacobian_chunks
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "dlr-agile-justin" / "measurements.csv"
 LAMBDAS = (0.0, 1e-4, 1e-3, 1e-2, 1e-1)

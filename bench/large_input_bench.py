@@ -46,9 +46,9 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from cellcal.config.robot_files import load_robot
 from cellcal.measurements.table import read_measurements
-from cellcal.solvers.analyze import analyze
-from cellcal.solvers.effects import Context, approach_directions
-from cellcal.solvers.identify import identify
+from cellcal.solvers.analysis.analyze import analyze
+from cellcal.solvers.analysis.effects import Context, approach_directions
+from cellcal.solvers.identification.identify import identify
 model = load_robot(sys.argv[2])
 table = read_measurements(sys.argv[1], model.n_joints)
 obs = table.observations()

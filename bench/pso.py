@@ -1,7 +1,7 @@
 """Particle-swarm baseline for kinematic identification (Chang et al., "A Stylus-Based
 Calibration Method for Robotic Belt Grinding Tools", Appl. Sci. 2025, Tables 2 and 3).
 
-The swarm searches the same unknown vector as ``cellcal.solvers.identify``
+The swarm searches the same unknown vector as ``cellcal.solvers.identification.identify``
 (kinematic parameters, instrument -> base transform, target offsets) and scores
 each particle by the RMS position error over the calibration poses, the seed's
 "root mean square error function". RMS and least squares share their minimiser,
@@ -34,10 +34,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cellcal.solvers import identifiability, se3
-from cellcal.solvers.chain import forward
-from cellcal.solvers.identify import initial_base_and_targets, scales
-from cellcal.solvers.measurement_model import Layout, Observations, jacobian
+from cellcal.solvers.estimation import identifiability
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.geometry.chain import forward
+from cellcal.solvers.identification.identify import initial_base_and_targets, scales
+from cellcal.solvers.identification.measurement_model import Layout, Observations, jacobian
 
 # (particles x poses) frames evaluated per forward() call: large enough to amortise the
 # per-element Python loop, small enough that the (M, N, 3, 3) temporaries stay in cache.

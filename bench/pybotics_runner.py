@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cellcal.solvers import se3
-from cellcal.solvers.measurement_model import Layout, Observations, predict
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.identification.measurement_model import Layout, Observations, predict
 
 HERE = Path(__file__).resolve().parent
 VENV = HERE / ".venv-pybotics"

@@ -38,9 +38,9 @@ import urllib.request
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-import daemon_harness  # noqa: E402  (the suite's harness)
-from cell_edits import edited_cell  # noqa: E402
-from daemon_harness import SHORT_SECTIONS, Daemon, Net, SELECT, until_the_run_ends  # noqa: E402
+from support import daemon_harness  # noqa: E402  (the suite's harness)
+from support.cell_edits import edited_cell  # noqa: E402
+from support.daemon_harness import SHORT_SECTIONS, Daemon, Net, SELECT, until_the_run_ends  # noqa: E402
 from pymodbus.client import ModbusTcpClient  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "status_page.json"

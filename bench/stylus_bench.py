@@ -41,12 +41,12 @@ import numpy as np
 from bench.pso import PSOConfig
 from cellcal.config.robot_files import load_robot
 from cellcal.daemon.cells import load_cell, open_drivers
-from cellcal.routines import registry, runner
-from cellcal.routines.records import read_dataset
-from cellcal.solvers import se3
-from cellcal.solvers import stylus as fitting
-from cellcal.solvers import stylus_design as design
-from cellcal.solvers.chain import forward
+from cellcal.routines.framework import registry, runner
+from cellcal.routines.framework.records import read_dataset
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.tool_frames import stylus as fitting
+from cellcal.solvers.tool_frames import stylus_design as design
+from cellcal.solvers.geometry.chain import forward
 from cellcal.sims.physics.truth import truth_of_cell
 
 RESULTS = Path(__file__).resolve().parent / "results" / "stylus.json"

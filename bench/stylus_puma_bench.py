@@ -66,18 +66,18 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np  # noqa: E402
 
-from point_data import workspace_errors  # noqa: E402
+from support.point_data import workspace_errors  # noqa: E402
 
 from bench.pso import PSOConfig  # noqa: E402
 from bench.stylus_bench import swarm  # noqa: E402
 from cellcal.config.robot_files import load_robot  # noqa: E402
 from cellcal.sims.physics.kinematic_arm import SimulatedArm  # noqa: E402
 from cellcal.sims.physics.workspace import full_workspace  # noqa: E402
-from cellcal.solvers import se3  # noqa: E402
-from cellcal.solvers.chain import forward  # noqa: E402
-from cellcal.solvers.fixture_identify import (FixtureOptions, PointData, identify_points, predict_seats,  # noqa: E402
+from cellcal.solvers.geometry import se3  # noqa: E402
+from cellcal.solvers.geometry.chain import forward  # noqa: E402
+from cellcal.solvers.fixtures.fixture_identify import (FixtureOptions, PointData, identify_points, predict_seats,  # noqa: E402
                                               refit_points)
-from cellcal.solvers.inverse import inverse_many  # noqa: E402
+from cellcal.solvers.geometry.inverse import inverse_many  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results" / "stylus-puma.json"
 PAPER_TOOL_MM = (125.0, 7.0, 41.0)  # the paper's ideal tool translation (Section 3)

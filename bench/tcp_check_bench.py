@@ -35,7 +35,7 @@ if __package__ in (None, ""):  # run as a script: make `bench` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cellcal.daemon.cells import load_cell, open_drivers  # noqa: E402
-from cellcal.routines import runner  # noqa: E402
+from cellcal.routines.framework import runner  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SEEDS = (7, 11, 23, 37, 41)
@@ -93,7 +93,7 @@ def bench(seeds, reps, reps_detect, out_dir) -> dict:
         calibrated = np.asarray(full.tool_frame)
         score = truth.score_tool_frame(calibrated)
         log(f"cell {seed}: tcp-laser {full.cycle_time_s:.1f} s, {score['position_error_mm']:.3f} mm, "
-            f"{score['axis_error_deg']:.3f} deg, gates {'passed' if full.write_back else 'FAILED'}")
+            f"{score['axis_error_deg']:.3f} deg, gates {'passed' if full.passed_gates else 'FAILED'}")
         check_time = None
         for kind, size in cases:
             n = reps_detect if (kind, size) in (("shift", 0.0), ("shift", 0.1)) else reps
@@ -117,7 +117,7 @@ def bench(seeds, reps, reps_detect, out_dir) -> dict:
                 rows.append({"seed": seed, "kind": kind, "size": size, "verdict": result.verdict,
                              "tip_change_mm": result.extra["tip_shift_mm"], "tip_std_mm": result.extra["tip_std_mm"],
                              "axis_tilt_deg": result.extra["axis_tilt_deg"], "true_tip_change_mm": true_change_mm,
-                             "determines": sorted(result.determines), "passed_gates": result.write_back,
+                             "determines": sorted(result.determines), "passed_gates": result.passed_gates,
                              "position_error_mm": truth.score_tool_frame(result.tool_frame)["position_error_mm"]
                              if result.verdict == "corrected" else None})
         timing.append({"seed": seed, "tcp_laser_s": full.cycle_time_s, "tcp_check_s": check_time,

@@ -44,12 +44,12 @@ if __package__ in (None, ""):  # run as a script: make `bench` importable
 
 from cellcal.config.robot_files import load_robot  # noqa: E402
 from cellcal.daemon.cells import load_cell, open_drivers  # noqa: E402
-from cellcal.routines import runner  # noqa: E402
-from cellcal.routines.guard import GuardedRobot, MotionGuard  # noqa: E402
-from cellcal.routines.base import Move  # noqa: E402
-from cellcal.solvers import se3  # noqa: E402
-from cellcal.solvers.inverse import tcp_poses  # noqa: E402
-from cellcal.solvers.tcp_laser import crossing_point  # noqa: E402
+from cellcal.routines.framework import runner  # noqa: E402
+from cellcal.routines.framework.guard import GuardedRobot, MotionGuard  # noqa: E402
+from cellcal.routines.framework.base import Move  # noqa: E402
+from cellcal.solvers.geometry import se3  # noqa: E402
+from cellcal.solvers.geometry.inverse import tcp_poses  # noqa: E402
+from cellcal.solvers.tool_frames.tcp_laser import crossing_point  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SPEEDS_MM_S = (20.0, 40.0, 100.0)
@@ -85,7 +85,7 @@ def run_ours(cell, noise_seed: int, out_dir: str) -> dict:
     return {"position_error_mm": score["position_error_mm"], "axis_error_deg": score["axis_error_deg"],
             "cycle_time_s": result.cycle_time_s, "latency_ms": result.extra["latency_ms"],
             "latency_std_ms": result.extra["latency_std_ms"], "true_latency_ms": truth.trigger_latency_s * 1e3,
-            "passed_gates": result.write_back}
+            "passed_gates": result.passed_gates}
 
 
 # -- the seed's method ------------------------------------------------------------------------------

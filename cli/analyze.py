@@ -6,14 +6,14 @@ import json
 
 from cellcal.config.fixture_files import read_fixture
 from cellcal.config.robot_files import load_robot
-from cellcal.routines.base import jsonable
+from cellcal.routines.framework.base import jsonable
 from cellcal.measurements.table import check_joint_limits, joint_velocities, read_measurements, repeated_warning
-from cellcal.solvers import point_analysis
-from cellcal.solvers.analyze import AnalyzeOptions, Finding, Scored, Transfer, analyze, transfer
-from cellcal.solvers.identify import LOSSES, IdentificationError
-from cellcal.solvers.effects import CAUSES, Context, approach_directions
-from cellcal.solvers.effects.cyclic_joint_error import order_search
-from cellcal.solvers.physical_sizes import describe
+from cellcal.solvers.analysis import point_analysis
+from cellcal.solvers.analysis.analyze import AnalyzeOptions, Finding, Scored, Transfer, analyze, transfer
+from cellcal.solvers.identification.identify import LOSSES, IdentificationError
+from cellcal.solvers.analysis.effects import CAUSES, Context, approach_directions
+from cellcal.solvers.analysis.effects.cyclic_joint_error import order_search
+from cellcal.solvers.analysis.physical_sizes import describe
 from cellcal.cli import model_out
 from cellcal.cli import discriminate as discriminate_cmd
 from cellcal.cli import identify_points
@@ -243,7 +243,7 @@ def run(args) -> int:
         raise UsageError(f"{args.data}: {len(table)} measurements; the analysis needs at least {MIN_MEASUREMENTS}")
     fixture = read_fixture(args.fixture) if args.fixture else None
     points = fixture is not None or table.is_point.any()
-    if points:  # sockets or balls: the fixture calibration is the baseline (solvers.point_analysis)
+    if points:  # sockets or balls: the fixture calibration is the baseline (solvers.analysis.point_analysis)
         fixture_fit, point_data = identify_points.fixture_fit_for_analysis(args, model, table, fixture)
         obs = point_analysis.observations(fixture_fit, point_data)
     else:

@@ -1,12 +1,12 @@
 """``cellcal compensate``: corrected joint values and Cartesian targets from a calibrated model.
 
 TARGETS.csv: ``x_mm, y_mm, z_mm`` of the tool point in the frame ``--frame`` names (the
-controller's base frame by default; ``solvers.compensate.FRAMES``), optionally
+controller's base frame by default; ``solvers.compensation.compensate.FRAMES``), optionally
 ``qw, qx, qy, qz`` (its orientation), ``q1_deg .. qN_deg`` (or ``_rad``: the program's
 joints, i.e. the branch each target is reached in), ``payload_kg``; other columns are
 copied through. OUT.csv: the input columns, the corrected joints, the corrected
 Cartesian target (nominal forward kinematics of the corrected joints, controller frame),
-the correction and a status per row (``solvers.compensate``).
+the correction and a status per row (``solvers.compensation.compensate``).
 """
 from __future__ import annotations
 
@@ -20,9 +20,9 @@ from scipy.spatial.transform import Rotation
 from cellcal.config.model_files import load_calibrated, source_model
 from cellcal.config.robot_files import load_robot
 from cellcal.measurements.table import MAX_JOINT, MAX_POSITION_MM, MAX_PAYLOAD_KG
-from cellcal.solvers.compensate import (FRAMES, JOINT_LIMITS, OK, SINGULAR, SINGULAR_MM_PER_RAD, UNREACHABLE,
+from cellcal.solvers.compensation.compensate import (FRAMES, JOINT_LIMITS, OK, SINGULAR, SINGULAR_MM_PER_RAD, UNREACHABLE,
                                         compensate, controller_frame, targets_in_model_frame)
-from cellcal.solvers.effects import Context, approach_directions
+from cellcal.solvers.analysis.effects import Context, approach_directions
 from cellcal.cli.common import UsageError, counted, number, print_progress, writable_file
 
 XYZ, QUAT = ("x_mm", "y_mm", "z_mm"), ("qw", "qx", "qy", "qz")
@@ -318,8 +318,8 @@ def run_program(args, calibrated, nominal, tcp_mm) -> int:
                 f.write(encode(rewrite(program.text, result.replacements)))
         except OSError as exc:
             raise UsageError(f"-o {args.out}: cannot write: {exc.strerror or exc}") from None
-    counts = Counter(o.status for o in result.outcomes)
-    n, done = len(result.outcomes), counts.pop(COMPENSATED, 0)
+    counts = Counter(o.status for o in result.per_target)
+    n, done = len(result.per_target), counts.pop(COMPENSATED, 0)
     left = ", ".join(f"{k} {s}" for s, k in sorted(counts.items()))
     error = None
     if not written:
@@ -329,12 +329,12 @@ def run_program(args, calibrated, nominal, tcp_mm) -> int:
         doc = {"program": str(args.program), "out": str(args.out), "written": written, "targets": n,
                "compensated": done, "not_compensated": dict(sorted(counts.items())),
                "nominal_model": nominal.name, "seconds": result.seconds,
-               "report": [o.as_dict() for o in result.outcomes]}
+               "report": [o.as_dict() for o in result.per_target]}
         if error:
             doc["error"] = {"code": 1, "message": error}
         print(json.dumps(doc))
     else:
-        for o in result.outcomes:
+        for o in result.per_target:
             t = o.target
             which = " " + t.role.removeprefix("pose_") if t.call == "movec" else ""  # movec's via and to
             where = f"{args.program}:{t.line}: {t.call}{which} ({t.kind})"
@@ -346,7 +346,7 @@ def run_program(args, calibrated, nominal, tcp_mm) -> int:
         print(f"compensated {done} of {counted(n, 'target')} of {args.program} with {args.robot} (nominal: "
               f"{nominal.name}) in {result.seconds:.2f} s" + (f"; not compensated: {left}" if left else "")
               + (f"; written to {args.out}" if written else "; nothing written"))
-    large = [o for o in result.outcomes if o.status == COMPENSATED and o.joint_deg > args.max_correction_deg]
+    large = [o for o in result.per_target if o.status == COMPENSATED and o.joint_deg > args.max_correction_deg]
     for o in large[:SHOWN_ROWS]:
         print_progress(f"{args.program}:{o.target.line}: warning: compensated, but the joints move by "
                        f"{o.joint_deg:.3g} deg (above --max-correction-deg {args.max_correction_deg:g}): check the "

@@ -21,7 +21,7 @@ from cellcal.daemon.service import ResultCode, Service
 from cellcal.drivers.interfaces import DeviceError
 from cellcal.reports.run import write_run_report
 from cellcal.reports.trend import write_trend_page
-from cellcal.routines import registry
+from cellcal.routines.framework import registry
 
 log = logging.getLogger("cellcal.daemon")
 STOP_WAIT_S = 1.5  # how long a stop waits for the running routine to halt before leaving

@@ -11,9 +11,9 @@ import csv
 
 import numpy as np
 
-from cellcal.solvers.analyze import Finding
+from cellcal.solvers.analysis.analyze import Finding
 from cellcal.measurements.table import MAX_PAYLOAD_KG
-from cellcal.solvers.discriminate import Design, DesignError, design
+from cellcal.solvers.analysis.discriminate import Experiment, ExperimentError, design
 from cellcal.cli.common import UsageError, number, print_progress, whole, writable_file
 
 MAX_POSES = 1000  # an experiment to tell two explanations apart is a few dozen poses; 1000 is a long day's measuring
@@ -81,7 +81,7 @@ def run_design(args, finding: Finding, ctx, model) -> dict | None:
         return None
     try:
         d = design(finding, ctx, args.discriminate, np.random.default_rng(0), payload_kg=args.payload_kg)
-    except DesignError as exc:
+    except ExperimentError as exc:
         print_progress(f"--discriminate: {exc}; no poses written")
         return {"poses": 0, "file": None, "reason": str(exc)}
     write_poses(args.output, d, model)
@@ -93,7 +93,7 @@ def run_design(args, finding: Finding, ctx, model) -> dict | None:
             "payload_kg": None if d.payload_kg is None else d.payload_kg.tolist(), "summary": d.summary()}
 
 
-def write_poses(path, d: Design, model) -> None:
+def write_poses(path, d: Experiment, model) -> None:
     lines = [f"cellcal analyze --discriminate: {model.name}", d.summary(),
              f"measure each configuration at every target: {', '.join(d.target_names)}",
              "within the robot file's joint limits, the arm above its mounting plane; check reach, collisions and "

@@ -11,7 +11,7 @@ from cellcal.config.fixture_files import read_fixture
 from cellcal.config.robot_files import load_robot
 from cellcal.measurements.table import MeasurementTable, check_joint_limits, read_measurements, repeated_warning
 from cellcal.reports.identification import identification_json, identification_text
-from cellcal.solvers.identify import LOSSES, REGULARIZE, IdentifyOptions, identify
+from cellcal.solvers.identification.identify import LOSSES, REGULARIZE, IdentifyOptions, identify
 
 
 def _split(table: MeasurementTable, validate: MeasurementTable | None, path: str):

@@ -2,7 +2,7 @@
 
 Rows that name the fixed point the target sat at (``point``, ``setup``) instead of a
 measured position, with the fixture's known distances from ``--fixture FIXTURE.yaml``
-(``config.fixture_files``), are solved by ``solvers.fixture_identify``. Everything that
+(``config.fixture_files``), are solved by ``solvers.fixtures.fixture_identify``. Everything that
 makes the data unusable is refused here, before any computation, with one message naming
 the file, the line and the column (or the fixture file and its key).
 """
@@ -17,8 +17,8 @@ from cellcal.cli.common import UsageError, print_progress
 from cellcal.config.fixture_files import Fixture, FixtureError
 from cellcal.measurements.table import DatasetError, MeasurementTable
 from cellcal.reports.fixture_identification import fixture_json, fixture_text
-from cellcal.solvers.calibrated_model import from_fit
-from cellcal.solvers.fixture_identify import (MIN_ROWS_PER_POINT, FixtureOptions, PointData, identify_points,
+from cellcal.solvers.compensation.calibrated_model import from_fit
+from cellcal.solvers.fixtures.fixture_identify import (MIN_ROWS_PER_POINT, FixtureOptions, PointData, identify_points,
                                               refit_points)
 
 

@@ -2,7 +2,7 @@
 
 MEASURED.csv is a measurement file (the joints the robot was commanded, the measured
 target positions in the instrument frame) with two more columns: ``pose`` (P1 .. P5,
-``solvers.iso9283``) and ``cycle``. The command position of each row is where the
+``solvers.identification.iso9283``) and ``cycle``. The command position of each row is where the
 ``--robot`` model puts the target at the commanded joints (its geometry, effects,
 instrument frame and target offset): for a nominal model that is the programmed point,
 for a calibrated model what the calibration says the robot reaches, and for joints
@@ -16,8 +16,8 @@ import numpy as np
 
 from cellcal.config.model_files import load_calibrated
 from cellcal.measurements.table import read_measurements, repeated_measurements
-from cellcal.solvers.effects import Context, approach_directions
-from cellcal.solvers.iso9283 import DISTANCE_PAIR, MIN_CYCLES, POSES, STANDARD_CYCLES, characteristics
+from cellcal.solvers.analysis.effects import Context, approach_directions
+from cellcal.solvers.identification.iso9283 import DISTANCE_PAIR, MIN_CYCLES, POSES, STANDARD_CYCLES, characteristics
 from cellcal.cli.common import ReportError, UsageError, counted, print_progress, writable_folder
 
 

@@ -151,7 +151,7 @@ def _classify(exc: Exception) -> tuple[int | None, str, bool]:
     from cellcal.daemon.claims import InUseError
     from cellcal.drivers.interfaces import DeviceError
     from cellcal.measurements.table import DatasetError
-    from cellcal.routines.base import RoutineError
+    from cellcal.routines.framework.base import RoutineError
 
     if isinstance(exc, ReportError):  # the result is already on stdout: only the line on stderr
         return 2, f"error: {exc}", False

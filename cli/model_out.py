@@ -7,7 +7,7 @@ import hashlib
 from importlib import metadata
 
 from cellcal.config.model_files import write_calibrated
-from cellcal.solvers.calibrated_model import from_fit
+from cellcal.solvers.compensation.calibrated_model import from_fit
 from cellcal.cli.common import UsageError, print_progress, writable_file
 
 

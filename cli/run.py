@@ -39,13 +39,13 @@ from cellcal.config.cells import TOOL_IDS
 from cellcal.config.robot_files import load_robot
 from cellcal.drivers import registry as drivers_registry
 from cellcal.drivers.interfaces import Operator, OperatorTimeout
-from cellcal.routines import registry, runner
-from cellcal.routines.base import (NotForThisCell, PlanRefused, Result, RoutineError, frame_text, gate_line,
+from cellcal.routines.framework import registry, runner
+from cellcal.routines.framework.base import (NotForThisCell, PlanRefused, Result, RoutineError, frame_text, gate_line,
                                    jsonable)
-from cellcal.routines.records import read_dataset
-from cellcal.solvers import se3
-from cellcal.solvers.inverse import tcp_frames
-from cellcal.solvers.measurement_model import Layout, Observations, predict
+from cellcal.routines.framework.records import read_dataset
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.geometry.inverse import tcp_frames
+from cellcal.solvers.identification.measurement_model import Layout, Observations, predict
 from cellcal.daemon.cells import NoToolMounted, load_cell, mounted_tool, open_drivers
 from cellcal.daemon.claims import held
 from cellcal.daemon.store import Store, StoreError, file_sha256, state_dir as store_folder
@@ -125,7 +125,7 @@ def _score_fixture(result: Result, truth, model, cell) -> dict:
 
 
 def _text(result: Result) -> str:
-    lines = [f"{result.routine}: " + ("PASSED every gate: may be written back" if result.write_back else
+    lines = [f"{result.routine}: " + ("PASSED every gate: may be written back" if result.passed_gates else
                                       "NOT to be written back")]
     if result.verdict is not None:  # a check (tcp-check): its verdict, and the first note says why
         lines.append(f"  verdict {result.verdict.upper()}: {result.notes[0] if result.notes else ''}")
@@ -230,7 +230,7 @@ def cmd_run(args) -> int:
         print(_text(result))
         if result.tool_frame is not None:
             print("  nothing written to the controller (cellcal run never writes; the daemon writes back)")
-    return 0 if result.write_back and result.verdict != "alarm" else 1  # a check's alarm is a cell failure
+    return 0 if result.passed_gates and result.verdict != "alarm" else 1  # a check's alarm is a cell failure
 
 
 class TerminalOperator(Operator):

@@ -7,7 +7,7 @@ import time
 from cellcal.cli.common import RECORD_ID, STATE_HELP, UsageError, open_store, whole
 from cellcal.daemon.service import RESULT_MEANINGS, ResultCode
 from cellcal.daemon.store import file_sha256
-from cellcal.routines.base import gate_line
+from cellcal.routines.framework.base import gate_line
 
 
 def cmd_runs_list(args) -> int:

@@ -15,7 +15,7 @@ from cellcal.daemon.claims import devices, held
 from cellcal.daemon.drift import trend
 from cellcal.daemon.write_back import NothingToRestore, rollback
 from cellcal.drivers.interfaces import DeviceError, RobotState
-from cellcal.routines.base import frame_text, tool_frame_json
+from cellcal.routines.framework.base import frame_text, tool_frame_json
 
 
 def cmd_tool_history(args) -> int:

@@ -61,7 +61,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cellcal.solvers import se3
+from cellcal.solvers.geometry import se3
 from cellcal.config.reader import ConfigError, Section, read_yaml, resolve, shipped
 from cellcal.config.robot_files import ModelError, load_robot
 

@@ -12,7 +12,7 @@ gets the calibrated geometry. Two optional top-level sections extend the format
     SHA-256 and row count, the held-out error).
 ``effects``
     the fitted effect terms: the cause, where, each parameter's value and unit, and
-    whether forward kinematics applies it (``solvers.calibrated_model``).
+    whether forward kinematics applies it (``solvers.compensation.calibrated_model``).
 
 ``load_robot`` reads such a file as a plain robot model (the calibrated geometry);
 ``load_calibrated`` reads everything into a :class:`CalibratedModel`.
@@ -27,8 +27,8 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
-from cellcal.solvers.calibrated_model import STRUCTURAL, CalibratedModel, Effect, with_structural
-from cellcal.solvers.effects import CAUSES
+from cellcal.solvers.compensation.calibrated_model import STRUCTURAL, CalibratedModel, Effect, with_structural
+from cellcal.solvers.analysis.effects import CAUSES
 from cellcal.config.reader import Section, read_yaml
 from cellcal.config.robot_files import ANGLE_UNITS, LENGTH_UNITS, ModelError, load_robot, resolve_robot
 

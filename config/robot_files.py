@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from cellcal.solvers.chain import Chain, Element
-from cellcal.solvers.robot_model import KinematicModel, Link
-from cellcal.solvers.se3 import orthonormalize
+from cellcal.solvers.geometry.chain import Chain, Element
+from cellcal.solvers.geometry.robot_model import KinematicModel, Link
+from cellcal.solvers.geometry.se3 import orthonormalize
 from cellcal.config.reader import ConfigError, Section, read_yaml, resolve, shipped
 
 LENGTH_UNITS = {"mm": 1.0, "m": 1000.0}

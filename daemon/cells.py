@@ -14,7 +14,7 @@ from pathlib import Path
 from cellcal.config.cells import Cell, CellFileError, read_cell, shipped_cells
 from cellcal.drivers import registry
 from cellcal.drivers.registry import DriverConfigError
-from cellcal.routines import registry as routines
+from cellcal.routines.framework import registry as routines
 
 __all__ = ["Cell", "CellDrivers", "CellFileError", "NoToolMounted", "load_cell", "mounted_tool", "open_drivers",
            "shipped_cells"]

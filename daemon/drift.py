@@ -19,10 +19,10 @@ import math
 
 import numpy as np
 
-from cellcal.routines import tool_frame
-from cellcal.routines.base import Result
-from cellcal.solvers import se3
-from cellcal.solvers.tcp_laser import axis_pair
+from cellcal.routines.framework import tool_frame
+from cellcal.routines.framework.base import Result
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.tool_frames.tcp_laser import axis_pair
 
 SECONDS_PER_WEEK = 7 * 24 * 3600.0
 CALIBRATION_ROUTINES = ("tcp-laser", "tcp-npoint", "tcf", "tcp-stylus")  # a full calibration of the tool
@@ -41,7 +41,7 @@ def measured_frame(result: Result) -> np.ndarray | None:
     verdict is ``ok`` carries the frame it was compared with (nothing to write); its measured
     frame is that frame moved by the measured change: the tip by x, y, z; the axis tilted by
     the check's tilts, counted as it counts them (toward the flange's x and y made
-    perpendicular to the compared axis, :func:`cellcal.solvers.tcp_laser.axis_pair`)."""
+    perpendicular to the compared axis, :func:`cellcal.solvers.tool_frames.tcp_laser.axis_pair`)."""
     if result.tool_frame is None or not result.determines:
         return None
     frame = np.asarray(result.tool_frame, dtype=float)

@@ -37,11 +37,11 @@ from pathlib import Path
 import numpy as np
 
 from cellcal.drivers.interfaces import DeviceError, DeviceTimeout, Operator, OperatorTimeout, RobotState
-from cellcal.routines import registry, runner, tool_frame
+from cellcal.routines.framework import registry, runner, tool_frame
 from cellcal.config.reader import ConfigError
-from cellcal.routines.base import CheckAlarm, PlanRefused, Result, RoutineAborted, RoutineError
-from cellcal.routines.frames_owed import FramesOwed
-from cellcal.routines.gates import frame_change
+from cellcal.routines.framework.base import CheckAlarm, PlanRefused, Result, RoutineAborted, RoutineError
+from cellcal.routines.framework.frames_owed import FramesOwed
+from cellcal.routines.framework.gates import frame_change
 from cellcal.daemon import cells, drift, outcome
 from cellcal.daemon.notify import Notifier
 from cellcal.daemon.store import Store
@@ -107,7 +107,7 @@ RESULT_MEANINGS = {
 
 def panel_routines() -> dict[int, str]:
     """The routine selector register's values (docs/panel.md) -> routine names: each routine
-    class declares its own ``selector`` (:func:`cellcal.routines.registry.panel_selectors`)."""
+    class declares its own ``selector`` (:func:`cellcal.routines.framework.registry.panel_selectors`)."""
     return registry.panel_selectors()
 
 
@@ -431,7 +431,7 @@ class Service:
         if drifted is not None:
             return self._end(run_id, "fault", ResultCode.DRIFT_ALARM, f"tool drift alarm: {drifted}; nothing "
                                                                       "written: calibrate the tool", result)
-        if not result.write_back:
+        if not result.passed_gates:
             return self._end(run_id, "fault", ResultCode.GATE_FAILED, "; ".join(result.reasons()), result)
         if self.abort.is_set():
             return self._end(run_id, "aborted", ResultCode.ABORTED, "abort pressed before write-back", result)
@@ -536,7 +536,7 @@ class Service:
         robot = self.drivers.robot
         try:
             state = robot.state()
-            before = np.asarray(robot.tcp(), dtype=float) if state is RobotState.READY else None
+            before = np.asarray(robot.tool_frame(), dtype=float) if state is RobotState.READY else None
         except DeviceError as exc:
             return None, None, (ResultCode.NOT_READY, f"the robot does not answer: {exc}")
         if state is not RobotState.READY:
@@ -594,7 +594,7 @@ class Service:
         run_id, frame = self._frame_owed
         robot = self.drivers.robot
         try:
-            if np.abs(np.asarray(robot.tcp(), dtype=float) - frame).max() > TOLERANCE:
+            if np.abs(np.asarray(robot.tool_frame(), dtype=float) - frame).max() > TOLERANCE:
                 robot.set_tcp(frame)
                 log.info("run %d: the tool frame from before it is back on the controller", run_id)
                 self._event("tool_frame_given_back", f"run {run_id}")
@@ -795,7 +795,7 @@ class Service:
         robot = self.drivers.robot
         try:
             robot.set_tcp(frame)
-            back = np.asarray(robot.tcp(), dtype=float)
+            back = np.asarray(robot.tool_frame(), dtype=float)
         except DeviceError as exc:
             return None, (ResultCode.NOT_READY, f"tool {tool_id}'s frame could not be set on the controller: {exc}")
         if np.abs(back - frame).max() > TOLERANCE:  # doubles travel exactly

@@ -21,7 +21,7 @@ from cellcal.config.cells import TOOL_IDS
 from cellcal.daemon.drift import trend
 from cellcal.daemon.service import RESULT_MEANINGS, ResultCode
 from cellcal.daemon.store import SCHEMA_VERSION, STORE_FILE, Store, StoreError, _run
-from cellcal.routines.base import tool_frame_json
+from cellcal.routines.framework.base import tool_frame_json
 
 API_VERSION = 1
 RUNS_LIMIT = (1, 500)  # /api/v1/runs?limit=N: the bounds of N

@@ -320,7 +320,7 @@ class Store:
         sha = file_sha256(result.dataset) if result.dataset and Path(result.dataset).exists() else None
         with self._tx() as db:
             db.execute("UPDATE runs SET dataset_path = ?, dataset_sha256 = ?, write_back = ?, result_json = ? "
-                       "WHERE id = ?", (result.dataset, sha, int(result.write_back),
+                       "WHERE id = ?", (result.dataset, sha, int(result.passed_gates),
                                         result.json_text(), run_id))
             db.executemany("INSERT INTO parameters VALUES (?, ?, ?, ?, ?)",
                            [(run_id, p.name, p.value, p.std, p.unit) for p in result.parameters])

@@ -93,7 +93,7 @@ def tools_without_block(cell, robot: Robot) -> list[str]:
 def read_frames(robot: Robot, slot: int | None = 0) -> ControllerFrames:
     """The running frame, and the stored one of block `slot` where the robot keeps that block."""
     kept = keeps_block(robot, slot)
-    return ControllerFrames(np.asarray(robot.tcp(), dtype=float), robot.stored_tool_frame(slot) if kept else None,
+    return ControllerFrames(np.asarray(robot.tool_frame(), dtype=float), robot.stored_tool_frame(slot) if kept else None,
                             slot if kept else None)
 
 
@@ -102,7 +102,7 @@ def _write_checked(robot: Robot, target: ControllerFrames) -> str | None:
     if target.running is not None:
         running = np.asarray(target.running, dtype=float)
         robot.set_tcp(running)
-        readback = np.asarray(robot.tcp(), dtype=float)
+        readback = np.asarray(robot.tool_frame(), dtype=float)
         if np.abs(readback - running).max() > TOLERANCE:
             return f"the controller reports the tool frame {readback.tolist()} after {running.tolist()} was written"
     if target.stored is not None:

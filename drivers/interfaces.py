@@ -110,11 +110,11 @@ class Robot(abc.ABC):
         """Timestamped samples of the state stream received since a time (or all buffered)."""
 
     @abc.abstractmethod
-    def set_tcp(self, tcp_pose) -> None:
+    def set_tcp(self, tool_frame) -> None:
         """Set the controller's tool frame (flange -> TCP) [x, y, z, rx, ry, rz]."""
 
     @abc.abstractmethod
-    def tcp(self) -> np.ndarray:
+    def tool_frame(self) -> np.ndarray:
         """The controller's current tool frame."""
 
     @abc.abstractmethod

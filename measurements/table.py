@@ -31,7 +31,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from cellcal.solvers.measurement_model import Observations
+from cellcal.solvers.identification.measurement_model import Observations
 
 XYZ = ("x_mm", "y_mm", "z_mm")
 QUAT = ("qw", "qx", "qy", "qz")

@@ -14,10 +14,10 @@ makes of it:
   joints says.
 
 That pose, mapped from the controller's base frame into the calibrated model's frame
-(``solvers.compensate.targets_in_model_frame``, frame ``base``: the controller's frame fitted
+(``solvers.compensation.compensate.targets_in_model_frame``, frame ``base``: the controller's frame fitted
 once per program at the tool point the calibration knows, the calibrated target or
 ``--tcp-mm``), is what the arm should reach. The calibrated model gives the joints that
-reach it (``solvers.compensate.compensate``, all targets of one tool in one batch); a
+reach it (``solvers.compensation.compensate.compensate``, all targets of one tool in one batch); a
 joint target gets those joints, a pose target the nominal forward kinematics of those
 joints with the same tool, which the controller turns back into exactly those joints. So
 the program keeps its own conventions.
@@ -34,9 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from cellcal.programs.urscript import JOINT_VALUES, JOINTS, POSE, RUNTIME, Program, ProgramError, SetTcp, Target
-from cellcal.solvers import compensate as solver
-from cellcal.solvers import se3
-from cellcal.solvers.effects import Context, approach_directions
+from cellcal.solvers.compensation import compensate as solver
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.analysis.effects import Context, approach_directions
 
 OK = "ok"
 COMPUTED_AT_RUN_TIME = "runtime"
@@ -56,7 +56,7 @@ WORDS = {  # the solver's statuses, said
 
 
 @dataclass(frozen=True)
-class Outcome:
+class TargetCompensation:
     """What became of one target."""
 
     target: Target
@@ -77,18 +77,18 @@ class Outcome:
 
 @dataclass(frozen=True)
 class ProgramCompensation:
-    outcomes: tuple[Outcome, ...]
+    per_target: tuple[TargetCompensation, ...]
     seconds: float
 
     @property
     def replacements(self) -> dict[Target, tuple[float, ...]]:
         """The compensated targets and their new values, for ``urscript.rewrite``."""
-        return {o.target: o.values for o in self.outcomes if o.status == OK}
+        return {o.target: o.values for o in self.per_target if o.status == OK}
 
     @property
-    def failed(self) -> tuple[Outcome, ...]:
+    def failed(self) -> tuple[TargetCompensation, ...]:
         """Literal targets the compensation tried and could not compensate."""
-        return tuple(o for o in self.outcomes if o.status != OK and o.status not in NOT_ATTEMPTED)
+        return tuple(o for o in self.per_target if o.status != OK and o.status not in NOT_ATTEMPTED)
 
 
 @dataclass
@@ -111,15 +111,15 @@ def compensate_program(program: Program, nominal, calibrated, *, default_tcp_mm,
     if nominal.n_joints != JOINT_VALUES:
         raise ProgramError(f"{program.name}: URScript moves {JOINT_VALUES} joints; the robot model "
                            f"{nominal.name} has {nominal.n_joints}")
-    outcomes: list[Outcome | None] = [None] * len(program.targets)
+    per_target: list[TargetCompensation | None] = [None] * len(program.targets)
     rows: list[_Row] = []
     frames: dict[tuple, object] = {}
     for k, target in enumerate(program.targets):
         if target.kind == RUNTIME:
-            outcomes[k] = Outcome(target, COMPUTED_AT_RUN_TIME, f"not compensated: {target.reason}")
+            per_target[k] = TargetCompensation(target, COMPUTED_AT_RUN_TIME, f"not compensated: {target.reason}")
             continue
         if target.tcp is not None and target.tcp.pose is None:
-            outcomes[k] = Outcome(target, TOOL_AT_RUN_TIME, f"not compensated: the tool is set at run time on "
+            per_target[k] = TargetCompensation(target, TOOL_AT_RUN_TIME, f"not compensated: the tool is set at run time on "
                                                             f"line {target.tcp.line} (set_tcp({target.tcp.source}))")
             continue
         tool_mm, tool_rot = _tool(target.tcp, default_tcp_mm)
@@ -143,14 +143,14 @@ def compensate_program(program: Program, nominal, calibrated, *, default_tcp_mm,
     for row, q in zip(rows, reached):
         row.q = q
         if not np.isfinite(q).all():
-            outcomes[row.index] = Outcome(program.targets[row.index], CONTROLLER_CANNOT_REACH,
+            per_target[row.index] = TargetCompensation(program.targets[row.index], CONTROLLER_CANNOT_REACH,
                                           "not compensated: the controller's own model does not reach this pose "
                                           "from the previous target's joints")
     rows = [r for r in rows if np.isfinite(r.q).all()]
     # one controller frame for the whole program, fitted at the tool the calibration knows (module docstring)
     controller = solver.controller_frame(calibrated, nominal, offset_mm=np.asarray(default_tcp_mm, dtype=float))
-    _compensate_rows(program, rows, outcomes, nominal, calibrated, controller)
-    return ProgramCompensation(tuple(outcomes), time.perf_counter() - started)
+    _compensate_rows(program, rows, per_target, nominal, calibrated, controller)
+    return ProgramCompensation(tuple(per_target), time.perf_counter() - started)
 
 
 def _tool(tcp: SetTcp | None, default_tcp_mm) -> tuple[tuple[float, ...], np.ndarray]:
@@ -231,7 +231,7 @@ def _nominal_inverse(frames, position, flange, seed) -> np.ndarray:
     return out
 
 
-def _compensate_rows(program, rows, outcomes, nominal, calibrated, controller) -> None:
+def _compensate_rows(program, rows, per_target, nominal, calibrated, controller) -> None:
     if not rows:
         return
     direction = approach_directions(np.array([r.q for r in rows]))  # joints in program order: backlash
@@ -252,7 +252,7 @@ def _compensate_rows(program, rows, outcomes, nominal, calibrated, controller) -
             row, status = rows[j], str(result.status[g])
             target = program.targets[row.index]
             if status != OK:
-                outcomes[row.index] = Outcome(target, status, f"left as written: "
+                per_target[row.index] = TargetCompensation(target, status, f"left as written: "
                                               f"{WORDS.get(status, status.replace('_', ' '))}")
                 continue
             q = result.q[g]
@@ -263,7 +263,7 @@ def _compensate_rows(program, rows, outcomes, nominal, calibrated, controller) -
             else:
                 values = tuple(q)
             turn = se3.matrix_to_rotvec(result.rotation[g] @ row.flange_rot.T)
-            outcomes[row.index] = Outcome(
+            per_target[row.index] = TargetCompensation(
                 target, OK, values=tuple(float(v) for v in values),
                 shift_mm=float(np.linalg.norm(result.position_mm[g] - row.position_mm)),
                 turn_deg=float(np.rad2deg(np.linalg.norm(turn))),

@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from cellcal.reports.page import figure_html, plt, write_page
-from cellcal.solvers.analyze import Finding, Transfer
-from cellcal.solvers.measurement_model import Layout, Observations, jacobian
-from cellcal.solvers.se3 import rotvec_to_matrix
+from cellcal.solvers.analysis.analyze import Finding, Transfer
+from cellcal.solvers.identification.measurement_model import Layout, Observations, jacobian
+from cellcal.solvers.geometry.se3 import rotvec_to_matrix
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

@@ -9,10 +9,10 @@ import numpy as np
 
 from cellcal.reports.page import plt
 
-from cellcal.solvers.analyze import Finding
-from cellcal.solvers.effects.cyclic_joint_error import PeriodicJointError
-from cellcal.solvers.effects.periodic_spline import PeriodicSpline
-from cellcal.solvers.measurement_model import Layout, Observations, jacobian
+from cellcal.solvers.analysis.analyze import Finding
+from cellcal.solvers.analysis.effects.cyclic_joint_error import PeriodicJointError
+from cellcal.solvers.analysis.effects.periodic_spline import PeriodicSpline
+from cellcal.solvers.identification.measurement_model import Layout, Observations, jacobian
 
 
 def _along(v: np.ndarray, u: np.ndarray) -> np.ndarray:

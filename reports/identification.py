@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from cellcal.solvers.identify import Identification
-from cellcal.solvers.measurement_model import Observations, predict
+from cellcal.solvers.identification.identify import Identification
+from cellcal.solvers.identification.measurement_model import Observations, predict
 
 
 def error_stats(errors: np.ndarray) -> dict:

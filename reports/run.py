@@ -1,5 +1,5 @@
 """A run's report a person can read: the measurements drawn against the fitted geometry (the
-routine's :class:`~cellcal.routines.drawing.Drawing`), the frame before and after, the gates,
+routine's :class:`~cellcal.routines.framework.drawing.Drawing`), the frame before and after, the gates,
 the residual of every measurement, and the routine's own numbers; one HTML page with its plots.
 """
 from __future__ import annotations
@@ -12,10 +12,10 @@ import numpy as np
 
 from cellcal.reports.page import figure_html, plt, write_page
 from cellcal.reports.trend import TREND_IMAGE, TREND_PAGE
-from cellcal.solvers import se3
-from cellcal.routines import tool_frame
-from cellcal.routines.base import FRAME_KEYS, Result, tool_frame_json
-from cellcal.routines.drawing import Drawing
+from cellcal.solvers.geometry import se3
+from cellcal.routines.framework import tool_frame
+from cellcal.routines.framework.base import FRAME_KEYS, Result, tool_frame_json
+from cellcal.routines.framework.drawing import Drawing
 
 STYLES = {"measured": dict(ls="none", marker=".", ms=5), "fitted": dict(ls="-", lw=1.2, color="0.25")}
 
@@ -107,7 +107,7 @@ def write_run_report(folder: str | Path, run_id: int, result: Result, tool_id: i
     params = "".join(f"<tr><td>{html.escape(p.name)}</td><td>{p.value:.5g}</td>"
                      f"<td>{'' if p.std is None else f'{p.std:.3g}'}</td><td>{html.escape(p.unit)}</td></tr>"
                      for p in result.parameters)
-    verdict = ("passed every gate: to be written back" if result.write_back else
+    verdict = ("passed every gate: to be written back" if result.passed_gates else
                "NOT to be written back: " + "; ".join(result.reasons()))
     return write_page(
         out / "report.html", "cellcal run",

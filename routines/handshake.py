@@ -22,7 +22,7 @@ at their tips at the planned meeting. Robot b is aimed with its base as installe
 meeting shows how far off that aim is, and the following ones are aimed that much better
 (the moves re-checked by the guard as they are sent).
 
-The fit (:func:`cellcal.solvers.handshake.fit_handshake`) is one least-squares problem in
+The fit (:func:`cellcal.solvers.tool_frames.handshake.fit_handshake`) is one least-squares problem in
 b's base pose and both needle tips, from a closed-form SVD start; its condition, the
 points' own conditioning and the errors the design should give at the stated
 repeatability are reported. Before anything moves the design is judged: a plan whose
@@ -53,12 +53,12 @@ import numpy as np
 from cellcal.config.cells import Cell
 from cellcal.config.reader import Section
 from cellcal.config.robot_files import load_robot
-from cellcal.solvers import handshake as hs
-from cellcal.solvers import se3
-from cellcal.solvers.inverse import inverse, tcp_frames
-from cellcal.routines.base import Design, Devices, Move, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
+from cellcal.solvers.tool_frames import handshake as hs
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.geometry.inverse import inverse, tcp_frames
+from cellcal.routines.framework.base import PlanPromise, Devices, Move, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
 from cellcal.routines.handshake_result import handshake_result
-from cellcal.routines.records import Dataset
+from cellcal.routines.framework.records import Dataset
 from cellcal.routines.tcp_npoint import axis_sigma_mm
 
 JOINT_SPEED_RAD_S = 1.0
@@ -242,7 +242,7 @@ class Handshake(StepRoutine):
                 (Move.linear(f"robot b backs off {m.number}", poses["standoff"], speed, accel, robot="b",
                              meeting=m.point_m), None)]
 
-    def design(self) -> Design:
+    def design(self) -> PlanPromise:
         """The planned meetings judged at the stated repeatability, on the drawn tips and the
         base as installed (what the plan aims at): robot b's base position's expected error,
         mm, and its rotation's (``details["rotation_deg"]``)."""
@@ -260,9 +260,9 @@ class Handshake(StepRoutine):
         sigma = np.sqrt(2.0) * axis_sigma_mm(self.options.repeatability_mm)  # both arms' repeatability
         found = hs.design(*(np.array(v) for v in (*frames["a"], *frames["b"])), cell.robots["a"].tool.tcp_m * 1e3,
                           cell.robots["b"].tool.tcp_m * 1e3, sigma)
-        return Design(found.condition, found.position_mm, "mm", {"rotation_deg": found.rotation_deg})
+        return PlanPromise(found.condition, found.position_mm, "mm", {"rotation_deg": found.rotation_deg})
 
-    def check_design(self) -> Design:
+    def check_design(self) -> PlanPromise:
         """The plan judged before anything moves: PlanRefused for points on one plane or too
         few (the solver's reason), or an expected frame error above the targets."""
         o = self.options

@@ -7,19 +7,19 @@ from __future__ import annotations
 import numpy as np
 
 from cellcal.config.cells import Cell
-from cellcal.solvers import handshake as hs
-from cellcal.solvers import se3
-from cellcal.routines import gates
-from cellcal.routines.base import Gate, Parameter, Result, frame_text
-from cellcal.routines.drawing import meeting_points
-from cellcal.routines.tool_frame import TIP_ONLY
+from cellcal.solvers.tool_frames import handshake as hs
+from cellcal.solvers.geometry import se3
+from cellcal.routines.framework import gates
+from cellcal.routines.framework.base import Gate, Parameter, Result, frame_text
+from cellcal.routines.framework.drawing import meeting_points
+from cellcal.routines.framework.tool_frame import TIP_ONLY
 
 PLAUSIBLE_BASE_MM = 30.0  # a base found this far from where it was installed is doubted ...
 PLAUSIBLE_BASE_DEG = 2.0  # ... or turned this far
 MAX_STD_FACTOR = 1.0  # a frame coordinate whose std is above its target is not determined
 
 
-def handshake_result(name, dataset, cell: Cell, options, fit: hs.HandshakeFit, design: hs.Design,
+def handshake_result(name, dataset, cell: Cell, options, fit: hs.HandshakeFit, design: hs.PlanQuality,
                      points_mm) -> Result:
     """`points_mm` (N, 3): where robot a's fitted tip was at each meeting, in a's base frame."""
     n = len(fit.residuals_mm)

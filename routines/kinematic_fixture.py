@@ -12,7 +12,7 @@ as the tracker routine chooses its poses: the candidates are tilts of 0, 1/3, 2/
 `max_tilt_deg` at azimuths every 30 deg, turned 0 and +-`turn_deg` about the tool axis, on
 the usual wrist and (``wrist_flip``) the flipped one, each kept where the nominal arm reaches
 it within the joint limits, clear of singularities and with a way in from above on the same
-branch; of those the D-optimal seat design (solvers/fixture_design.py: each socket's
+branch; of those the D-optimal seat design (solvers/fixtures/fixture_design.py: each socket's
 position eliminated) takes `orientations` per socket for all sockets together. A socket's
 seats go wrist branch by wrist branch, from the most upright on to the nearest in joint
 space; a change of wrist goes via home, a turn a straight move cannot make via the seat's
@@ -23,7 +23,7 @@ what the seats determine and the 1-sigma error they should leave over random pos
 The dataset is the measurement CSV's point form (docs/measurements.md, "Point form": the
 joints, ``setup``, ``point``, ``target``), so ``cellcal identify --data DATASET --fixture
 FIXTURE.yaml`` gives the same result offline. The solve is
-:func:`cellcal.solvers.fixture_identify.identify_points`: the kinematic parameters the data
+:func:`cellcal.solvers.fixtures.fixture_identify.identify_points`: the kinematic parameters the data
 determine, each placement's sockets, the target offset (the tip's rounding centre); what
 fixture data cannot tie to the world (the base frame, the parameters it absorbs) is held
 at nominal and reported as a convention. The routine writes no tool frame.
@@ -46,7 +46,7 @@ tip touches each ball once at each of `orientations` spots (at least 6: three on
 centre) spread round its upper half (azimuths evenly round, elevations in turn the low, middle and
 high of ``elevation_deg``, so that the contacts place the ball's centre in all three directions;
 the same spot touched again and again would leave its centre to the ball's curvature, see
-solvers/fixture_design.py), one contact: the tip's rounding LIFT_MM over the ball in the
+solvers/fixtures/fixture_design.py), one contact: the tip's rounding LIFT_MM over the ball in the
 contact's orientation, a straight move down to `approach_mm` off the spot along its normal (clear of
 the ball on the way), a contact search toward the ball's centre that stops at the touch (no
 settling: the joints there are recorded), back out along the normal and up over the ball. At each
@@ -87,14 +87,14 @@ from cellcal.config.cells import Cell
 from cellcal.config.fixture_files import CellFixture, cell_fixture
 from cellcal.config.reader import Section
 from cellcal.config.robot_files import load_robot
-from cellcal.solvers import se3
-from cellcal.solvers.fixture_identify import (MIN_ROWS_PER_POINT, FixtureDataError, FixtureOptions, PointData,
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.fixtures.fixture_identify import (MIN_ROWS_PER_POINT, FixtureDataError, FixtureOptions, PointData,
                                               identify_points, judge_workspace, predict_seats)
-from cellcal.solvers.fixture_design import select_seats
-from cellcal.solvers.inverse import dexterity, inverse, inverse_many, tcp_frames
-from cellcal.routines import gates
-from cellcal.routines.base import Design, Move, Parameter, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
-from cellcal.routines.records import Dataset
+from cellcal.solvers.fixtures.fixture_design import select_seats
+from cellcal.solvers.geometry.inverse import dexterity, inverse, inverse_many, tcp_frames
+from cellcal.routines.framework import gates
+from cellcal.routines.framework.base import PlanPromise, Move, Parameter, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
+from cellcal.routines.framework.records import Dataset
 from cellcal.routines.tcp_npoint import down_orientation
 
 LIFT_MM = 40.0  # above each socket's first approach and after its last, clear of the plate
@@ -257,7 +257,7 @@ class KinematicFixture(StepRoutine):
         """(placement name, point) -> the chosen seats [(rotation, seat info, joints at rest)], wrist
         branch by branch: `orientations` of each socket's reachable candidates (either wrist branch
         when `wrist_flip`), chosen together for every socket by the D-optimal seat design
-        (solvers/fixture_design.py) on the nominal model. A stylus plate: one contact at each spot of a
+        (solvers/fixtures/fixture_design.py) on the nominal model. A stylus plate: one contact at each spot of a
         ball (``spots``), the tool's orientation and wrist there chosen by the same design."""
         cell, o = self.cell, self.options
         model = load_robot(cell.robot)
@@ -331,10 +331,10 @@ class KinematicFixture(StepRoutine):
         self._design_log_det = design.log_det
         return plan
 
-    def design(self) -> Design:
+    def design(self) -> PlanPromise:
         """The planned seats judged before anything moves: the condition of what they determine and
         the 1-sigma error they should leave on the arm's target over random joint configurations,
-        at the stated repeatability and the fixture's distances (solvers.fixture_identify.predict_seats)."""
+        at the stated repeatability and the fixture's distances (solvers.fixtures.fixture_identify.predict_seats)."""
         o = self.options
         model = load_robot(self.cell.robot)
         plan = self.seat_plan
@@ -354,12 +354,12 @@ class KinematicFixture(StepRoutine):
                                      stylus_radius_mm=o.placed.fixture.stylus_radius_mm)
         predicted = predict_seats(model, data, fit_options, q_eval, o.repeatability_mm)
         branches = sorted({s[1]["wrist"] for k in keys for s in plan[k]})
-        return Design(predicted.condition, predicted.mean_error_mm, "mm",
+        return PlanPromise(predicted.condition, predicted.mean_error_mm, "mm",
                       {"seats": len(q), "placements": len(o.placed.placements), "points": len(o.placed.fixture.points),
                        "rank": predicted.rank, "wrist_branches": branches,
                        "log_det": self._design_log_det, "evaluated_at_poses": DESIGN_EVAL_POSES})
 
-    def check_design(self) -> Design:
+    def check_design(self) -> PlanPromise:
         return self.design()
 
     def steps(self) -> list[tuple[Move, dict | None]]:

@@ -11,7 +11,7 @@ the ball by its corners).
 
 Each pair of opposite touches is centred on where the axis crosses that search line
 (the shank's and the ball's radii cancel), so the crossing moves with the height by
-the axis' tilt: :func:`cellcal.solvers.pivot.fit_axis` solves that linear least
+the axis' tilt: :func:`cellcal.solvers.tool_frames.pivot.fit_axis` solves that linear least
 squares for the axis in the flange frame over all turns (turning the tool separates
 its tilt from anything fixed in the base frame). The routine determines the axis only:
 the tool frame it writes keeps the TCP position of the controller's frame from before
@@ -42,15 +42,15 @@ import numpy as np
 from cellcal.config.cells import Cell
 from cellcal.config.reader import Section
 from cellcal.config.robot_files import load_robot
-from cellcal.solvers import pivot as pv
-from cellcal.solvers import se3
-from cellcal.solvers.inverse import inverse
-from cellcal.solvers.tcp_laser import axis_pair
-from cellcal.routines import gates, tool_frame
-from cellcal.routines.base import (Design, Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError,
+from cellcal.solvers.tool_frames import pivot as pv
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.geometry.inverse import inverse
+from cellcal.solvers.tool_frames.tcp_laser import axis_pair
+from cellcal.routines.framework import gates, tool_frame
+from cellcal.routines.framework.base import (PlanPromise, Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError,
                                    StepRoutine, drawn_tool)
-from cellcal.routines.drawing import axis_crossings
-from cellcal.routines.records import Dataset
+from cellcal.routines.framework.drawing import axis_crossings
+from cellcal.routines.framework.records import Dataset
 from cellcal.routines.tcp_npoint import JOINT_SPEED_RAD_S, LIFT_MM, axis_sigma_mm, down_orientation, flange_frames
 
 SIDES = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # base frame
@@ -115,7 +115,7 @@ class Tcf(StepRoutine):
         return [{"turn": j + 1, "height_mm": h, "side": k, "dir_x": -s[0], "dir_y": -s[1], "dir_z": -s[2]}
                 for j in range(o.turns) for h in (o.near_mm, far) for k, s in enumerate(SIDES)]
 
-    def design(self, far_mm: float | None = None) -> Design:
+    def design(self, far_mm: float | None = None) -> PlanPromise:
         """The planned touches (the far height `far_mm`, default the option's) judged at the
         stated repeatability: the tool axis' expected error, deg."""
         touches = self.touches(far_mm)
@@ -126,10 +126,10 @@ class Tcf(StepRoutine):
         found = pv.axis_design(line, [rotations[t["turn"]] for t in pairs], [SIDES[t["side"]] for t in pairs],
                                [t["height_mm"] for t in pairs], self.cell.tool.axis,
                                axis_sigma_mm(self.options.repeatability_mm) / np.sqrt(2.0))
-        return Design(found.condition, float(np.rad2deg(found.expected_error)), "deg",
+        return PlanPromise(found.condition, float(np.rad2deg(found.expected_error)), "deg",
                       {"tilt_std_deg": np.rad2deg(found.std).tolist()})
 
-    def check_design(self) -> Design:
+    def check_design(self) -> PlanPromise:
         """PlanRefused when the heights are too close for the target at the stated repeatability."""
         o = self.options
         design = self.design()
@@ -288,7 +288,7 @@ def crossings(dataset, rotations, positions) -> list[dict]:
     return pairs
 
 
-def _result(name, dataset, cell: Cell, options: TcfOptions, fit: pv.AxisFit, design: pv.Design, pairs, drawn,
+def _result(name, dataset, cell: Cell, options: TcfOptions, fit: pv.AxisFit, design: pv.PlanQuality, pairs, drawn,
             sigma: float) -> Result:
     meta = dataset.meta
     planned = np.asarray(meta["planned_tool"], dtype=float)
@@ -310,7 +310,7 @@ def _result(name, dataset, cell: Cell, options: TcfOptions, fit: pv.AxisFit, des
                                                              "something else was touched, or [tool] radius_m or "
                                                              "[stylus] radius_m is wrong"))
     # the tilts as tcp-laser counts them (toward flange x and y made perpendicular to the drawn axis), from the
-    # fit's, which are counted on solvers.pivot.across(drawn): the same plane, turned
+    # fit's, which are counted on solvers.tool_frames.pivot.across(drawn): the same plane, turned
     e = np.stack(axis_pair(drawn))
     turn = e @ pv.across(drawn).T
     tilt_deg = [float(np.degrees(np.arctan2(fit.axis @ u, fit.axis @ drawn))) for u in e]

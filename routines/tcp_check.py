@@ -6,7 +6,7 @@ The check moves as :mod:`.tcp_laser` does, with the controller on its *own* tool
 frame it holds for the tool: the last one written back; the tool as drawn when it holds none)
 and with fewer motions: the tool upright only, an approach along its axis onto the beams'
 crossing and back, and at each of ``heights_mm`` a sweep through both beams and back, at
-each of ``spins_deg`` (turns about the vertical). The fit (:mod:`cellcal.solvers.tcp_check`)
+each of ``spins_deg`` (turns about the vertical). The fit (:mod:`cellcal.solvers.tool_frames.tcp_check`)
 finds the tip, and the axis where the sweeps cut the tool at two heights, relative to that
 frame, with standard deviations that include the uncertainty of the beams' positions.
 
@@ -63,11 +63,11 @@ import numpy as np
 
 from cellcal.config.cells import Cell
 from cellcal.config.reader import ConfigError, Section
-from cellcal.solvers import se3
-from cellcal.solvers import tcp_check as check
-from cellcal.solvers import tcp_laser as laser
-from cellcal.routines import gates, tool_frame
-from cellcal.routines.base import CheckAlarm, Design, Gate, Parameter, PlanRefused, Result, RoutineError
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.tool_frames import tcp_check as check
+from cellcal.solvers.tool_frames import tcp_laser as laser
+from cellcal.routines.framework import gates, tool_frame
+from cellcal.routines.framework.base import CheckAlarm, PlanPromise, Gate, Parameter, PlanRefused, Result, RoutineError
 from cellcal.routines.tcp_laser import TcpLaser
 
 K_SIGMA = 3.0  # a change is determined for a band when K_SIGMA standard deviations fit in the inner band
@@ -184,7 +184,7 @@ class TcpCheck(TcpLaser):
 
     # -- what the plan can tell -----------------------------------------------------
 
-    def design(self) -> Design:
+    def design(self) -> PlanPromise:
         """Expected 1-sigma errors of the tip (mm) and the axis (deg) at the stated
         repeatability, and what that lets the check judge against the tool's bands."""
         o, bands = self.options, self.cell.tool.bands
@@ -201,9 +201,9 @@ class TcpCheck(TcpLaser):
             determines.add(tool_frame.TIP)
         if K_SIGMA * axis_std <= bands.inner_deg:
             determines.add(tool_frame.AXIS)
-        return Design(float("nan"), tip_std, "mm", {"axis_std_deg": axis_std, "determines": sorted(determines)})
+        return PlanPromise(float("nan"), tip_std, "mm", {"axis_std_deg": axis_std, "determines": sorted(determines)})
 
-    def check_design(self) -> Design:
+    def check_design(self) -> PlanPromise:
         d = self.design()
         if d.details["determines"]:
             return d
@@ -226,7 +226,7 @@ class TcpCheck(TcpLaser):
 
     def measuring_tool(self, robot) -> np.ndarray:
         """The controller's own tool frame (what is checked), or the tool as drawn when it holds none."""
-        before = tool_frame.controller_frame(robot.tcp())
+        before = tool_frame.controller_frame(robot.tool_frame())
         return self.cell.tool.tcp_pose if before is None else before
 
     def _edges_of(self, i, events, starts, steps, plan):

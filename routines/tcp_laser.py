@@ -11,7 +11,7 @@ one beam, then the other, every change of orientation a turn about the tip):
   axis), tilted at one (near the tip).
 
 Every edge is recorded with the flange pose and velocity interpolated in the robot's
-state stream at the edge's device timestamp. The fit (:mod:`cellcal.solvers.tcp_laser`)
+state stream at the edge's device timestamp. The fit (:mod:`cellcal.solvers.tool_frames.tcp_laser`)
 finds the tip and the axis in the flange frame, where the beams really are, their
 widths, and the trigger latency: each sweep's return crosses the same place the other way,
 so the latency is measured, not assumed. The tool frame written has the tip and the axis
@@ -44,13 +44,13 @@ import numpy as np
 from cellcal.config.cells import Cell
 from cellcal.config.reader import Section
 from cellcal.config.robot_files import load_robot
-from cellcal.solvers import se3
-from cellcal.solvers import tcp_laser as laser
-from cellcal.solvers.inverse import tcp_poses
-from cellcal.routines import gates, tool_frame
-from cellcal.routines.base import Devices, Gate, Move, Parameter, Result, Routine, RoutineError, drawn_tool
-from cellcal.routines.drawing import beam_crossings
-from cellcal.routines.records import Dataset
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.tool_frames import tcp_laser as laser
+from cellcal.solvers.geometry.inverse import tcp_poses
+from cellcal.routines.framework import gates, tool_frame
+from cellcal.routines.framework.base import Devices, Gate, Move, Parameter, Result, Routine, RoutineError, drawn_tool
+from cellcal.routines.framework.drawing import beam_crossings
+from cellcal.routines.framework.records import Dataset
 
 EDGE_WAIT_S = 0.2  # after the last motion, for edges still on their way
 APPROACH_SLACK_MM = 1.0  # beyond the search margin and the speed ramp, so edges fall at constant speed

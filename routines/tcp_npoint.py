@@ -15,7 +15,7 @@ Each seat:
 * a linear move back to the approach point.
 
 The pivot fixes the centre of the tip's rounding, not the tip: the fit
-(:func:`cellcal.solvers.pivot.fit_pivot`, linear least squares of ``R_i t + p_i = c``
+(:func:`cellcal.solvers.tool_frames.pivot.fit_pivot`, linear least squares of ``R_i t + p_i = c``
 with seats that did not sit right rejected one at a time and named) finds that centre
 in the flange frame, and the TCP is that centre plus the tool radius along the tool
 axis. The routine determines the tip only: the tool frame it writes keeps the whole
@@ -48,15 +48,15 @@ import numpy as np
 from cellcal.config.cells import Cell
 from cellcal.config.reader import Section
 from cellcal.config.robot_files import load_robot
-from cellcal.solvers import pivot as pv
-from cellcal.solvers import se3
-from cellcal.solvers.inverse import inverse, tcp_frames
-from cellcal.solvers.robot_model import KinematicModel
-from cellcal.routines import gates, tool_frame
-from cellcal.routines.base import (Design, Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError,
+from cellcal.solvers.tool_frames import pivot as pv
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.geometry.inverse import inverse, tcp_frames
+from cellcal.solvers.geometry.robot_model import KinematicModel
+from cellcal.routines.framework import gates, tool_frame
+from cellcal.routines.framework.base import (PlanPromise, Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError,
                                    StepRoutine, drawn_tool)
-from cellcal.routines.drawing import seats_about_pivot
-from cellcal.routines.records import Dataset
+from cellcal.routines.framework.drawing import seats_about_pivot
+from cellcal.routines.framework.records import Dataset
 
 LIFT_MM = 40.0  # above the first and after the last approach point, clear of the fixture
 JOINT_SPEED_RAD_S = 1.0
@@ -158,14 +158,14 @@ class TcpNpoint(StepRoutine):
             out.append((rotation, {"seat": k + 1, "tilt_deg": tilt_deg, "azimuth_deg": azimuth, "turn_deg": turn}))
         return out
 
-    def design(self, spread_deg: float | None = None) -> Design:
+    def design(self, spread_deg: float | None = None) -> PlanPromise:
         """The planned seats (tilted `spread_deg`, default the option's) judged at the stated
         repeatability: the TCP's expected error, mm."""
         rotations = flange_rotations([r for r, _ in self.seats(spread_deg)], self.cell.tool.tcp_pose)
         found = pv.pivot_design(rotations, axis_sigma_mm(self.options.repeatability_mm))
-        return Design(found.condition, found.expected_error, "mm", {"tcp_std_mm": found.std.tolist()})
+        return PlanPromise(found.condition, found.expected_error, "mm", {"tcp_std_mm": found.std.tolist()})
 
-    def check_design(self) -> Design:
+    def check_design(self) -> PlanPromise:
         """The planned orientations judged before anything moves; PlanRefused when they
         cannot reach the target at the stated repeatability, saying what spread would."""
         o = self.options
@@ -272,7 +272,7 @@ class TcpNpoint(StepRoutine):
         return result
 
 
-def _result(name, dataset, cell: Cell, options: TcpNpointOptions, fit: pv.PivotFit, design: pv.Design) -> Result:
+def _result(name, dataset, cell: Cell, options: TcpNpointOptions, fit: pv.PivotFit, design: pv.PlanQuality) -> Result:
     meta = dataset.meta
     planned = np.asarray(meta["planned_tool"], dtype=float)
     ref = tool_frame.reference(meta.get("tool_frame_before"), planned, axis=options.tool_axis,

@@ -13,7 +13,7 @@ by at most ``touch_speed_m_s`` x 2 ms (4 um at 2 mm/s; the solver takes off the 
 3. End-face touches re-aimed onto the axis found: they fix the TCP along the axis, which no
    side contact can see.
 
-Solving is one least-squares fit (:func:`cellcal.solvers.stylus.fit`) of the axis line (4),
+Solving is one least-squares fit (:func:`cellcal.solvers.tool_frames.stylus.fit`) of the axis line (4),
 the stylus (3), the contact radius (1) and the end's place along the axis (1). The routine
 determines the tip and the axis; the turn of the tool frame about its axis is kept from the
 controller's frame before the run (:mod:`.tool_frame`), as is the TCP's place along the
@@ -31,14 +31,14 @@ import numpy as np
 from cellcal.config.cells import Cell
 from cellcal.config.reader import Section
 from cellcal.config.robot_files import load_robot
-from cellcal.solvers import se3
-from cellcal.solvers import stylus as fitting
-from cellcal.solvers import stylus_design as design
-from cellcal.solvers.inverse import inverse, tcp_frames
-from cellcal.routines import gates, tool_frame
-from cellcal.routines.base import Gate, Move, Parameter, PlanRefused, Result, Routine, RoutineError, drawn_tool
-from cellcal.routines.drawing import contacts_on_cylinder
-from cellcal.routines.records import Dataset
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.tool_frames import stylus as fitting
+from cellcal.solvers.tool_frames import stylus_design as design
+from cellcal.solvers.geometry.inverse import inverse, tcp_frames
+from cellcal.routines.framework import gates, tool_frame
+from cellcal.routines.framework.base import Gate, Move, Parameter, PlanRefused, Result, Routine, RoutineError, drawn_tool
+from cellcal.routines.framework.drawing import contacts_on_cylinder
+from cellcal.routines.framework.records import Dataset
 
 SEARCH_MARGIN_MM = 5.0  # a search goes this far beyond where the contact is expected
 MAX_OUTLIER_SHARE = 0.2

@@ -34,15 +34,15 @@ import numpy as np
 
 from cellcal.config.robot_files import load_robot
 from cellcal.drivers.interfaces import DeviceError
-from cellcal.solvers import se3
-from cellcal.solvers.identify import IdentificationError, IdentifyOptions, identify
-from cellcal.solvers.measurement_model import Observations
-from cellcal.solvers.pose_design import Sight, path_clear, select_poses, sighted_candidates, tour
-from cellcal.routines import gates
-from cellcal.routines.base import (Gate, Move, Parameter, PlanRefused, Result, Routine, RoutineError, drawn_tool,
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.identification.identify import IdentificationError, IdentifyOptions, identify
+from cellcal.solvers.identification.measurement_model import Observations
+from cellcal.solvers.identification.pose_design import Sight, path_clear, select_poses, sighted_candidates, tour
+from cellcal.routines.framework import gates
+from cellcal.routines.framework.base import (Gate, Move, Parameter, PlanRefused, Result, Routine, RoutineError, drawn_tool,
                                    frame_text)
-from cellcal.routines.drawing import errors_per_pose
-from cellcal.routines.records import Dataset
+from cellcal.routines.framework.drawing import errors_per_pose
+from cellcal.routines.framework.records import Dataset
 
 MIN_CAL_ROWS = 10  # as cellcal identify: fewer rows cannot carry a kinematic identification
 PLAUSIBLE_MM = 5.0  # an arm's lengths are within this of its drawing ...

@@ -10,7 +10,7 @@ file changed through its YAML), loopback (addresses of a test's own), daemon_har
 import pytest
 from threadpoolctl import threadpool_limits
 
-import loopback as _loopback
+from support import loopback as _loopback
 
 
 @pytest.fixture(autouse=True, scope="session")

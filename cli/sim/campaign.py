@@ -19,13 +19,13 @@ from cellcal.measurements.table import read_measurements, write_measurements
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.sims.physics.physical_arm import HiddenEffect, PhysicalArm
 from cellcal.sims.physics.workspace import full_workspace
-from cellcal.solvers.identify import REGULARIZE, IdentifyOptions, identify
-from cellcal.solvers.measurement_model import Observations, predict
-from cellcal.solvers.pose_design import select_poses
+from cellcal.solvers.identification.identify import REGULARIZE, IdentifyOptions, identify
+from cellcal.solvers.identification.measurement_model import Observations, predict
+from cellcal.solvers.identification.pose_design import select_poses
 from cellcal.cli.sim import iso9283_campaign
 from cellcal.cli.common import SEED, UsageError, print_progress, whole, writable_folder
 from cellcal.reports.identification import error_stats
-from cellcal.solvers.iso9283 import MIN_CYCLES, STANDARD_CYCLES
+from cellcal.solvers.identification.iso9283 import MIN_CYCLES, STANDARD_CYCLES
 
 MAX_POSES = 10_000  # ten times the largest calibration campaign measured in practice
 MAX_CANDIDATES = 100_000  # the D-optimal choice holds a Jacobian per candidate

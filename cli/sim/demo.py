@@ -24,8 +24,8 @@ from pymodbus.client import ModbusTcpClient
 from cellcal.config.robot_files import load_robot
 from cellcal.drivers import registry as drivers_registry
 from cellcal.drivers.modbus.panel import PanelMap
-from cellcal.routines import registry
-from cellcal.routines.base import FRAME_KEYS, gate_line, tool_frame_json
+from cellcal.routines.framework import registry
+from cellcal.routines.framework.base import FRAME_KEYS, gate_line, tool_frame_json
 from cellcal.daemon.cells import load_cell
 from cellcal.cli.common import UsageError, print_progress
 from cellcal.daemon.service import RESULT_MEANINGS, ResultCode, panel_routines

@@ -25,13 +25,13 @@ import numpy as np
 
 from cellcal.config.model_files import write_calibrated
 from cellcal.measurements.table import read_measurements, write_measurements
-from cellcal.solvers import se3
-from cellcal.solvers.analyze import AnalyzeOptions, analyze
-from cellcal.solvers.calibrated_model import from_fit
-from cellcal.solvers.compensate import OK, compensate
-from cellcal.solvers.effects import approach_directions
-from cellcal.solvers.identify import IdentifyOptions, identify
-from cellcal.solvers.iso9283 import POSES, cube_points
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.analysis.analyze import AnalyzeOptions, analyze
+from cellcal.solvers.compensation.calibrated_model import from_fit
+from cellcal.solvers.compensation.compensate import OK, compensate
+from cellcal.solvers.analysis.effects import approach_directions
+from cellcal.solvers.identification.identify import IdentifyOptions, identify
+from cellcal.solvers.identification.iso9283 import POSES, cube_points
 from cellcal.cli import iso9283 as iso9283_cmd
 from cellcal.cli.common import UsageError, print_progress
 from cellcal.reports.iso9283 import write_report

@@ -411,13 +411,13 @@ class UrRtdeRobot(Robot):
         if not self._call("setTcp", pose.tolist()):
             self._check_safety("set_tcp")
             raise DeviceError(self.name, "set_tcp was refused by the controller")
-        readback = self.tcp()
+        readback = self.tool_frame()
         if np.abs(readback - pose).max() > 1e-9:
             raise DeviceError(self.name, f"set_tcp: the controller reports {readback.tolist()}, "
                                          f"not the {pose.tolist()} sent")
         self._settled_sample("set_tcp")  # from here on actual_tcp_pose() reports the new tool
 
-    def tcp(self) -> np.ndarray:
+    def tool_frame(self) -> np.ndarray:
         self._prepare("tcp")
         return np.array(self._call("getTCPOffset"))
 

@@ -162,7 +162,7 @@ class SimRobot(Robot):
             raise DeviceError(self.name, "tool frame must be 6 finite numbers [x, y, z, rx, ry, rz]")
         self.world.arm.set_tcp(pose)
 
-    def tcp(self) -> np.ndarray:
+    def tool_frame(self) -> np.ndarray:
         return self.world.arm.tcp_offset.copy()
 
     def tool_frame_slots(self) -> int:

@@ -47,7 +47,7 @@ import numpy as np
 from cellcal.config.cells import Cell
 from cellcal.config.robot_files import load_robot
 from cellcal.drivers.interfaces import DeviceError, RobotSample, RobotState, TriggerEvent
-from cellcal.solvers.robot_model import KinematicModel
+from cellcal.solvers.geometry.robot_model import KinematicModel
 from cellcal.sims.physics.arm_motion import ArmKinematics, JointMove, MovingArm, MotionFault
 from cellcal.sims.physics.scene import LightBeam
 from cellcal.sims.physics.truth import (CellTruth, beam_blocked, beam_edges, meeting_rest_q, meeting_touch, pivot_rest_q, real_tool_body,

@@ -19,8 +19,8 @@ from collections import deque
 
 import numpy as np
 
-from cellcal.solvers.chain import forward
-from cellcal.solvers.robot_model import KinematicModel
+from cellcal.solvers.geometry.chain import forward
+from cellcal.solvers.geometry.robot_model import KinematicModel
 
 # a pure rotation counts as the path of a point this far from the axis (movel timing)
 ROTATION_RADIUS_M = 0.1
@@ -30,7 +30,7 @@ class MotionFault(RuntimeError):
     """A motion the controller cannot execute (no IK solution, singularity)."""
 
 
-# log_so3/exp_so3 repeat solvers.se3.matrix_to_rotvec/rotvec_to_matrix for one rotation in
+# log_so3/exp_so3 repeat solvers.geometry.se3.matrix_to_rotvec/rotvec_to_matrix for one rotation in
 # plain floats: they run several times per 2 ms cycle, and measured here they take 2.3 and
 # 4.1 us against 66 and 30 us for the vectorised scipy-backed versions (15-28x faster).
 def log_so3(rotation: np.ndarray) -> np.ndarray:
@@ -84,7 +84,7 @@ def frame_to_pose(rotation: np.ndarray, position: np.ndarray) -> np.ndarray:
 class ArmKinematics:
     """Flange and TCP frames and the TCP Jacobian of a model's flange chain, in metres.
 
-    ``solvers.chain.forward`` is vectorised over many poses and costs about a millisecond
+    ``solvers.geometry.chain.forward`` is vectorised over many poses and costs about a millisecond
     for one; the controller needs one pose several times per 2 ms cycle. So the same chain
     elements are evaluated here for a single pose, and checked against ``forward`` once at
     construction so both always describe the same arm.

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cellcal.solvers.measurement_model import Layout, Observations, predict
-from cellcal.solvers.robot_model import KinematicModel
+from cellcal.solvers.identification.measurement_model import Layout, Observations, predict
+from cellcal.solvers.geometry.robot_model import KinematicModel
 
 
 @dataclass(frozen=True)

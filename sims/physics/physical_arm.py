@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cellcal.solvers.effects import CAUSES, Context, approach_directions
-from cellcal.solvers.gravity import gravity_torques
-from cellcal.solvers.measurement_model import Observations, predict
-from cellcal.solvers.robot_model import KinematicModel, with_hayati_beta
+from cellcal.solvers.analysis.effects import CAUSES, Context, approach_directions
+from cellcal.solvers.geometry.gravity import gravity_torques
+from cellcal.solvers.identification.measurement_model import Observations, predict
+from cellcal.solvers.geometry.robot_model import KinematicModel, with_hayati_beta
 from cellcal.sims.physics.kinematic_arm import ArmTruth, SimulatedArm
 from cellcal.sims.physics.workspace import full_workspace
 

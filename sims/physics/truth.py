@@ -36,8 +36,8 @@ from cellcal.config.fixture_files import Placement, cell_fixture
 from cellcal.config.reader import Section
 from cellcal.config.robot_files import load_robot
 from cellcal.drivers.interfaces import Edge, TriggerEvent
-from cellcal.solvers import se3
-from cellcal.solvers.robot_model import KinematicModel
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.geometry.robot_model import KinematicModel
 from cellcal.sims.physics.scene import ContactPlane, ContactSphere, LightBeam
 
 

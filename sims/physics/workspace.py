@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from cellcal.solvers.chain import forward, point_jacobians
-from cellcal.solvers.robot_model import KinematicModel
+from cellcal.solvers.geometry.chain import forward, point_jacobians
+from cellcal.solvers.geometry.robot_model import KinematicModel
 
 DEFAULT_SPAN = np.deg2rad(170.0)
 

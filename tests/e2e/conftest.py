@@ -9,7 +9,7 @@ def cellcal_daemon(tmp_path):
     ready, its state and log in `folder` (default the test's tmp_path; start it again on the
     same folder to restart it on the same store). Stopped when the test ends, if the test
     did not."""
-    from daemon_harness import Daemon
+    from support.daemon_harness import Daemon
 
     started = []
 

@@ -25,10 +25,10 @@ from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.reports.run import write_run_report
 from cellcal.daemon.service import RESULT_MEANINGS, ResultCode, Service
 from cellcal.daemon.store import SCHEMA_VERSION, Store
-from cellcal.routines import registry
-from cell_edits import edited_cell  # tests/cell_edits.py
-from daemon_harness import systemd_stop_timeout_s  # tests/daemon_harness.py
-from report_check import assert_page_draws, layer
+from cellcal.routines.framework import registry
+from support.cell_edits import edited_cell  # tests/support/cell_edits.py
+from support.daemon_harness import systemd_stop_timeout_s  # tests/support/daemon_harness.py
+from support.report_check import assert_page_draws, layer
 
 ROUTINE = "tcp-laser"
 needs_routine = pytest.mark.skipif(ROUTINE not in registry.available(), reason=f"{ROUTINE} not installed")
@@ -144,7 +144,7 @@ def test_a_button_press_writes_back_a_frame_that_matches_the_truth(cell, tmp_pat
         service.poll_panel()
         outcome = service.wait(60)
         assert outcome.state == "done" and outcome.code == ResultCode.OK, outcome.reason
-        frame = drivers.robot.tcp()
+        frame = drivers.robot.tool_frame()
         np.testing.assert_allclose(frame, outcome.result.tool_frame, atol=1e-12)
         score = drivers.world.truth.score_tool_frame(frame)
         assert score["position_error_mm"] <= 0.03 and score["axis_error_deg"] <= 0.03, score
@@ -172,7 +172,7 @@ def test_a_press_while_running_is_ignored_and_abort_stops_without_write_back(cel
         held = HeldRobot(drivers.robot)
         drivers.robot = held
         service = service_on(cell, drivers, tmp_path)
-        before = held.robot.tcp()
+        before = held.robot.tool_frame()
         service.start(ROUTINE)
         assert held.moving.wait(10)
         drivers.panel.press_start()
@@ -182,7 +182,7 @@ def test_a_press_while_running_is_ignored_and_abort_stops_without_write_back(cel
         service.poll_panel()
         outcome = service.wait(10)
         assert outcome.state == "aborted" and outcome.code == ResultCode.ABORTED, outcome.reason
-        np.testing.assert_array_equal(held.robot.tcp(), before)
+        np.testing.assert_array_equal(held.robot.tool_frame(), before)
         assert service.store.tool_frames() == []
         assert len(service.store.runs()) == 1  # the ignored press started nothing
 
@@ -195,14 +195,14 @@ def test_a_press_while_running_is_ignored_and_abort_stops_without_write_back(cel
 def test_a_fault_mid_run_keeps_the_old_frame_and_says_why(cell, tmp_path, fault, code):
     with open_drivers(cell) as drivers:
         service = service_on(cell, drivers, tmp_path)
-        before = drivers.robot.tcp()
+        before = drivers.robot.tool_frame()
         if fault == "protective stop":
             drivers.world.protective_stop("injected", after_motion_s=0.3)
         else:
             drivers.trigger.close()
         outcome = service.run(ROUTINE)
         assert outcome.state == "fault" and outcome.code == code, outcome.reason
-        np.testing.assert_array_equal(drivers.robot.tcp(), before)
+        np.testing.assert_array_equal(drivers.robot.tool_frame(), before)
         assert drivers.robot.stored_tool_frame().generation == 0
         assert drivers.panel.lamps["fault"] and drivers.panel.result_code == code
 
@@ -224,10 +224,10 @@ def test_a_result_failing_a_gate_is_never_written(tmp_path):
     cell = load_cell(edited_cell(tmp_path, "sim", {"sim_truth": {"tool_tcp_error_mm": 15.0}}, name="far.yaml"))
     with open_drivers(cell) as drivers:
         service = service_on(cell, drivers, tmp_path)
-        before = drivers.robot.tcp()
+        before = drivers.robot.tool_frame()
         outcome = service.run(ROUTINE)
         assert outcome.code in (ResultCode.GATE_FAILED, ResultCode.COMPUTATION_FAILED), outcome.reason
-        np.testing.assert_array_equal(drivers.robot.tcp(), before)
+        np.testing.assert_array_equal(drivers.robot.tool_frame(), before)
         assert drivers.robot.stored_tool_frame().generation == 0
         assert service.store.tool_frames() == []
 

@@ -6,7 +6,7 @@ address of their own. The operator is played on the IO module: select a routine,
 start. Each driver fault runs the service in process (``Service`` with the cell's real
 drivers: ur_rtde, pymodbus, the tracker socket) so the test can drive its main loop's
 panel poll; what needs a process of its own (SIGTERM, SIGKILL, the count of its sockets,
-threads and file descriptors) runs ``cellcal daemon`` (tests/daemon_harness.py has the
+threads and file descriptors) runs ``cellcal daemon`` (tests/support/daemon_harness.py has the
 fakes, the short cell and the daemon process; tests/e2e/conftest.py's cellcal_daemon stops
 every daemon a test started).
 
@@ -30,7 +30,7 @@ from cellcal.daemon.cells import open_drivers
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
 from cellcal.sims.fake_ur.process import ControlClient
-from daemon_harness import (RUN_TIMEOUT_S, SELECT, Net, one_run, press_start, resources,  # tests/daemon_harness.py
+from support.daemon_harness import (RUN_TIMEOUT_S, SELECT, Net, one_run, press_start, resources,  # tests/support/daemon_harness.py
                             settled, systemd_stop_timeout_s, until_the_run_ends)
 
 pytestmark = pytest.mark.slow

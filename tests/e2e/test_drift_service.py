@@ -19,7 +19,7 @@ from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
 from cellcal.reports.run import write_run_report
 from cellcal.reports.trend import write_trend_page
-from cell_edits import edited_cell  # tests/cell_edits.py
+from support.cell_edits import edited_cell  # tests/support/cell_edits.py
 
 SELECT = {name: number for number, name in service_module.panel_routines().items()}
 DRAWN_TIP_M = np.array([0.0, 0.0, 0.150])  # sim.yaml's [tool]
@@ -64,7 +64,7 @@ def test_checks_build_the_history_and_a_drifted_tool_ends_in_the_drift_alarm(tmp
 
         calibration = press(service, drivers.panel, "tcp-npoint")
         assert calibration.code == ResultCode.OK, calibration.reason
-        calibrated = np.asarray(drivers.robot.tcp(), dtype=float)
+        calibrated = np.asarray(drivers.robot.tool_frame(), dtype=float)
 
         ok = press(service, drivers.panel, "tcp-check")
         assert (ok.code, ok.result.verdict) == (ResultCode.OK, "ok"), ok.reason
@@ -76,7 +76,7 @@ def test_checks_build_the_history_and_a_drifted_tool_ends_in_the_drift_alarm(tmp
         corrected = press(service, drivers.panel, "tcp-check")
         assert (corrected.code, corrected.result.verdict) == (ResultCode.OK, "corrected"), corrected.reason
         assert drivers.panel.lamps["done"]
-        written = np.asarray(drivers.robot.tcp(), dtype=float)
+        written = np.asarray(drivers.robot.tool_frame(), dtype=float)
 
     rows = store.measured_frames(1)
     assert [(r["run_id"], r["kind"], r["written"]) for r in rows] == [
@@ -98,7 +98,7 @@ def test_checks_build_the_history_and_a_drifted_tool_ends_in_the_drift_alarm(tmp
         assert (alarm.state, alarm.code) == ("fault", ResultCode.DRIFT_ALARM), alarm.reason
         assert alarm.result.verdict == "drift"
         assert "beyond the drift alarm 0.2 mm" in alarm.reason and f"run {calibration.run_id}" in alarm.reason
-        np.testing.assert_array_equal(drivers.robot.tcp(), written)  # nothing written
+        np.testing.assert_array_equal(drivers.robot.tool_frame(), written)  # nothing written
         assert drivers.panel.lamps == {"busy": False, "done": False, "fault": True}
         assert drivers.panel.result_code == ResultCode.DRIFT_ALARM and drivers.panel.outcome["verdict"] == 4
     last = store.measured_frames(1)[-1]

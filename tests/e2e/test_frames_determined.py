@@ -17,21 +17,21 @@ import time
 import numpy as np
 import pytest
 
-from cell_edits import edited_cell, replaced  # tests/cell_edits.py
+from support.cell_edits import edited_cell, replaced  # tests/support/cell_edits.py
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
-from cellcal.routines import runner, tool_frame
-from cellcal.routines.records import read_dataset
+from cellcal.routines.framework import runner, tool_frame
+from cellcal.routines.framework.records import read_dataset
 from cellcal.sims.fake_ur.controller import DASHBOARD_PORT
 from cellcal.sims.net.cell import SimCell
-from cellcal.solvers import se3
+from cellcal.solvers.geometry import se3
 
 LASER_MM, LASER_DEG = 0.03, 0.03  # tcp-laser's targets on this cell (tests/e2e/test_tcp_laser.py)
 RADIUS_MM = 3.0  # the sim cell's tool radius: tcp-npoint's TCP is the seat centre plus this along the axis
 START_TURN_DEG = 30.0  # the controller's frame before the first run: the drawing turned this far about its axis
 SHORT_TRACKER = {"target": "smr1", "instrument_m": [-2.5, 0.0, 1.0], "poses": 10, "validation_poses": 0,
-                 "candidates": 60, "settle_s": 0, "measure_s": 0, "retries": 0}  # as tests/daemon_harness.py's
+                 "candidates": 60, "settle_s": 0, "measure_s": 0, "retries": 0}  # as tests/support/daemon_harness.py's
 
 
 def turn_between_frames(before, after) -> np.ndarray:
@@ -52,7 +52,7 @@ def chain(tmp_path_factory):
         for routine in ("tcp-laser", "tcp-npoint", "tcf"):
             outcome = service.run(routine)
             assert (outcome.state, outcome.code) == ("done", ResultCode.OK), (routine, outcome.reason)
-            runs[routine] = (outcome, np.asarray(drivers.robot.tcp(), dtype=float))
+            runs[routine] = (outcome, np.asarray(drivers.robot.tool_frame(), dtype=float))
         writes = service.store.tool_frames()
         service.store.close()
         truth = drivers.world.truth
@@ -193,6 +193,6 @@ def test_the_tracker_campaign_writes_no_tool_frame_and_gives_the_controller_its_
         own = cell.tool.tcp_pose + [0.0003, -0.0002, 0.0001, 0.0, 0.0, np.radians(15.0)]
         drivers.robot.set_tcp(own)
         dataset = runner.measure(prepared, drivers, tmp_path, lambda message: None)
-        assert np.array_equal(drivers.robot.tcp(), own)
+        assert np.array_equal(drivers.robot.tool_frame(), own)
     result = runner.solve("tracker", cell, dataset)
     assert result.tool_frame is None and result.determines == tool_frame.NOTHING

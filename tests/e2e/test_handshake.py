@@ -17,19 +17,19 @@ from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.cli.main import main as cli_main
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
-from cellcal.routines import runner
-from cellcal.routines.base import Move, PlanRefused, RoutineError
-from cellcal.routines.guard import MotionGuard
+from cellcal.routines.framework import runner
+from cellcal.routines.framework.base import Move, PlanRefused, RoutineError
+from cellcal.routines.framework.guard import MotionGuard
 from cellcal.routines.handshake import Handshake
-from cellcal.routines.records import Dataset, read_dataset
-from cellcal.routines.registry import read_options
+from cellcal.routines.framework.records import Dataset, read_dataset
+from cellcal.routines.framework.registry import read_options
 from cellcal.sims.physics.truth import truth_of_cell
-from cellcal.solvers import handshake as hs
-from cellcal.solvers import se3
-from cellcal.solvers.inverse import tcp_poses
-from report_check import assert_report_draws, layer
-from cell_edits import edited_cell  # tests/cell_edits.py
-from routine_checks import RecordingRobot, within_limits  # tests/routine_checks.py
+from cellcal.solvers.tool_frames import handshake as hs
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.geometry.inverse import tcp_poses
+from support.report_check import assert_report_draws, layer
+from support.cell_edits import edited_cell  # tests/support/cell_edits.py
+from support.routine_checks import RecordingRobot, within_limits  # tests/support/routine_checks.py
 
 TARGET_MM, TARGET_DEG = 0.1, 0.01  # with 12 points at 0.02 mm repeatability
 
@@ -62,7 +62,7 @@ def test_handshake_finds_robot_b_base_within_target_of_the_truth(measured):
     result, truth, _, _ = measured
     score = truth.score_base_frame(result.frame["pose_m_rad"])
     tips = truth.score_tips(*(np.asarray(result.extra[f"tip_{n}_mm"]) / 1e3 for n in "ab"))
-    assert result.write_back, result.reasons()
+    assert result.passed_gates, result.reasons()
     assert len(result.residuals_mm) == 12
     assert score["base_position_error_mm"] <= TARGET_MM, score
     assert score["base_rotation_error_deg"] <= TARGET_DEG, score
@@ -188,7 +188,7 @@ def test_guard_keeps_the_tools_apart_except_where_the_tips_meet(dual):
     a_tip, a_back, _ = guard.tool_segment("a", states["a"].q_rad)
     over_shaft = a_tip + (a_back - a_tip) * 0.4 + [0.0, 0.0, 0.01]
     base = dual.robots["b"].base_matrix
-    pose = np.r_[base[:3, :3].T @ (over_shaft - base[:3, 3]), standoff.tcp(guard.arms["b"].model)[3:]]
+    pose = np.r_[base[:3, :3].T @ (over_shaft - base[:3, 3]), standoff.tcp_pose(guard.arms["b"].model)[3:]]
     with pytest.raises(PlanRefused, match=r"move 'b over a's needle': the tools come .* mm apart .* behind robot a's"):
         guard.check(Move.linear("b over a's needle", pose, 0.1, 1.0, robot="b"), standoff, {"a": states["a"]})
     # a cell of one robot has no clearance to keep

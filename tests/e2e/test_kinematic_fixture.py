@@ -10,8 +10,8 @@ import pytest
 import yaml
 
 from cellcal.cli.main import main
-from cellcal.routines.records import read_dataset
-from cell_edits import cell_document, edited_cell  # tests/cell_edits.py
+from cellcal.routines.framework.records import read_dataset
+from support.cell_edits import cell_document, edited_cell  # tests/support/cell_edits.py
 
 # the arm: hidden geometric errors of up to 0.5 mm and 0.05 deg, repeatability 0.03 mm
 ARM_ERRORS = {"sim_truth": {"arm_length_error_mm": 0.5, "arm_angle_error_deg": 0.05}}

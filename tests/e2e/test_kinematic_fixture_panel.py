@@ -11,13 +11,13 @@ import time
 import pytest
 from pymodbus.client import ModbusTcpClient
 
-import daemon_harness
-from cell_edits import edited_cell
+from support import daemon_harness
+from support.cell_edits import edited_cell
 from cellcal.daemon.service import ResultCode
 from cellcal.drivers.modbus.panel import PanelMap
-from cellcal.routines.records import read_dataset
-from cellcal.routines.registry import routine_class
-from daemon_harness import Daemon, Net, plc_reads, until_the_run_ends
+from cellcal.routines.framework.records import read_dataset
+from cellcal.routines.framework.registry import routine_class
+from support.daemon_harness import Daemon, Net, plc_reads, until_the_run_ends
 
 pytestmark = pytest.mark.slow  # a real-time run of 16 seats on the fake controller
 MAP = PanelMap()

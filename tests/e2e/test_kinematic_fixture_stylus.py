@@ -11,8 +11,8 @@ import pytest
 import yaml
 
 from cellcal.cli.main import main
-from cellcal.routines.records import read_dataset
-from cell_edits import cell_document, edited_cell  # tests/cell_edits.py
+from cellcal.routines.framework.records import read_dataset
+from support.cell_edits import cell_document, edited_cell  # tests/support/cell_edits.py
 
 BALL_AND_TIP_MM = 9.0  # the sim cell's tip rounding is 3 mm: balls of 6 mm
 

@@ -1,6 +1,6 @@
 """One service per store, per panel and per robot, end to end on the networked simulated cell.
 
-``cellcal daemon`` runs as a process on sim-net's fakes (tests/daemon_harness.py); a second
+``cellcal daemon`` runs as a process on sim-net's fakes (tests/support/daemon_harness.py); a second
 daemon, ``cellcal tool rollback`` and ``cellcal run`` are started beside it as an operator
 would, and must be refused at once with one line naming the process that holds what they
 need (exit status 1), changing nothing: the first daemon's run goes on to its end, the
@@ -15,10 +15,10 @@ import time
 import numpy as np
 import pytest
 
-from cell_edits import edited_cell
+from support.cell_edits import edited_cell
 from cellcal.daemon.service import ResultCode
 from cellcal.daemon.store import Store
-from daemon_harness import Net, press_start, until_the_run_ends
+from support.daemon_harness import Net, press_start, until_the_run_ends
 
 # A refused command touches no device: it ends in well under a second of its own; the bound
 # allows for starting a Python process with numpy on a loaded 2-core machine.

@@ -17,7 +17,7 @@ from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
 from cellcal.drivers.interfaces import RobotState
-from cellcal.routines import registry
+from cellcal.routines.framework import registry
 
 SELECT = {name: number for number, name in service_module.panel_routines().items()}
 CALIBRATED = np.array([0.0004, -0.0003, 0.1496, 0.004, -0.003, 0.0])  # a previous calibration's frame
@@ -72,12 +72,12 @@ def test_a_blocked_datasets_folder_is_refused_before_anything_moves(cell, tmp_pa
         service = service_on(cell, drivers, tmp_path)
         service.out_dir.parent.mkdir(parents=True, exist_ok=True)
         service.out_dir.write_text("x")  # a file where the datasets folder belongs
-        q, frame = drivers.robot.actual_q(), drivers.robot.tcp()
+        q, frame = drivers.robot.actual_q(), drivers.robot.tool_frame()
         outcome = press(service, drivers.panel, "tcp-npoint")
         assert (outcome.state, outcome.code) == ("refused", ResultCode.SERVICE_FAULT), outcome.reason
         assert str(service.out_dir) in outcome.reason
         np.testing.assert_array_equal(drivers.robot.actual_q(), q)
-        np.testing.assert_array_equal(drivers.robot.tcp(), frame)
+        np.testing.assert_array_equal(drivers.robot.tool_frame(), frame)
         assert drivers.panel.lamps == {"busy": False, "done": False, "fault": True}
         assert service.store.owed_frame() is None
 
@@ -100,7 +100,7 @@ def test_the_service_s_own_fault_mid_run_ends_in_fault_with_its_code_and_the_old
         assert "readonly database" in outcome.reason
         assert drivers.panel.lamps == {"busy": False, "done": False, "fault": True}
         assert drivers.panel.result_code == ResultCode.SERVICE_FAULT and not service.busy()
-        np.testing.assert_array_equal(drivers.robot.tcp(), CALIBRATED)  # never the drawing
+        np.testing.assert_array_equal(drivers.robot.tool_frame(), CALIBRATED)  # never the drawing
         assert store.run(outcome.run_id).state == "fault"  # not left open for the next start
 
 
@@ -244,7 +244,7 @@ def test_the_outcome_registers_carry_the_change_written_before_the_result(cell, 
         assert result.code == ResultCode.OK, result.reason
         assert order[-2:] == ["outcome", "result"]
         seen = outcome.decoded(panel.outcome)
-        written = drivers.robot.tcp()
+        written = drivers.robot.tool_frame()
         assert seen["verdict"] is None  # 0: a calibration, no check verdict
         assert seen["tool_id"] == 1 and seen["tilt_x_deg"] is None and seen["tilt_y_deg"] is None
         for k, key in enumerate(("x_mm", "y_mm", "z_mm")):
@@ -272,7 +272,7 @@ def test_an_abort_read_just_after_the_start_still_wins_and_the_press_is_answered
 def test_a_start_for_a_tool_that_is_not_mounted_is_refused_and_nothing_moves(tmp_path):
     """A cell of two tools, tool 1 mounted: the tool selector naming tool 2, or a tool the cell
     lacks, refuses the start (code 14); 0 or tool 1 runs with tool 1."""
-    from cell_edits import edited_cell  # tests/cell_edits.py
+    from support.cell_edits import edited_cell  # tests/support/cell_edits.py
 
     def two_tools(doc):
         tool = doc.pop("tool")

@@ -1,7 +1,7 @@
 """The service against a hostile operator and a bad morning, end to end on sim-net.
 
 The fakes run once for the module on a loopback address of their own
-(tests/daemon_harness.py); before each case the controller holds a previous
+(tests/support/daemon_harness.py); before each case the controller holds a previous
 calibration's tool frame (``net.previous``), so a frame lost to the drawing would show.
 """
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pymodbus.client import ModbusTcpClient
 from cellcal.daemon import outcome
 from cellcal.daemon.service import ResultCode
 from cellcal.daemon.store import Store
-from daemon_harness import RUN_TIMEOUT_S, SELECT, Net, press_start, until_the_run_ends
+from support.daemon_harness import RUN_TIMEOUT_S, SELECT, Net, press_start, until_the_run_ends
 
 pytestmark = pytest.mark.slow
 

@@ -28,7 +28,7 @@ from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.arm_motion import ArmKinematics
 from cellcal.sims.fake_ur.process import ControlClient
 from cellcal.sims.physics.truth import real_tool_body, real_tool_tip, segment_line_distance, truth_of_cell
-from cell_edits import DELETE, edited_cell, replaced  # tests/cell_edits.py
+from support.cell_edits import DELETE, edited_cell, replaced  # tests/support/cell_edits.py
 
 SPEEDS_M_S = (0.02, 0.04, 0.1)
 
@@ -288,7 +288,7 @@ def net_tool_body(sim, truth):
 
     def body_at(drivers):
         offset = np.array(sim.fake_ur.request(cmd="tool")["repeat_offset_m"])
-        tcp = drivers.robot.tcp()
+        tcp = drivers.robot.tool_frame()
         return lambda q: real_tool_body(truth, physics, drawing, q, tcp, offset)
     return body_at
 

@@ -23,9 +23,9 @@ from urllib.parse import urljoin
 
 import pytest
 
-from cell_edits import edited_cell
+from support.cell_edits import edited_cell
 from cellcal.daemon.service import ResultCode
-from daemon_harness import Net, press_start, until_the_run_ends
+from support.daemon_harness import Net, press_start, until_the_run_ends
 
 pytestmark = pytest.mark.slow
 

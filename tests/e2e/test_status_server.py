@@ -21,7 +21,7 @@ from types import SimpleNamespace
 
 import pytest
 
-import loopback
+from support import loopback
 from cellcal.daemon import service as service_module
 from cellcal.daemon import status_server
 from cellcal.daemon.cells import load_cell, open_drivers

@@ -16,8 +16,8 @@ import pytest
 
 from cellcal.cli import run as run_cmd
 from cellcal.cli.main import main
-from cellcal.routines import runner
-from cell_edits import edited_cell  # tests/cell_edits.py
+from cellcal.routines.framework import runner
+from support.cell_edits import edited_cell  # tests/support/cell_edits.py
 
 DRAWN_TIP_M = np.array([0.0, 0.0, 0.150])  # sim.yaml's [tool]
 CROSSING_MM = [-691.4, -174.1, 450.0]  # sim.yaml's [beams]: both beams' point
@@ -108,7 +108,7 @@ def test_the_check_runs_at_the_controllers_own_frame_and_compares_with_it(tmp_pa
     with open_drivers(cell) as drivers:
         drivers.robot.set_tcp(stored)
         dataset = runner.measure(prepared, drivers, tmp_path, lambda m: None)
-        back = drivers.robot.tcp()
+        back = drivers.robot.tool_frame()
     result = runner.solve("tcp-check", cell, dataset)
     np.testing.assert_allclose(back, stored)  # the controller's frame is left as it was
     assert result.verdict == "ok", result.notes

@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from cellcal.daemon.service import ResultCode
-from cell_edits import edited_cell
-from daemon_harness import Net, controller_tcp, plc_reads, press_start, until_the_run_ends
+from support.cell_edits import edited_cell
+from support.daemon_harness import Net, controller_tcp, plc_reads, press_start, until_the_run_ends
 
 pytestmark = pytest.mark.slow
 

@@ -13,14 +13,14 @@ import pytest
 
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.cli.main import main
-from cellcal.routines import runner
-from cellcal.routines.base import PlanRefused, RoutineError
-from cellcal.routines.records import read_dataset
-from cellcal.solvers import pivot as pv
-from cellcal.solvers import se3
-from cell_edits import edited_cell  # tests/cell_edits.py
-from report_check import assert_report_draws, layer
-from routine_checks import RecordingRobot  # tests/routine_checks.py
+from cellcal.routines.framework import runner
+from cellcal.routines.framework.base import PlanRefused, RoutineError
+from cellcal.routines.framework.records import read_dataset
+from cellcal.solvers.tool_frames import pivot as pv
+from cellcal.solvers.geometry import se3
+from support.cell_edits import edited_cell  # tests/support/cell_edits.py
+from support.report_check import assert_report_draws, layer
+from support.routine_checks import RecordingRobot  # tests/support/routine_checks.py
 
 SIGMA_MM = 0.03 / np.sqrt(3.0)  # per axis, for the sim cell's 0.03 mm repeatability
 
@@ -178,7 +178,7 @@ def test_an_injected_bad_seat_in_the_dataset_is_rejected_and_named(sim_run, tmp_
     result = runner.solve_file("tcp-npoint", cell, data.write(tmp_path / "bad.csv"))
     assert result.extra["rejected_seats"] == [5]
     assert any(n.startswith("seat 5 ") and "rejected" in n for n in result.notes)
-    assert result.write_back and len(result.residuals_mm) == 7
+    assert result.passed_gates and len(result.residuals_mm) == 7
     with open_drivers(cell) as drivers:
         truth = drivers.world.truth
     assert truth.score_tool_frame(result.tool_frame)["position_error_mm"] <= 0.05
@@ -195,7 +195,7 @@ def test_a_fouled_seat_in_the_sim_is_rejected_and_named(tmp_path):
     result = runner.solve("tcp-npoint", cell, dataset)
     assert result.extra["rejected_seats"] == [3]
     assert result.extra["seat_residuals_mm"][2] == pytest.approx(0.3, abs=0.05)
-    assert result.write_back
+    assert result.passed_gates
     assert truth.score_tool_frame(result.tool_frame)["position_error_mm"] <= 0.05
 
 
@@ -210,7 +210,7 @@ def test_a_pivot_the_search_never_reaches_is_one_error_and_nothing_moves_after(t
                                                r"touching the pivot: is \[pivot\] point_m"):
             runner.measure(prepared, drivers, tmp_path, lambda message: None)
         assert [kind for kind, *_ in drivers.robot.commands] == ["joint", "linear", "contact"]
-        np.testing.assert_allclose(drivers.robot.tcp(), np.zeros(6))  # the controller's tool frame as it was
+        np.testing.assert_allclose(drivers.robot.tool_frame(), np.zeros(6))  # the controller's tool frame as it was
     assert list(tmp_path.iterdir()) == []
 
 
@@ -237,7 +237,7 @@ def test_a_tip_landing_beside_the_socket_fails_the_residual_gate(tmp_path):
         world.pivot = dataclasses.replace(world.pivot, point_m=world.pivot.point_m + [0.006, 0.0, 0.0])
         dataset = runner.measure(prepared, drivers, tmp_path, lambda message: None)
     result = runner.solve("tcp-npoint", cell, dataset)
-    assert not result.write_back
+    assert not result.passed_gates
     assert [g.name for g in result.gates if not g.passed] == ["residual"]
     assert result.residual_rms_mm > 0.1
     assert any("did not seat" in n for n in result.notes)
@@ -253,7 +253,7 @@ def test_npoint_is_within_0_05_mm_for_other_cells_and_noise(tmp_path, seed):
         dataset = runner.measure(prepared, drivers, tmp_path, lambda message: None)
         truth = drivers.world.truth
     result = runner.solve("tcp-npoint", cell, dataset)
-    assert result.write_back
+    assert result.passed_gates
     assert truth.score_tool_frame(result.tool_frame)["position_error_mm"] <= 0.05
     centre = truth.tool.tcp_m * 1e3 - truth.tool.radius_m * 1e3 * truth.tool.axis
     assert np.linalg.norm(np.asarray(result.extra["tip_centre_mm"]) - centre) <= 3 * result.extra["expected_tcp_error_mm"]

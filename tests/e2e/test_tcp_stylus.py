@@ -16,15 +16,15 @@ import pytest
 
 from cellcal.config.robot_files import load_robot
 from cellcal.daemon.cells import load_cell, open_drivers
-from cellcal.routines import registry, runner
-from cellcal.routines.base import RoutineError
-from cellcal.routines.guard import GuardedRobot
-from cellcal.solvers import se3
-from cellcal.solvers import stylus as fitting
-from cellcal.solvers import stylus_design as design
-from cellcal.solvers.inverse import inverse, tcp_frames, tcp_poses
-from cell_edits import edited_cell  # tests/cell_edits.py
-from report_check import assert_report_draws, layer
+from cellcal.routines.framework import registry, runner
+from cellcal.routines.framework.base import RoutineError
+from cellcal.routines.framework.guard import GuardedRobot
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.tool_frames import stylus as fitting
+from cellcal.solvers.tool_frames import stylus_design as design
+from cellcal.solvers.geometry.inverse import inverse, tcp_frames, tcp_poses
+from support.cell_edits import edited_cell  # tests/support/cell_edits.py
+from support.report_check import assert_report_draws, layer
 
 AXIS_MM, AXIS_DEG, TCP_MM = 0.02, 0.01, 0.03  # targets with at most 200 contacts
 Q = [f"q{i}_rad" for i in range(1, 7)]
@@ -70,7 +70,7 @@ def run(cell, out_dir, noise_seed=None):
 
 
 def variant(tmp_path, name, changes):
-    """The sim cell with `changes` (tests/cell_edits.py) to its file."""
+    """The sim cell with `changes` (tests/support/cell_edits.py) to its file."""
     return load_cell(edited_cell(tmp_path, "sim", changes, name=f"{name}.yaml"))
 
 
@@ -85,7 +85,7 @@ def test_the_default_cell_meets_the_targets_against_the_hidden_truth(default_run
     e = errors(result.tool_frame, truth)
     assert len(dataset) <= 200
     assert e["axis_mm"] <= AXIS_MM and e["axis_deg"] <= AXIS_DEG and e["tcp_mm"] <= TCP_MM, e
-    assert result.write_back, result.reasons()
+    assert result.passed_gates, result.reasons()
     assert np.linalg.norm(np.array(result.extra["stylus_mm"]) - truth.stylus.centre_m * 1e3) <= 0.05
     assert abs(result.extra["contact_radius_mm"] - (truth.tool.radius_m + truth.stylus.radius_m) * 1e3) <= 0.05
     # the reported spread is the real one: the errors lie within 4 standard deviations
@@ -201,12 +201,12 @@ def test_ten_percent_gross_outliers_are_left_out(default_run):
         rows = rng.choice(candidates, len(dataset) // 10, replace=False)
         spoilt = push(dataset, rows, cell, rng)
         result = runner.solve("tcp-stylus", cell, spoilt)
-        assert result.extra["contacts"]["left_out"] == len(rows) and result.write_back, result.reasons()
+        assert result.extra["contacts"]["left_out"] == len(rows) and result.passed_gates, result.reasons()
         rest = cls.solve(without(dataset, rows), cell, plain)
         assert_same_fit(result.tool_frame, rest)
         robust_e.append(errors(result.tool_frame, truth))
         least = cls.solve(spoilt, cell, plain)  # plain least squares: refused by its gates, and far off
-        assert not least.write_back
+        assert not least.passed_gates
         assert least.tool_frame is None or errors(least.tool_frame, truth)["axis_mm"] > 5 * clean_e["axis_mm"]
     for key in ("axis_mm", "axis_deg", "tcp_mm"):
         assert np.mean([e[key] for e in robust_e]) <= 1.2 * clean_e[key] + 1e-3, (key, robust_e, clean_e)
@@ -220,7 +220,7 @@ def test_ten_percent_more_contacts_gone_wrong_change_nothing(default_run):
     more = copy.deepcopy(dataset)
     more.columns = {k: np.concatenate([v, v[extra]]) for k, v in dataset.columns.items()}
     result = runner.solve("tcp-stylus", cell, push(more, np.arange(len(dataset), len(more)), cell, rng))
-    assert result.extra["contacts"]["left_out"] == len(extra) and result.write_back
+    assert result.extra["contacts"]["left_out"] == len(extra) and result.passed_gates
     assert_same_fit(result.tool_frame, clean)
 
 
@@ -275,7 +275,7 @@ def test_other_cells_meet_the_targets_too(tmp_path, seed):
     cell = variant(tmp_path, f"seed{seed}", {"sim_truth": {"seed": seed}})
     result, dataset, truth, touched = run(cell, tmp_path, noise_seed=seed)
     e = errors(result.tool_frame, truth)
-    assert len(dataset) <= 200 and not touched and result.write_back, result.reasons()
+    assert len(dataset) <= 200 and not touched and result.passed_gates, result.reasons()
     assert e["axis_mm"] <= AXIS_MM and e["axis_deg"] <= AXIS_DEG and e["tcp_mm"] <= TCP_MM, e
 
 

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from cell_edits import edited_cell
+from support.cell_edits import edited_cell
 from cellcal.daemon import outcome
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
 from cellcal.daemon.write_back import tool_slot
-from cellcal.routines.registry import panel_selectors
+from cellcal.routines.framework.registry import panel_selectors
 
 SELECT = {name: number for number, name in panel_selectors().items()}
 # tcp-laser on the in-process cell finds the tip to about 0.01-0.02 mm (README); 0.1 mm is far above
@@ -45,7 +45,7 @@ def test_each_start_is_for_the_tool_the_tool_changer_reports(tmp_path):
             world.mount_tool(tool_id)
             run = press(service, panel, "tcp-laser")
             assert run.code == ResultCode.OK and outcome.decoded(panel.outcome)["tool_id"] == tool_id, run.reason
-            written[tool_id] = robot.tcp()
+            written[tool_id] = robot.tool_frame()
             real = world.truth.tools[tool_id].tcp_m
             assert np.linalg.norm(written[tool_id][:3] - real) * 1e3 <= WITHIN_MM
             # the program's start gets each tool's frame from that tool's own register block

@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import daemon_harness
-from cell_edits import edited_cell
+from support import daemon_harness
+from support.cell_edits import edited_cell
 from cellcal.daemon.service import ResultCode
-from daemon_harness import Net, controller_tcp, plc_reads, press_start, until_the_run_ends
+from support.daemon_harness import Net, controller_tcp, plc_reads, press_start, until_the_run_ends
 
 pytestmark = pytest.mark.slow
 

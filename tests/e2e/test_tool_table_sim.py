@@ -11,7 +11,7 @@ from cellcal.cli.main import main
 from cellcal.config.robot_files import load_robot
 from cellcal.daemon.cells import load_cell
 from cellcal.sims.physics.truth import truth_of_cell
-from cell_edits import DELETE, edited_cell  # tests/cell_edits.py
+from support.cell_edits import DELETE, edited_cell  # tests/support/cell_edits.py
 
 # a pin (1) and a longer, thicker torch (2) 20 mm further out and 5 mm aside: the two real
 # tips are ~20 mm apart, far beyond any routine's error

@@ -57,7 +57,7 @@ def test_write_back_to_tool_2s_block_leaves_tool_1s_alone(fake, connect):
     assert failure is None and before.stored.generation == 0 and written.stored_json()["slot"] == 1
     assert StoredToolFrame(FRAME_2, 4).same_as(read_frames(robot, 1).stored)
     assert StoredToolFrame(FRAME_1, 3).same_as(read_frames(robot, 0).stored)
-    np.testing.assert_array_equal(robot.tcp(), FRAME_2)
+    np.testing.assert_array_equal(robot.tool_frame(), FRAME_2)
 
 
 def test_a_tool_beyond_the_blocks_gets_the_running_frame_only(fake, connect):
@@ -65,7 +65,7 @@ def test_a_tool_beyond_the_blocks_gets_the_running_frame_only(fake, connect):
     assert robot.tool_frame_slots() == 1
     before, written, failure = write_back(robot, FRAME_2, generation=5, slot=1)
     assert failure is None and written.stored is None
-    np.testing.assert_array_equal(robot.tcp(), FRAME_2)
+    np.testing.assert_array_equal(robot.tool_frame(), FRAME_2)
     assert robot.stored_tool_frame(0).generation == 0  # block 0 not written
     assert no_block_note(robot, 2, 1).startswith("tool 2 has no register block on this robot (it would take "
                                                  "block 1; blocks for 1 tool from input register 42)")

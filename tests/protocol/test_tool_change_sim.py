@@ -25,8 +25,8 @@ from cellcal.sims.inproc.devices import SimPanel, SimRobot
 from cellcal.sims.inproc.world import world_of_cell
 from cellcal.sims.physics.arm_motion import JointMove
 from cellcal.sims.physics.truth import BARE_FLANGE, truth_of_cell
-from cell_edits import DELETE, edited_cell  # tests/cell_edits.py
-from cli_run import refused  # tests/cli_run.py
+from support.cell_edits import DELETE, edited_cell  # tests/support/cell_edits.py
+from support.cli_run import refused  # tests/support/cli_run.py
 
 # a pin (1), a torch 20 mm further out and 5 mm aside (2), a spare pin 10 mm longer (5): the
 # real tips are 10-20 mm apart, far beyond the drawing's 1 mm error the sim draws them with
@@ -113,7 +113,7 @@ def test_a_tool_change_puts_the_other_tools_real_body_on_the_flange(tool_fake):
     assert moved == pytest.approx(np.linalg.norm(real[2].tcp_m - real[1].tcp_m), abs=EXACT_M)
     assert moved > 0.015  # ~20 mm: the torch, not the pin
     # the robot's own tool frame is the robot program's business: a tool change leaves it alone
-    assert np.abs(robot.tcp() - fake.state()["tcp_offset"]).max() == 0.0
+    assert np.abs(robot.tool_frame() - fake.state()["tcp_offset"]).max() == 0.0
 
 
 def test_a_tool_change_is_refused_while_the_arm_moves_and_nothing_changes(tool_fake):

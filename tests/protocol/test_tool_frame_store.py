@@ -98,7 +98,7 @@ def test_rollback_restores_the_running_and_the_stored_frame_from_before_the_writ
     args = argparse.Namespace(state_dir=str(tmp_path), run=None, tool=None, cell="test cell", json=False)
     assert tool_cmd.cmd_tool_rollback(args) == 0
     robot._closed = False  # the drivers were closed on leaving; look at what the controller holds
-    np.testing.assert_array_equal(robot.tcp(), FRAME_A)
+    np.testing.assert_array_equal(robot.tool_frame(), FRAME_A)
     assert StoredToolFrame(FRAME_A, 2).same_as(robot.stored_tool_frame())
     store = Store.open(tmp_path)
     last = store.tool_frames()[-1]

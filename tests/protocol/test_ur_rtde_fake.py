@@ -19,8 +19,8 @@ from cellcal.config.robot_files import load_robot  # noqa: E402
 from cellcal.drivers.interfaces import DeviceError, Edge, RobotState  # noqa: E402
 from cellcal.drivers.ur.robot import UrRtdeRobot  # noqa: E402
 from cellcal.drivers.ur.trigger import UrDigitalInputTrigger  # noqa: E402
-from cellcal.solvers.chain import forward  # noqa: E402
-from cellcal.solvers.se3 import matrix_to_rotvec, rotvec_to_matrix  # noqa: E402
+from cellcal.solvers.geometry.chain import forward  # noqa: E402
+from cellcal.solvers.geometry.se3 import matrix_to_rotvec, rotvec_to_matrix  # noqa: E402
 
 
 def rotation_error_rad(rotvec_a, rotvec_b) -> float:
@@ -53,7 +53,7 @@ def test_move_l_reaches_the_tcp_pose(robot):
 def test_set_tcp_moves_the_reported_tcp_as_our_forward_kinematics_predict(robot):
     tool = np.array([0.012, -0.034, 0.187, 0.3, -0.2, 0.1])
     robot.set_tcp(tool)
-    assert np.abs(robot.tcp() - tool).max() < 1e-12
+    assert np.abs(robot.tool_frame() - tool).max() < 1e-12
     q = robot.actual_q()
     model = load_robot("ur10e")
     flange_rot, flange_mm = forward(model.chains["flange"], model.nominal, q[None])
@@ -249,7 +249,7 @@ def test_control_script_on_the_upper_register_range_is_served(fake):
 def exact_cell(tmp_path):
     """The sim-net cell file with the arm's repeatability 0 (it goes exactly where it is sent),
     its truth and its path."""
-    from cell_edits import edited_cell
+    from support.cell_edits import edited_cell
     from cellcal.config.cells import read_cell
     from cellcal.sims.physics.truth import truth_of_cell
 

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from cellcal.config.robot_files import load_robot
-from hidden_cases import make_case  # tests/hidden_cases.py: a fixture, not part of the package
-from naming_stubs import BASELINE, StubScorer, scored  # tests/naming_stubs.py
+from support.hidden_cases import make_case  # tests/support/hidden_cases.py: a fixture, not part of the package
+from support.naming_stubs import BASELINE, StubScorer, scored  # tests/support/naming_stubs.py
 from cellcal.sims.physics.physical_arm import HiddenEffect
-from cellcal.solvers.analyze import MIN_GAIN, MIN_MARGIN, analyze, name_cause
-from cellcal.solvers.robot_model import parallel_joint_pairs
+from cellcal.solvers.analysis.analyze import MIN_GAIN, MIN_MARGIN, analyze, name_cause
+from cellcal.solvers.geometry.robot_model import parallel_joint_pairs
 
 ROBOTS = ("ur10e", "abb-irb4600", "elite-ec66")
 SIZES = (60, 120, 250, 500)
@@ -120,7 +120,7 @@ def test_cyclic_error_is_not_taken_for_compliance_of_the_same_joint(robot):
     assert finding.gain_pct >= 50.0
 
 
-# -- the naming rule alone, on made-up held-out scores (tests/naming_stubs.py) ------------------------------
+# -- the naming rule alone, on made-up held-out scores (tests/support/naming_stubs.py) ------------------------------
 
 
 def test_naming_rule_says_none_when_the_best_gains_too_little():
@@ -157,7 +157,7 @@ def test_naming_rule_prefers_the_simpler_of_two_nested_explanations():
 
 def with_gross_outliers(obs, noise_mm: float, seed: int, fraction: float = 0.05):
     """obs with `fraction` of the measurements moved 40-100x the noise in random directions."""
-    from cellcal.solvers.measurement_model import Observations
+    from cellcal.solvers.identification.measurement_model import Observations
 
     rng = np.random.default_rng(900 + seed)
     k = max(1, int(round(fraction * len(obs))))
@@ -174,7 +174,7 @@ def with_gross_outliers(obs, noise_mm: float, seed: int, fraction: float = 0.05)
 def test_hidden_effect_is_named_through_gross_outliers_with_a_robust_loss(cause, seed):
     # the same cases with 5% gross outliers: under the linear loss they halve every gain and one
     # case falls below the naming threshold; the robust loss names every one, at the right place
-    from cellcal.solvers.analyze import AnalyzeOptions
+    from cellcal.solvers.analysis.analyze import AnalyzeOptions
 
     model, effect, visibility, n, noise = draw(cause, seed)
     case = make_case(model, [effect], [visibility], n=n, noise_scale=noise, seed=seed)
@@ -189,7 +189,7 @@ def test_hidden_effect_is_named_through_gross_outliers_with_a_robust_loss(cause,
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", range(4))
 def test_robust_loss_raises_no_alarm_on_effect_free_data_with_gross_outliers(seed):
-    from cellcal.solvers.analyze import AnalyzeOptions
+    from cellcal.solvers.analysis.analyze import AnalyzeOptions
 
     model = load_robot(ROBOTS[seed % len(ROBOTS)])
     case = make_case(model, [], [], n=60, noise_scale=NOISE[seed % len(NOISE)], seed=300 + seed)

@@ -9,10 +9,10 @@ import pytest
 
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.physical_arm import HiddenEffect
-from cellcal.solvers.analyze import analyze, heldout_with_terms
-from cellcal.solvers.effects import JointBasis, Term
-from cellcal.solvers.effects.cyclic_joint_error import fitted_errors, harmonics, order_bound, periodogram, pursuit
-from hidden_cases import make_case
+from cellcal.solvers.analysis.analyze import analyze, heldout_with_terms
+from cellcal.solvers.analysis.effects import JointBasis, Term
+from cellcal.solvers.analysis.effects.cyclic_joint_error import fitted_errors, harmonics, order_bound, periodogram, pursuit
+from support.hidden_cases import make_case
 
 ROBOTS = ("ur10e", "abb-irb4600", "elite-ec66")
 
@@ -178,7 +178,7 @@ def test_periodic_error_that_is_no_few_sinusoids_is_fitted_as_a_periodic_spline(
     assert np.sqrt(np.mean(miss**2)) < 0.15 * np.ptp(hidden)
     assert finding.magnitude["peak_to_peak_deg"] == pytest.approx(np.rad2deg(np.ptp(hidden)), rel=0.25)
     # a calibrated model made of the fit applies the same function, rigid outside the coverage
-    from cellcal.solvers.calibrated_model import from_fit
+    from cellcal.solvers.compensation.calibrated_model import from_fit
 
     calibrated = from_fit(model, case.campaign.obs.target_names, finding.extended.x, finding.extended.terms,
                           finding.extended.theta, q)

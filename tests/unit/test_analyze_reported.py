@@ -21,12 +21,12 @@ from cellcal.measurements.table import write_measurements
 from cellcal.sims.physics.kinematic_arm import TrackerNoise
 from cellcal.sims.physics.physical_arm import HiddenEffect, PhysicalArm
 from cellcal.sims.physics.workspace import full_workspace, joint_sweeps
-from cellcal.solvers import crossval
-from cellcal.solvers.analyze import MIN_GAIN, MIN_MARGIN, MULTI_GAIN, NEIGHBOUR_RAD, analyze, name_cause
-from cellcal.solvers.effects import Term
-from cellcal.solvers.ties import tied_explanations
-from hidden_cases import BASE_REPEATABILITY_MM, SWEEP_ROBOT, SWEEP_SPAN_DEG, sweep_case  # tests/hidden_cases.py
-from naming_stubs import StubScorer, scored  # tests/naming_stubs.py
+from cellcal.solvers.estimation import crossval
+from cellcal.solvers.analysis.analyze import MIN_GAIN, MIN_MARGIN, MULTI_GAIN, NEIGHBOUR_RAD, analyze, name_cause
+from cellcal.solvers.analysis.effects import Term
+from cellcal.solvers.analysis.ties import tied_explanations
+from support.hidden_cases import BASE_REPEATABILITY_MM, SWEEP_ROBOT, SWEEP_SPAN_DEG, sweep_case  # tests/support/hidden_cases.py
+from support.naming_stubs import StubScorer, scored  # tests/support/naming_stubs.py
 
 
 def _multi(cause: str, heldout_mean_mm: float):

@@ -14,9 +14,9 @@ import pytest
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.physical_arm import HiddenEffect
 from cellcal.sims.physics.workspace import full_workspace, joint_sweeps
-from cellcal.solvers import crossval
-from cellcal.solvers.analyze import MIN_GAIN, AnalyzeOptions, analyze
-from hidden_cases import SWEEP_SPAN_DEG, _arm, make_case
+from cellcal.solvers.estimation import crossval
+from cellcal.solvers.analysis.analyze import MIN_GAIN, AnalyzeOptions, analyze
+from support.hidden_cases import SWEEP_SPAN_DEG, _arm, make_case
 
 
 def _cyclic(finding):

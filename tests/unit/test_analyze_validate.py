@@ -15,8 +15,8 @@ from cellcal.config.robot_files import load_robot
 from cellcal.measurements.table import write_measurements
 from cellcal.sims.physics.physical_arm import HiddenEffect
 from cellcal.sims.physics.workspace import full_workspace
-from cli_run import refused, run_cli  # tests/cli_run.py
-from hidden_cases import make_case  # tests/hidden_cases.py
+from support.cli_run import refused, run_cli  # tests/support/cli_run.py
+from support.hidden_cases import make_case  # tests/support/hidden_cases.py
 
 ROBOT = "ur5e"
 VISIBILITY = 4.0  # the effect 4x the noise after a geometric calibration, as test_analyze's cases (3-6x)

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from cellcal.cli.main import main
-from cli_run import refused  # tests/cli_run.py
+from support.cli_run import refused  # tests/support/cli_run.py
 
 ROW = 5  # the data row that gets spoiled (1-based, after the header)
 
@@ -104,7 +104,7 @@ def cr_only(ok: Path, tmp: Path) -> Path:
 
 
 def cell_with_tracker_port(tmp: Path, port) -> Path:
-    from cell_edits import edited_cell  # tests/cell_edits.py
+    from support.cell_edits import edited_cell  # tests/support/cell_edits.py
 
     return edited_cell(tmp, "sim-net", {"drivers": {"tracker": {"port": port}}})
 
@@ -146,13 +146,13 @@ def targets(tmp: Path, row: str) -> Path:
 
 
 def far_stylus(tmp: Path) -> Path:
-    from cell_edits import edited_cell
+    from support.cell_edits import edited_cell
 
     return edited_cell(tmp, "sim", {"stylus": {"centre_m": [-1.15, -0.4, 0.4]}})
 
 
 def without_tracker(tmp: Path) -> Path:
-    from cell_edits import DELETE, edited_cell
+    from support.cell_edits import DELETE, edited_cell
 
     return edited_cell(tmp, "sim", {"drivers": {"tracker": DELETE}})
 

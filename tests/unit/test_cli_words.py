@@ -156,7 +156,7 @@ FRAME_WRITTEN = [0.0012, -0.0021, 0.1492, 0.0084, 0.0008, 0.0]
 
 
 def _result(passed: bool):
-    from cellcal.routines.base import Gate, Parameter, Result
+    from cellcal.routines.framework.base import Gate, Parameter, Result
 
     return Result("tcp-laser", [Parameter("tcp_z_mm", 149.2, 0.01, "mm")], np.zeros(4), 0.01, 3.0,
                   [Gate("residual", passed, 0.01, 0.02, "residual within the noise" if passed else "too large")],

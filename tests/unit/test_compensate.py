@@ -11,11 +11,11 @@ from cellcal.config.robot_files import load_robot
 from cellcal.cli.main import main
 from cellcal.sims.physics.physical_arm import HiddenEffect, PhysicalArm
 from cellcal.sims.physics.workspace import full_workspace
-from cellcal.solvers import se3
-from cellcal.solvers.analyze import AnalyzeOptions, analyze
-from cellcal.solvers.calibrated_model import CalibratedModel, from_fit
-from cellcal.solvers.compensate import JOINT_LIMITS, OK, UNREACHABLE, compensate, compensate_each, rigid_frames
-from cellcal.solvers.identify import IdentifyOptions, identify
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.analysis.analyze import AnalyzeOptions, analyze
+from cellcal.solvers.compensation.calibrated_model import CalibratedModel, from_fit
+from cellcal.solvers.compensation.compensate import JOINT_LIMITS, OK, UNREACHABLE, compensate, compensate_each, rigid_frames
+from cellcal.solvers.identification.identify import IdentifyOptions, identify
 
 TOOL_MM = np.array([0.0, 0.0, 100.0])
 

@@ -25,10 +25,10 @@ from cellcal.config.model_files import write_calibrated
 from cellcal.config.robot_files import load_robot, resolve_robot
 from cellcal.sims.physics.physical_arm import HiddenEffect, PhysicalArm
 from cellcal.sims.physics.workspace import full_workspace
-from cellcal.solvers import se3
-from cellcal.solvers.analyze import AnalyzeOptions, analyze
-from cellcal.solvers.calibrated_model import from_fit
-from cellcal.solvers.compensate import (FRAMES, OK, SINGULAR, SINGULAR_MM_PER_RAD, compensate, fit_controller_frame,
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.analysis.analyze import AnalyzeOptions, analyze
+from cellcal.solvers.compensation.calibrated_model import from_fit
+from cellcal.solvers.compensation.compensate import (FRAMES, OK, SINGULAR, SINGULAR_MM_PER_RAD, compensate, fit_controller_frame,
                                         rigid_frames, targets_in_model_frame)
 
 TOOL_MM = np.array([0.0, 0.0, 100.0])  # the tool as drawn: what the controller's TCP is set to

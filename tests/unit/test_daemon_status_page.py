@@ -89,7 +89,7 @@ def test_an_address_beyond_this_pc_is_said_in_the_log(cell, tmp_path, caplog, mo
     ({"prot": 8037}, "[status_page.prot]"),
 ])
 def test_a_bad_status_page_section_is_refused_naming_the_key(tmp_path, keys, words):
-    from cell_edits import edited_cell
+    from support.cell_edits import edited_cell
     from cellcal.config.cells import CellFileError
     path = edited_cell(tmp_path, "sim", {"status_page": keys})
     with pytest.raises(CellFileError) as refused:

@@ -11,7 +11,7 @@ from cellcal.measurements.table import (
     write_measurements,
     write_table,
 )
-from cellcal.solvers.measurement_model import Observations
+from cellcal.solvers.identification.measurement_model import Observations
 
 Q6_RAD = "q1_rad,q2_rad,q3_rad,q4_rad,q5_rad,q6_rad"
 Q6_DEG = "q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg"

@@ -15,10 +15,10 @@ import pytest
 from cellcal.config.robot_files import load_robot
 from cellcal.cli.main import main
 from cellcal.measurements.table import write_measurements
-from cellcal.solvers.analyze import MIN_GAIN, MIN_MARGIN, Naming, analyze
-from cellcal.solvers.ties import DECIDE_LAMBDA, MEAN_PER_SIGMA, TYPICAL_MAX, tied_explanations
-from hidden_cases import SWEEP_ROBOT, elbow_pair, sweep_case  # tests/hidden_cases.py: a fixture
-from naming_stubs import BASELINE, StubScorer, scored  # tests/naming_stubs.py
+from cellcal.solvers.analysis.analyze import MIN_GAIN, MIN_MARGIN, Naming, analyze
+from cellcal.solvers.analysis.ties import DECIDE_LAMBDA, MEAN_PER_SIGMA, TYPICAL_MAX, tied_explanations
+from support.hidden_cases import SWEEP_ROBOT, elbow_pair, sweep_case  # tests/support/hidden_cases.py: a fixture
+from support.naming_stubs import BASELINE, StubScorer, scored  # tests/support/naming_stubs.py
 
 
 
@@ -174,7 +174,7 @@ def test_a_payload_change_is_proposed_where_it_separates_compliance_from_a_cycli
 
 def test_the_greedy_gain_is_the_rise_of_the_refitted_residual_sum_of_squares():
     # the design's rank-3 update against refitting from scratch with the candidate's rows added
-    from cellcal.solvers.discriminate import _Pair
+    from cellcal.solvers.analysis.discriminate import _Pair
 
     rng = np.random.default_rng(3)
     x_old, mean_old = rng.normal(size=(40, 3, 5)), rng.normal(size=(40, 3))

@@ -187,8 +187,8 @@ def _exception_factories() -> dict:
     from cellcal.drivers.interfaces import DeviceError
     from cellcal.drivers.registry import DriverConfigError
     from cellcal.measurements.table import DatasetError
-    from cellcal.routines.base import RoutineError
-    from cellcal.solvers.identify import IdentificationError
+    from cellcal.routines.framework.base import RoutineError
+    from cellcal.solvers.identification.identify import IdentificationError
 
     return {
         "DeviceError": lambda: DeviceError("robot", "connection lost"),
@@ -349,11 +349,11 @@ def test_cli_page_lists_every_sub_command_and_which_take_json():
         assert json_column == ("yes" if takes_json else "no"), f"cellcal {' '.join(words)}: --json"
 
 
-# -- causes: docs/causes.md against solvers.effects ------------------------------------------------------
+# -- causes: docs/causes.md against solvers.analysis.effects ------------------------------------------------------
 
 
 def test_causes_page_names_exactly_the_cause_ids():
-    from cellcal.solvers.effects import IDS
+    from cellcal.solvers.analysis.effects import IDS
 
     rows = table_under((DOCS / "causes.md").read_text(encoding="utf-8"),
                        "# Causes: what `cellcal analyze` may name")

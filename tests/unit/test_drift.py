@@ -21,9 +21,9 @@ from cellcal.cli.main import main
 from cellcal.config.cells import Bands
 from cellcal.daemon import drift, outcome
 from cellcal.daemon.store import SCHEMA_VERSION, Store
-from cellcal.routines.base import Result
-from cellcal.solvers import se3
-from cellcal.solvers.tcp_laser import axis_pair
+from cellcal.routines.framework.base import Result
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.tool_frames.tcp_laser import axis_pair
 
 ROUNDING = 1e-9  # see the module's doc
 DAY = 86400.0

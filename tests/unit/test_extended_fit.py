@@ -8,12 +8,12 @@ import pytest
 
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.physical_arm import HiddenEffect
-from cellcal.solvers.effects import CAUSES
-from cellcal.solvers.extended_model import ExtendedModel, ParamBlocks, fit_extended, param_columns
-from cellcal.solvers.identify import IdentifyOptions, identify
+from cellcal.solvers.analysis.effects import CAUSES
+from cellcal.solvers.analysis.extended_model import ExtendedModel, ParamBlocks, fit_extended, param_columns
+from cellcal.solvers.identification.identify import IdentifyOptions, identify
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from hidden_cases import make_case  # noqa: E402  (tests/hidden_cases.py: a fixture)
+from support.hidden_cases import make_case  # noqa: E402  (tests/support/hidden_cases.py: a fixture)
 
 
 def test_parameter_blocks_give_the_dense_products():

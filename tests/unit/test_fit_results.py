@@ -1,5 +1,5 @@
 """Every fit in solvers ends in the same words: status, message, success and nfev as
-scipy.optimize.OptimizeResult has them, covariance where the fit has one (solvers.fit_result).
+scipy.optimize.OptimizeResult has them, covariance where the fit has one (solvers.estimation.fit_result).
 A fit that converged says success; one its data leave undetermined says not, and why."""
 from __future__ import annotations
 
@@ -16,17 +16,17 @@ import cellcal.solvers
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.sims.physics.workspace import full_workspace
-from cellcal.solvers import handshake as hs
-from cellcal.solvers import lsq
-from cellcal.solvers import pivot as pv
-from cellcal.solvers import se3
-from cellcal.solvers import stylus as fitting
-from cellcal.solvers import tcp_laser as laser
-from cellcal.solvers.effects import Term
-from cellcal.solvers.extended_model import ExtendedFit, fit_extended
-from cellcal.solvers.fit_result import FitResult, degenerate, from_solver, solved
-from cellcal.solvers.identify import Identification, IdentifyOptions, fit, identify
-from cellcal.solvers.kinematic_fit import Fit
+from cellcal.solvers.tool_frames import handshake as hs
+from cellcal.solvers.estimation import lsq
+from cellcal.solvers.tool_frames import pivot as pv
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.tool_frames import stylus as fitting
+from cellcal.solvers.tool_frames import tcp_laser as laser
+from cellcal.solvers.analysis.effects import Term
+from cellcal.solvers.analysis.extended_model import ExtendedFit, fit_extended
+from cellcal.solvers.estimation.fit_result import FitResult, degenerate, from_solver, solved
+from cellcal.solvers.identification.identify import Identification, IdentifyOptions, fit, identify
+from cellcal.solvers.identification.kinematic_fit import Fit
 
 COMMON = {"status": int, "message": str, "success": bool, "nfev": int}
 FIT_CLASSES = (laser.LaserFit, hs.HandshakeFit, pv.PivotFit, pv.AxisFit, fitting.StylusFit, Fit, ExtendedFit,

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cell_edits import edited_cell  # tests/cell_edits.py
+from support.cell_edits import edited_cell  # tests/support/cell_edits.py
 
 from cellcal.config.cells import read_cell
 from cellcal.sims.fake_ur.controller import FakeUrController

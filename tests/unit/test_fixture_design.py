@@ -1,19 +1,19 @@
-"""The seat design of fixture calibration (solvers/fixture_design.py) and the plan's prediction
+"""The seat design of fixture calibration (solvers/fixtures/fixture_design.py) and the plan's prediction
 (fixture_identify.predict_seats), against the algebra they stand for and the hidden truth."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from point_data import plate_placements, seat, workspace_errors  # tests/point_data.py
+from support.point_data import plate_placements, seat, workspace_errors  # tests/support/point_data.py
 
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.sims.physics.workspace import full_workspace
-from cellcal.solvers.fixture_design import RIDGE, contact_rows, information, seat_rows, select_seats
-from cellcal.solvers.fixture_identify import FixtureOptions, PointData, identify_points, judge_workspace, predict_seats
-from cellcal.solvers.chain import forward
-from cellcal.solvers.inverse import dexterity, inverse, inverse_many, tcp_poses
+from cellcal.solvers.fixtures.fixture_design import RIDGE, contact_rows, information, seat_rows, select_seats
+from cellcal.solvers.fixtures.fixture_identify import FixtureOptions, PointData, identify_points, judge_workspace, predict_seats
+from cellcal.solvers.geometry.chain import forward
+from cellcal.solvers.geometry.inverse import dexterity, inverse, inverse_many, tcp_poses
 
 UR10E = load_robot("ur10e")
 TOOL_MM = [0.0, 0.0, 100.0]

@@ -5,7 +5,7 @@ The data: a UR10e with the usual hidden geometric errors (up to 0.5 mm and 0.05 
 target about 100 mm off the flange seats its target in both sockets of a plate (50 mm apart)
 (known to 0.01 mm) at five placements, 12 orientations per socket (tilted up to 60 deg from
 straight down), each seating within 0.03 mm (1 sigma per axis) of the socket's centre
-(``tests/point_data.py``). Four placements calibrate, the fifth validates.
+(``tests/support/point_data.py``). Four placements calibrate, the fifth validates.
 """
 from __future__ import annotations
 
@@ -21,8 +21,8 @@ from cellcal.measurements.table import DatasetError, read_measurements, write_me
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.sims.physics.workspace import full_workspace
 
-from point_data import fixture_text, plate_placements, seat, workspace_errors, write  # tests/point_data.py
-from cli_run import refused  # tests/cli_run.py
+from support.point_data import fixture_text, plate_placements, seat, workspace_errors, write  # tests/support/point_data.py
+from support.cli_run import refused  # tests/support/cli_run.py
 
 REPEATABILITY_MM = 0.03
 PLACEMENTS = 5

@@ -1,8 +1,8 @@
 """A routine writes only what it determined: the frame-composition helper
-(routines/tool_frame.py and its maths in solvers/se3.py), the gates that compare only what
-a result determined (routines/gates.py), the words that print a tool frame next to the
-axis tilts (routines/base.py frame_text), and the frames owed back to a cell's other robots
-(routines/frames_owed.py).
+(routines/framework/tool_frame.py and its maths in solvers/geometry/se3.py), the gates that compare only what
+a result determined (routines/framework/gates.py), the words that print a tool frame next to the
+axis tilts (routines/framework/base.py frame_text), and the frames owed back to a cell's other robots
+(routines/framework/frames_owed.py).
 
 The end-to-end chain (tcp-laser, then tcp-npoint, then tcf through the service on the
 simulated cell) is tests/e2e/test_frames_determined.py.
@@ -14,10 +14,10 @@ import pytest
 
 from cellcal.config.cells import ToolSpec
 from cellcal.drivers.interfaces import DeviceError, RobotState
-from cellcal.routines import gates, tool_frame
-from cellcal.routines.frames_owed import FramesOwed
-from cellcal.routines.base import Result, frame_text
-from cellcal.solvers import se3
+from cellcal.routines.framework import gates, tool_frame
+from cellcal.routines.framework.frames_owed import FramesOwed
+from cellcal.routines.framework.base import Result, frame_text
+from cellcal.solvers.geometry import se3
 
 RNG = np.random.default_rng(18)
 EXACT = 1e-12  # pure rotation algebra in float64: nothing but rounding separates the two sides
@@ -37,7 +37,7 @@ def turn_about(rotvec_before, rotvec_after) -> np.ndarray:
     return se3.matrix_to_rotvec(se3.rotvec_to_matrix(rotvec_after) @ se3.rotvec_to_matrix(rotvec_before).T)
 
 
-# -- solvers/se3.py --------------------------------------------------------------------------
+# -- solvers/geometry/se3.py --------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("a, b", list(zip(random_units(6), random_units(6))))
@@ -78,7 +78,7 @@ def test_z_axis_lean_is_the_axis_tilt_not_the_rotation_vector():
     assert toward_x == pytest.approx(0.0486, abs=1e-5) and toward_y == pytest.approx(-0.4838, abs=1e-5)
 
 
-# -- routines/tool_frame.py ------------------------------------------------------------------
+# -- routines/framework/tool_frame.py ------------------------------------------------------------------
 
 DRAWN = np.array([0.0, 0.0, 0.150, 0.0, 0.0, 0.0])
 # a calibrated frame on the controller: tip off the drawing, axis tilted 0.5 deg, turned 30 deg about it
@@ -150,7 +150,7 @@ def test_compose_refuses_what_does_not_make_a_frame(determines, given):
         tool_frame.compose(determines, tool_frame.reference(CONTROLLER, DRAWN), **given)
 
 
-# -- routines/gates.py -----------------------------------------------------------------------
+# -- routines/framework/gates.py -----------------------------------------------------------------------
 
 TOOL = ToolSpec(np.array([0.0, 0.0, 0.150]), np.array([0.0, 0.0, 1.0]), 0.003, 0.1)
 
@@ -220,7 +220,7 @@ def test_the_run_json_says_what_the_tool_frame_determines():
     assert "determines" not in Result("tracker", [], np.zeros(3), 0.02, 1.0, []).as_json()
 
 
-# -- routines/frames_owed.py: the other robots' frames, owed back by the service --------------
+# -- routines/framework/frames_owed.py: the other robots' frames, owed back by the service --------------
 
 
 class FakeRobot:
@@ -232,7 +232,7 @@ class FakeRobot:
     def state(self):
         return RobotState.READY if self.ready else RobotState.PROTECTIVE_STOP
 
-    def tcp(self):
+    def tool_frame(self):
         return self.frame.copy()
 
     def set_tcp(self, pose):

@@ -10,9 +10,9 @@ import pytest
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.kinematic_arm import SimulatedArm, TrackerNoise
 from cellcal.sims.physics.workspace import constrained_volume, full_workspace
-from cellcal.solvers.identify import IdentifyOptions, fit, identify
-from cellcal.solvers.measurement_model import Observations, predict
-from cellcal.solvers.pose_design import select_poses
+from cellcal.solvers.identification.identify import IdentifyOptions, fit, identify
+from cellcal.solvers.identification.measurement_model import Observations, predict
+from cellcal.solvers.identification.pose_design import select_poses
 
 
 def mean_error(layout, x, obs):
@@ -147,7 +147,7 @@ def test_d_optimal_pose_design_beats_random_choice():
 
 
 def test_linearised_cross_validation_matches_refitting_every_fold():
-    from cellcal.solvers.crossval import fold_ids
+    from cellcal.solvers.estimation.crossval import fold_ids
 
     model, arm, cal, _ = _small_volume_cell(0)  # the small-volume case, where the prior matters most
     options = IdentifyOptions(regularize="cv")

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from cellcal.solvers.iso9283 import characteristics, cube_points, distance_characteristics, pose_characteristics
+from cellcal.solvers.identification.iso9283 import characteristics, cube_points, distance_characteristics, pose_characteristics
 
 
 def test_cube_points_sit_on_the_diagonal_plane_at_10_percent_of_the_diagonal():
@@ -70,7 +70,7 @@ def _iso_file(path, bias_mm, cycles=4):
     +-0.1 mm along x alternating by cycle (so RP = 0.1 exactly, with 4 cycles)."""
     from cellcal.config.robot_files import load_robot
     from cellcal.measurements.table import write_measurements
-    from cellcal.solvers.chain import forward
+    from cellcal.solvers.geometry.chain import forward
 
     model = load_robot("ur5e")
     q5 = np.deg2rad([[0, -90, 90, -90, -90, 0], [10, -80, 80, -90, -90, 0], [20, -100, 95, -85, -90, 0],

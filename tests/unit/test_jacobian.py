@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from cellcal.config.robot_files import load_robot
-from cellcal.solvers.chain import forward
-from cellcal.solvers.measurement_model import Layout, Observations, jacobian, predict
+from cellcal.solvers.geometry.chain import forward
+from cellcal.solvers.identification.measurement_model import Layout, Observations, jacobian, predict
 from cellcal.config.robot_files import model_from_mapping
 
 REL_TOL = 1e-6

@@ -9,7 +9,7 @@ from cellcal.cli.main import main
 from cellcal.measurements.importers import dlr_justin
 from cellcal.config.robot_files import load_robot
 from cellcal.measurements.table import DatasetError, read_measurements
-from cellcal.solvers.identify import IdentifyOptions, identify
+from cellcal.solvers.identification.identify import IdentifyOptions, identify
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "dlr-agile-justin" / "measurements.csv"
 pytestmark = pytest.mark.skipif(not DATA.exists(), reason="shared data set not beside the repository")
@@ -116,7 +116,7 @@ def test_a_good_tree_file_loads_with_shared_and_coupled_joints(tmp_path):
     model = load_robot(path)
     assert model.param_names[:4] == ("base.alpha1", "base.a1", "base.theta1", "base.d1")
     assert "arm.mount.x" in model.param_names and model.target_chains == {"tip": "arm"}
-    from cellcal.solvers.chain import forward
+    from cellcal.solvers.geometry.chain import forward
 
     # q = (0.5, 0.2): base turns 0.5, mount and a = 0.3 lie along that; the coupled arm joint
     # turns -0.5 + 0.2, so the 50 mm end offset points at 0.2 rad

@@ -16,7 +16,7 @@ import yaml
 rtb = pytest.importorskip("roboticstoolbox")
 
 from cellcal.config.robot_files import load_robot, shipped_robots  # noqa: E402
-from cellcal.solvers.chain import forward  # noqa: E402
+from cellcal.solvers.geometry.chain import forward  # noqa: E402
 from cellcal.config.robot_files import model_from_mapping  # noqa: E402
 
 N_CONFIGS = 50

@@ -14,13 +14,13 @@ from cellcal.measurements.table import DatasetError, read_measurements
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.sims.physics.physical_arm import HiddenEffect
 from cellcal.sims.physics.workspace import full_workspace
-from cellcal.solvers import crossval, lsq
-from cellcal.solvers.analyze import analyze
-from cellcal.solvers.effects import JointBasis, approach_directions
-from cellcal.solvers.identify import IdentifyOptions, fit, identify, initial_base_and_targets, scales
-from cellcal.solvers.measurement_model import Layout, jacobian, predict
+from cellcal.solvers.estimation import crossval, lsq
+from cellcal.solvers.analysis.analyze import analyze
+from cellcal.solvers.analysis.effects import JointBasis, approach_directions
+from cellcal.solvers.identification.identify import IdentifyOptions, fit, identify, initial_base_and_targets, scales
+from cellcal.solvers.identification.measurement_model import Layout, jacobian, predict
 
-from hidden_cases import make_case
+from support.hidden_cases import make_case
 
 
 @pytest.fixture(scope="module")

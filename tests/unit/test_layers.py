@@ -40,6 +40,27 @@ CLI_FOLDER_THAT_MAY_IMPORT_SIMS = "sim"
 # A routine gets its devices from the cell file: it may know the interfaces, never an adapter.
 ROUTINES_MAY_IMPORT_FROM_DRIVERS = {"interfaces"}
 
+# Inside a folder, its rooms (sub-packages) -> the rooms of the same folder each may import.
+# A module directly in the folder (not in a room) is its own room, "" here, above all of them.
+# solvers: what knows no robot, then geometry, then what fits it (kinematic identification and
+# tool frames side by side), fixtures on identification, the analysis on all of those, and
+# compensation of what the analysis adds. routines: the framework never knows a routine.
+ROOMS = {
+    "solvers": {
+        "estimation": set(),
+        "geometry": {"estimation"},
+        "identification": {"estimation", "geometry"},
+        "tool_frames": {"estimation", "geometry"},
+        "fixtures": {"estimation", "geometry", "identification"},
+        "analysis": {"estimation", "geometry", "identification", "fixtures"},
+        "compensation": {"estimation", "geometry", "identification", "analysis"},
+    },
+    "routines": {
+        "framework": set(),
+        "": {"framework"},
+    },
+}
+
 
 def modules():
     for folder in FOLDERS:
@@ -71,11 +92,26 @@ def imported(path: Path, folder: str):
                     yield parts[1], parts[2:], node.lineno
 
 
+def room(folder: str, inside: list[str]) -> str:
+    """The room of a module at `inside` (its path below the folder, as parts); "" for none."""
+    rooms = ROOMS.get(folder, {})
+    return inside[0] if len(inside) > 1 and inside[0] in rooms else ""
+
+
 def violations():
     for folder, path in modules():
         where = path.relative_to(ROOT)
         for target, rest, line in imported(path, folder):
             if target == folder:
+                if folder in ROOMS:
+                    mine = room(folder, list(path.relative_to(ROOT / folder).parts))
+                    if mine not in ROOMS[folder]:
+                        yield f"{where}:{line}: a module of {folder}/ outside its rooms ({sorted(ROOMS[folder])})"
+                        continue
+                    theirs = room(folder, rest + ["x"]) if rest else ""
+                    if theirs != mine and theirs not in ROOMS[folder][mine]:
+                        yield (f"{where}:{line}: {folder}/{mine or '.'} imports {folder}/{theirs or '.'} "
+                               f"(allowed: {sorted(ROOMS[folder][mine]) or 'nothing'})")
                 continue
             if target not in ALLOWED[folder]:
                 yield f"{where}:{line}: {folder} imports {target} (allowed: {sorted(ALLOWED[folder]) or 'nothing'})"
@@ -98,7 +134,7 @@ def test_the_layer_test_sees_imports_of_every_kind(tmp_path, monkeypatch):
     for folder in FOLDERS:
         (fake_root / folder).mkdir()
     (fake_root / "solvers" / "a.py").write_text("def f():\n    from ..daemon import cli\n")
-    (fake_root / "drivers" / "b.py").write_text("import cellcal.solvers.se3\n")
+    (fake_root / "drivers" / "b.py").write_text("import cellcal.solvers.geometry.se3\n")
     (fake_root / "daemon" / "cells.py").write_text("from cellcal.sims.inproc.world import SimWorld\n")
     (fake_root / "cli" / "run.py").write_text("from cellcal.sims.net.cell import SimCell\n")
     (fake_root / "cli" / "sim").mkdir()
@@ -111,6 +147,38 @@ def test_the_layer_test_sees_imports_of_every_kind(tmp_path, monkeypatch):
     for needle in ("solvers imports daemon", "drivers imports solvers", "daemon imports sims",
                    "command line imports sims outside", "drivers.ur.robot"):
         assert any(needle in f for f in found), (needle, found)
+
+
+def test_the_layer_test_sees_a_wrong_arrow_between_the_rooms_of_a_folder(tmp_path, monkeypatch):
+    """Plant, for every room, an import of each room above it (or beside it), and see each caught;
+    the allowed arrows of the same files stay quiet."""
+    for folder in FOLDERS:
+        (tmp_path / folder).mkdir()
+    planted = []
+    for folder, rooms in ROOMS.items():
+        for mine, allowed in rooms.items():
+            here = tmp_path / folder / mine if mine else tmp_path / folder
+            here.mkdir(exist_ok=True)
+            lines = []
+            for theirs in rooms:
+                if theirs == mine:
+                    continue
+                module = f"cellcal.{folder}.{theirs}.m" if theirs else f"cellcal.{folder}.m"
+                lines.append(f"import {module}")
+                if theirs not in allowed:
+                    planted.append(f"{folder}/{mine or '.'} imports {folder}/{theirs or '.'}")
+            (here / f"planted_{mine or 'top'}.py").write_text("\n".join(lines) + "\n")
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    found = list(violations())
+    assert len(found) == len(planted), found
+    for needle in planted:
+        assert any(needle in f for f in found), (needle, found)
+
+
+def test_every_room_named_exists_and_every_sub_package_is_a_room():
+    for folder, rooms in ROOMS.items():
+        packages = {p.parent.name for p in (ROOT / folder).glob("*/__init__.py")}
+        assert packages == {r for r in rooms if r}, (folder, packages)
 
 
 @pytest.mark.parametrize("folder", FOLDERS)

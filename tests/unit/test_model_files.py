@@ -10,9 +10,9 @@ from cellcal.config.robot_files import ModelError, load_robot
 from cellcal.cli.main import main
 from cellcal.sims.physics.physical_arm import HiddenEffect, PhysicalArm
 from cellcal.sims.physics.workspace import full_workspace
-from cellcal.solvers.analyze import AnalyzeOptions, analyze
-from cellcal.solvers.calibrated_model import CalibratedModel, Effect, from_fit
-from cellcal.solvers.effects import Context, approach_directions
+from cellcal.solvers.analysis.analyze import AnalyzeOptions, analyze
+from cellcal.solvers.compensation.calibrated_model import CalibratedModel, Effect, from_fit
+from cellcal.solvers.analysis.effects import Context, approach_directions
 
 PROVENANCE = {"written_by": "cellcal test", "date_utc": "2026-01-01T00:00:00Z"}
 

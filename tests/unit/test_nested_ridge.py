@@ -4,7 +4,7 @@ training rows barely see some directions, and costs nothing where they see every
 inner score the baseline's variant is chosen by for each fold (``FoldFactors.inner_sse``)."""
 import numpy as np
 
-from cellcal.solvers import crossval
+from cellcal.solvers.estimation import crossval
 
 NOISE_MEAN = np.sqrt(8.0 / np.pi)  # mean length of 3-D noise of standard deviation 1 per coordinate
 

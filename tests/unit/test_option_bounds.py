@@ -127,7 +127,7 @@ def test_a_daemon_given_a_negative_poll_interval_never_starts(tmp_path):
 @pytest.fixture
 def nothing_moves(monkeypatch):
     """runner.measure replaced by a tripwire: a test that uses this fails if any motion is started."""
-    from cellcal.routines import runner
+    from cellcal.routines.framework import runner
 
     calls = []
     monkeypatch.setattr(runner, "measure", lambda *a, **k: calls.append(a) or pytest.fail("the arm was moved"))
@@ -320,7 +320,7 @@ def test_run_from_a_dataset_keeps_nan_where_the_routine_allows_it(recorded, caps
 def store_with(recorded, tmp_path):
     """A store in which run 1 recorded a copy of the dataset (path and sha256, as the daemon records)."""
     from cellcal.daemon.store import Store
-    from cellcal.routines import runner
+    from cellcal.routines.framework import runner
     from cellcal.daemon.cells import load_cell
 
     dataset = tmp_path / "datasets" / recorded.name
@@ -370,7 +370,7 @@ def test_run_from_never_makes_a_store(recorded, tmp_path, capsys):
 @pytest.fixture(scope="module")
 def far_stylus(tmp_path_factory) -> Path:
     """The sim cell with its stylus out of the arm's reach (1.2 m out, at the edge of a UR10e's 1.3 m)."""
-    from cell_edits import edited_cell  # tests/cell_edits.py
+    from support.cell_edits import edited_cell  # tests/support/cell_edits.py
 
     return edited_cell(tmp_path_factory.mktemp("far"), "sim", {"stylus": {"centre_m": [-1.15, -0.4, 0.4]}})
 
@@ -383,7 +383,7 @@ def test_a_stylus_out_of_reach_is_a_refused_plan_for_both_routines(far_stylus, r
 
 
 def test_a_routine_whose_driver_the_cell_lacks_is_refused_as_input(tmp_path, capsys):
-    from cell_edits import DELETE, edited_cell
+    from support.cell_edits import DELETE, edited_cell
 
     cell = edited_cell(tmp_path, "sim", {"drivers": {"tracker": DELETE}})
     assert main(["run", "tracker", "--cell", str(cell), "--dry-run"]) == 2
@@ -419,7 +419,7 @@ def _iso_rows(tmp_path: Path, change=None, cycles: int = 4) -> Path:
 
     from cellcal.config.robot_files import load_robot
     from cellcal.measurements.table import write_measurements
-    from cellcal.solvers.chain import forward
+    from cellcal.solvers.geometry.chain import forward
 
     model = load_robot("ur5e")
     q5 = np.deg2rad([[0, -90, 90, -90, -90, 0], [10, -80, 80, -90, -90, 0], [20, -100, 95, -85, -90, 0],

@@ -7,7 +7,7 @@ import pytest
 from cellcal.daemon import outcome
 from cellcal.drivers.modbus.panel import ModbusPanel, PanelMap
 from cellcal.drivers.registry import DriverConfigError
-from cellcal.routines import tool_frame
+from cellcal.routines.framework import tool_frame
 
 
 def test_a_change_round_trips_in_thousandths_signed_and_saturated():

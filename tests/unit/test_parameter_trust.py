@@ -17,10 +17,10 @@ from cellcal.config.robot_files import load_robot
 from cellcal.reports.identification import identification_json, identification_text
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.sims.physics.workspace import full_workspace
-from cellcal.solvers import se3
-from cellcal.solvers.chain import forward
-from cellcal.solvers.identify import IdentifyOptions, identify
-from cellcal.solvers.measurement_model import predict
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.geometry.chain import forward
+from cellcal.solvers.identification.identify import IdentifyOptions, identify
+from cellcal.solvers.identification.measurement_model import predict
 
 OPTIONS = IdentifyOptions()
 MAX_STD = {False: OPTIONS.max_std_mm, True: np.deg2rad(OPTIONS.max_std_deg)}

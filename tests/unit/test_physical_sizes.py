@@ -4,10 +4,10 @@ import pytest
 
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.physical_arm import HiddenEffect
-from cellcal.solvers.analyze import AnalyzeOptions, _fit_in_full, analyze
-from cellcal.solvers.effects import CAUSES
-from cellcal.solvers.physical_sizes import DETERMINED_SIGMAS, place_sizes
-from hidden_cases import make_case
+from cellcal.solvers.analysis.analyze import AnalyzeOptions, _fit_in_full, analyze
+from cellcal.solvers.analysis.effects import CAUSES
+from cellcal.solvers.analysis.physical_sizes import DETERMINED_SIGMAS, place_sizes
+from support.hidden_cases import make_case
 
 
 @pytest.fixture(scope="module")
@@ -87,10 +87,10 @@ def test_places_that_trade_are_grouped_and_the_group_is_right():
 def test_mount_columns_are_the_whole_robot_turned_about_a_horizontal_axis():
     """A tree on an elastic mount: each column is the targets' motion when the robot turns about a
     horizontal axis through its base, scaled by a link point's gravity moment about that axis."""
-    from cellcal.solvers import se3
-    from cellcal.solvers.effects.elastic_mount import horizontal_axes, mount_columns
-    from cellcal.solvers.gravity import tree_sites
-    from cellcal.solvers.measurement_model import Layout, Observations, predict
+    from cellcal.solvers.geometry import se3
+    from cellcal.solvers.analysis.effects.elastic_mount import horizontal_axes, mount_columns
+    from cellcal.solvers.geometry.gravity import tree_sites
+    from cellcal.solvers.identification.measurement_model import Layout, Observations, predict
 
     model = load_robot("agile-justin")
     layout = Layout(model, ("right", "left"))

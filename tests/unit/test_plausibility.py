@@ -12,13 +12,13 @@ from cellcal.config.robot_files import load_robot
 from cellcal.measurements.table import write_measurements
 from cellcal.sims.physics.physical_arm import HiddenEffect
 from cellcal.sims.physics.workspace import full_workspace
-from cellcal.solvers import plausibility
-from cellcal.solvers.analyze import GROUNDS, name_cause
-from cellcal.solvers.effects import CAUSES
+from cellcal.solvers.analysis import plausibility
+from cellcal.solvers.analysis.analyze import GROUNDS, name_cause
+from cellcal.solvers.analysis.effects import CAUSES
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from hidden_cases import _arm  # noqa: E402  (tests/hidden_cases.py: a fixture)
-from naming_stubs import BASELINE, StubScorer, scored  # noqa: E402
+from support.hidden_cases import _arm  # noqa: E402  (tests/support/hidden_cases.py: a fixture)
+from support.naming_stubs import BASELINE, StubScorer, scored  # noqa: E402
 from test_docs import table_under  # noqa: E402
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"

@@ -1,6 +1,6 @@
-"""analyze on point-form data (solvers/point_analysis.py, cellcal analyze --fixture): the fixture
+"""analyze on point-form data (solvers/analysis/point_analysis.py, cellcal analyze --fixture): the fixture
 calibration as the baseline, every point refit in each fold, contacts scored along the ball's normal.
-Effects hidden in socket and contact data generated from an arm with hidden geometry (tests/point_data.py)."""
+Effects hidden in socket and contact data generated from an arm with hidden geometry (tests/support/point_data.py)."""
 from __future__ import annotations
 
 import json
@@ -8,13 +8,13 @@ import json
 import numpy as np
 import pytest
 
-from cli_run import refused, run_cli  # tests/cli_run.py
-from point_data import plate_placements, seat, write  # tests/point_data.py
+from support.cli_run import refused, run_cli  # tests/support/cli_run.py
+from support.point_data import plate_placements, seat, write  # tests/support/point_data.py
 
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
-from cellcal.solvers import point_analysis
-from cellcal.solvers.fixture_identify import FixtureOptions, PointData, identify_points
+from cellcal.solvers.analysis import point_analysis
+from cellcal.solvers.fixtures.fixture_identify import FixtureOptions, PointData, identify_points
 
 UR10E = load_robot("ur10e")
 BAR_MM = 200.0

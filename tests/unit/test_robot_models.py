@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cellcal.config.robot_files import load_robot, shipped_robots
-from cellcal.solvers.chain import forward
+from cellcal.solvers.geometry.chain import forward
 from cellcal.config.robot_files import ModelError, model_from_mapping
 
 REQUIRED_SHIPPED = {"ur5e", "ur10e", "abb-irb4600", "elite-ec66", "puma560", "epson-c4-a901s"}

@@ -11,13 +11,13 @@ import pytest
 from cellcal.config.robot_files import load_robot
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.drivers.interfaces import DeviceError
-from cellcal.routines import registry, runner
-from cellcal.routines.base import Move, PlanRefused
-from cellcal.routines.guard import ArmState, GuardedRobot, MotionGuard
-from cellcal.routines.records import Dataset, read_dataset
+from cellcal.routines.framework import registry, runner
+from cellcal.routines.framework.base import Move, PlanRefused
+from cellcal.routines.framework.guard import ArmState, GuardedRobot, MotionGuard
+from cellcal.routines.framework.records import Dataset, read_dataset
 from cellcal.measurements.table import DatasetError
-from cellcal.solvers.inverse import tcp_poses
-from routine_checks import RecordingRobot, within_limits  # tests/routine_checks.py
+from cellcal.solvers.geometry.inverse import tcp_poses
+from support.routine_checks import RecordingRobot, within_limits  # tests/support/routine_checks.py
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +35,7 @@ def home_state(cell) -> ArmState:
 
 
 def home_tcp(cell, guard) -> np.ndarray:
-    return home_state(cell).tcp(guard.model)
+    return home_state(cell).tcp_pose(guard.model)
 
 
 @pytest.mark.parametrize("make_move, needles", [

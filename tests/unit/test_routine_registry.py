@@ -12,14 +12,14 @@ from types import SimpleNamespace
 
 import pytest
 
-from cell_edits import edited_cell
+from support.cell_edits import edited_cell
 from cellcal.config.cells import CellFileError
 from cellcal.daemon.cells import load_cell
 from cellcal.daemon.service import Service, panel_routines
 from cellcal.drivers.interfaces import RobotState
-from cellcal.routines import registry
-from cellcal.routines.base import Design, Routine, RoutineError
-from cellcal.routines.registry import RoutineDeclarationError
+from cellcal.routines.framework import registry
+from cellcal.routines.framework.base import PlanPromise, Routine, RoutineError
+from cellcal.routines.framework.registry import RoutineDeclarationError
 
 # the operator panel's routine selector (docs/panel.md), as it has always been
 PANEL = {1: "tcp-laser", 2: "tcp-stylus", 3: "tcp-npoint", 4: "handshake", 5: "tracker", 6: "tcf",
@@ -155,7 +155,7 @@ def test_an_incomplete_or_impossible_declaration_is_refused(declared, needle):
 
 
 def test_the_registry_imports_no_routine_until_it_is_asked():
-    code = ("import sys, json\nfrom cellcal.routines import registry\n"
+    code = ("import sys, json\nfrom cellcal.routines.framework import registry\n"
             "before = set(sys.modules)\n"
             "names = registry.available()\n"
             "homes = sorted({registry.routine_class(n).__module__ for n in names})\n"
@@ -175,7 +175,7 @@ def _camel(name: str) -> str:
 def test_every_routine_names_its_options_and_gives_one_kind_of_design(name):
     cls = registry.routine_class(name)
     assert typing.get_type_hints(cls.read_options)["return"].__name__ == f"{_camel(name)}Options"
-    assert typing.get_type_hints(cls.design)["return"] in (Design, Design | None)
+    assert typing.get_type_hints(cls.design)["return"] in (PlanPromise, PlanPromise | None)
 
 
 @pytest.mark.parametrize("name, cell_name, unit", [("tcp-npoint", "sim", "mm"), ("tcf", "sim", "deg"),
@@ -184,5 +184,5 @@ def test_a_design_judged_before_moving_has_the_same_shape_in_every_routine(name,
     cell = load_cell(cell_name)
     routine = registry.routine_class(name)(cell, registry.read_options(name, cell))
     design = routine.check_design()
-    assert isinstance(design, Design) and design.unit == unit
+    assert isinstance(design, PlanPromise) and design.unit == unit
     assert 0 < design.expected_error and 1 <= design.condition < 1e3

@@ -13,7 +13,7 @@ import pytest
 
 from cellcal.cli import service
 from cellcal.cli.main import main
-from cell_edits import edited_cell
+from support.cell_edits import edited_cell
 from cellcal.config.cells import shipped_cells
 
 UNIT = Path("etc/systemd/system/cellcal.service")

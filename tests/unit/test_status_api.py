@@ -17,7 +17,7 @@ from cellcal.cli.runs import _run_summary, _written_back
 from cellcal.daemon import status_api
 from cellcal.daemon.service import ResultCode
 from cellcal.daemon.store import Store, StoreError
-from cellcal.routines.base import Gate, Parameter, Result
+from cellcal.routines.framework.base import Gate, Parameter, Result
 
 FRAME_A = [0.0004, -0.0003, 0.1496, 0.004, -0.003, 0.0]
 FRAME_B = [0.0006, -0.0003, 0.1496, 0.004, -0.003, 0.0]  # tip 0.2 mm along x from FRAME_A

@@ -29,7 +29,7 @@ from cellcal.config.cells import shipped_cells
 from cellcal.daemon.claims import Device, DeviceClaim, FolderLock, InUseError, devices
 from cellcal.daemon.cells import load_cell
 from cellcal.daemon.store import Store, StoreError, check_state_folder
-from cli_run import one_message, run_cli  # tests/cli_run.py
+from support.cli_run import one_message, run_cli  # tests/support/cli_run.py
 
 NOBODY = 65534  # the unprivileged user the root-only case becomes
 

@@ -24,8 +24,8 @@ import pytest
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import MIGRATIONS, SCHEMA_VERSION, STORE_FILE, Store
-from cell_edits import DELETE, edited_cell  # tests/cell_edits.py
-from cli_run import one_message, run_cli  # tests/cli_run.py
+from support.cell_edits import DELETE, edited_cell  # tests/support/cell_edits.py
+from support.cli_run import one_message, run_cli  # tests/support/cli_run.py
 
 PIN = {"id": 1, "name": "pin", "tcp_m": [0.0, 0.0, 0.150], "axis": [0.0, 0.0, 1.0], "radius_m": 0.003,
        "length_m": 0.1}
@@ -266,7 +266,7 @@ def test_rollbacks_walk_back_each_tools_history_on_its_own(two_tool_store, tmp_p
 
 def test_the_run_report_names_the_tool(tmp_path):
     from cellcal.reports.run import write_run_report
-    from cellcal.routines.base import Gate, Parameter, Result
+    from cellcal.routines.framework.base import Gate, Parameter, Result
 
     result = Result("tcp-check", [Parameter("tcp_z_mm", 170.1, 0.01, "mm")], np.zeros(4), 0.01, 1.0,
                     [Gate("residual", True, 0.01, 0.02, "within the noise")], tool_frame=np.array(TORCH_FRAMES[1]))

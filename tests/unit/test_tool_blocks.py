@@ -23,7 +23,7 @@ from cellcal.daemon.write_back import (no_block_note, read_frames, stored_json, 
                                        write_back)
 from cellcal.drivers.interfaces import DeviceError, StoredToolFrame
 from cellcal.sims.inproc.devices import SimRobot
-from cell_edits import DELETE, edited_cell  # tests/cell_edits.py
+from support.cell_edits import DELETE, edited_cell  # tests/support/cell_edits.py
 
 PIN = {"id": 1, "name": "pin", "tcp_m": [0.0, 0.0, 0.150], "axis": [0.0, 0.0, 1.0], "radius_m": 0.003,
        "length_m": 0.1}
@@ -72,7 +72,7 @@ def test_two_tools_frames_go_to_two_blocks_and_each_reads_back_exactly(tmp_path)
     assert StoredToolFrame(FRAME_1, 11).same_as(read_frames(robot, 0).stored)  # exactly: doubles in, doubles out
     assert StoredToolFrame(FRAME_2, 12).same_as(read_frames(robot, 1).stored)
     assert all(b.same_as(NONE_STORED) for b in blocks(robot)[2:])  # the blocks of no tool untouched
-    np.testing.assert_array_equal(robot.tcp(), FRAME_2)  # the running program has the last tool written
+    np.testing.assert_array_equal(robot.tool_frame(), FRAME_2)  # the running program has the last tool written
 
 
 def test_a_write_for_tool_2_leaves_tool_1s_block_alone_and_a_failed_one_restores_only_its_own(tmp_path):
@@ -94,7 +94,7 @@ def test_a_write_for_tool_2_leaves_tool_1s_block_alone_and_a_failed_one_restores
     assert failure is not None and "(block 1)" in failure and "old frame restored" in failure
     assert StoredToolFrame(FRAME_2, 4).same_as(robot.stored_tool_frame(1))  # its own old frame back
     assert StoredToolFrame(FRAME_1, 3).same_as(robot.stored_tool_frame(0))  # tool 1's never touched
-    np.testing.assert_array_equal(robot.tcp(), FRAME_2)
+    np.testing.assert_array_equal(robot.tool_frame(), FRAME_2)
 
 
 # -- the registers run out ---------------------------------------------------------------------------------------
@@ -105,7 +105,7 @@ def test_a_tool_beyond_the_robots_blocks_gets_the_running_frame_only_and_a_note(
     slot = tool_slot(cell, 7)
     before, written, failure = write_back(robot, FRAME_3, generation=9, slot=slot)
     assert failure is None and before.stored is None and written.stored is None and written.stored_json() is None
-    np.testing.assert_array_equal(robot.tcp(), FRAME_3)  # the running program has it
+    np.testing.assert_array_equal(robot.tool_frame(), FRAME_3)  # the running program has it
     assert all(b.same_as(NONE_STORED) for b in blocks(robot))  # no block written, tool 1's and 2's untouched
     note = no_block_note(robot, 7, slot)
     assert note == ("tool 7 has no register block on this robot (it would take block 4; blocks for 4 tools, as a "
@@ -123,7 +123,7 @@ def test_a_robot_that_keeps_no_stored_frame_gets_the_running_frame_and_no_note_p
     robot, cell = NoRegisters(), load_cell(table(tmp_path, [PIN, TORCH]))
     before, written, failure = write_back(robot, FRAME_2, generation=2, slot=tool_slot(cell, 2))
     assert failure is None and written.stored is None and before.stored is None
-    np.testing.assert_array_equal(robot.tcp(), FRAME_2)
+    np.testing.assert_array_equal(robot.tool_frame(), FRAME_2)
     assert no_block_note(robot, 2, 1) is None and tools_without_block(cell, robot) == []
 
 
@@ -167,7 +167,7 @@ def test_the_service_writes_the_mounted_tools_block_and_says_when_a_tool_has_non
         service = _service(gripper, drivers, tmp_path / "g")
         outcome = service.run("tcp-npoint")
         assert (outcome.state, outcome.code) == ("done", ResultCode.OK), outcome.reason  # never an error
-        np.testing.assert_array_equal(drivers.robot.tcp(), outcome.result.tool_frame)
+        np.testing.assert_array_equal(drivers.robot.tool_frame(), outcome.result.tool_frame)
         assert all(b.same_as(NONE_STORED) for b in blocks(drivers.robot))
         assert "tool 7 has no register block on this robot (it would take block 4" in outcome.reason
         assert service.store.run(outcome.run_id).reason == outcome.reason  # the store keeps the words too
@@ -211,7 +211,7 @@ def test_rollback_of_the_mounted_tool_restores_its_block_and_the_running_frame(t
     assert _rollback(tmp_path, monkeypatch, cell, robot) == 0
     assert StoredToolFrame(FRAME_2, last - 1).same_as(robot.stored_tool_frame(1))  # tool 2's block, as before
     assert StoredToolFrame(FRAME_1, last - 2).same_as(robot.stored_tool_frame(0))  # tool 1's untouched
-    np.testing.assert_array_equal(robot.tcp(), FRAME_2)  # tool 2 is on the flange: its running frame too
+    np.testing.assert_array_equal(robot.tool_frame(), FRAME_2)  # tool 2 is on the flange: its running frame too
     assert "generation" in capsys.readouterr().out
     store = Store.open(tmp_path / "state")
     row = store.tool_frames()[-1]
@@ -228,7 +228,7 @@ def test_rollback_of_a_tool_not_mounted_restores_only_its_block(tmp_path, monkey
     assert _rollback(tmp_path, monkeypatch, cell, robot) == 0
     assert StoredToolFrame(FRAME_2, last - 1).same_as(robot.stored_tool_frame(1))
     assert StoredToolFrame(FRAME_1, last - 2).same_as(robot.stored_tool_frame(0))
-    np.testing.assert_array_equal(robot.tcp(), FRAME_1)  # the mounted tool's frame left alone
+    np.testing.assert_array_equal(robot.tool_frame(), FRAME_1)  # the mounted tool's frame left alone
     assert "tool 2 is not mounted: only its block" in capsys.readouterr().err
     store = Store.open(tmp_path / "state")
     row = store.tool_frames()[-1]
@@ -263,7 +263,7 @@ def test_rollback_of_a_tool_not_mounted_whose_write_kept_no_block_changes_nothin
     robot.set_tcp(FRAME_1)
     with pytest.raises(tool_cmd.UsageError, match="tool 2 is not mounted and its write-back of run 1 kept no frame"):
         _rollback(tmp_path, monkeypatch, cell, robot)
-    np.testing.assert_array_equal(robot.tcp(), FRAME_1)
+    np.testing.assert_array_equal(robot.tool_frame(), FRAME_1)
     assert all(b.same_as(NONE_STORED) for b in blocks(robot))
 
 

@@ -14,7 +14,7 @@ from cellcal.config.robot_files import load_robot
 from cellcal.daemon.cells import load_cell
 from cellcal.sims.fake_ur.controller import FakeUrController
 from cellcal.sims.physics.truth import truth_of_cell
-from cell_edits import DELETE, edited_cell  # tests/cell_edits.py
+from support.cell_edits import DELETE, edited_cell  # tests/support/cell_edits.py
 
 PIN = {"id": 1, "name": "pin", "tcp_m": [0.0, 0.0, 0.150], "axis": [0.0, 0.0, 1.0], "radius_m": 0.003,
        "length_m": 0.1}

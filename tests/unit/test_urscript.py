@@ -18,11 +18,11 @@ from cellcal.programs.urscript import (DECIMALS, JOINTS, POSE, RUNTIME, ProgramE
                                        read_program, rewrite)
 from cellcal.sims.physics.physical_arm import PhysicalArm
 from cellcal.sims.physics.workspace import full_workspace
-from cellcal.solvers import compensate as solver
-from cellcal.solvers import se3
-from cellcal.solvers.calibrated_model import from_fit
-from cellcal.solvers.identify import IdentifyOptions, identify
-from cellcal.solvers.inverse import inverse, tcp_frames
+from cellcal.solvers.compensation import compensate as solver
+from cellcal.solvers.geometry import se3
+from cellcal.solvers.compensation.calibrated_model import from_fit
+from cellcal.solvers.identification.identify import IdentifyOptions, identify
+from cellcal.solvers.geometry.inverse import inverse, tcp_frames
 
 # -- the scanner ---------------------------------------------------------------------------------------------
 
@@ -213,7 +213,7 @@ def every_form_program(model, tool_mm: np.ndarray, seed: int = 3, blocks: int = 
 def drive(program, model, truth, default_tool_mm) -> np.ndarray:
     """Where the real robot's tool point ends at each literal target (instrument frame, mm): the
     controller turns a pose into joints with its nominal model, from the joints it is at, with the
-    tool of the set_tcp in force (independently of programs.apply: solvers.inverse, in metres)."""
+    tool of the set_tcp in force (independently of programs.apply: solvers.geometry.inverse, in metres)."""
     landed, previous = [], None
     for t in program.targets:
         if t.kind == RUNTIME:
@@ -229,7 +229,7 @@ def drive(program, model, truth, default_tool_mm) -> np.ndarray:
 def meant(program, model, truth, default_tool_mm) -> np.ndarray:
     """Where each literal target means the tool point to be, in the instrument frame: the TCP pose in the
     controller's base frame (a joint target's through the nominal model), placed by the truth's own
-    controller frame: the definition the compensation uses (solvers.compensate.controller_frame), applied
+    controller frame: the definition the compensation uses (solvers.compensation.compensate.controller_frame), applied
     to the true robot, its real tool point against the tool the controller computes with."""
     controller = solver.controller_frame(truth, model, offset_mm=truth.offsets[0], nominal_offset_mm=default_tool_mm)
     out = []
@@ -257,7 +257,7 @@ def test_compensated_with_the_true_model_the_program_lands_exactly(robot, monkey
     model, _, truth, _ = robot
     program = parse(every_form_program(model, truth.offsets[0], blocks=blocks), "prog.script")
     result = compensate_program(program, model, truth, default_tcp_mm=truth.offsets[0])
-    assert [o.status for o in result.outcomes].count("ok") == sum(t.kind != RUNTIME for t in program.targets)
+    assert [o.status for o in result.per_target].count("ok") == sum(t.kind != RUNTIME for t in program.targets)
     out = parse(rewrite(program.text, result.replacements))
     error = np.linalg.norm(drive(out, model, truth, truth.offsets[0]) - meant(program, model, truth, truth.offsets[0]),
                            axis=1)

@@ -1,0 +1,155 @@
+"""Held-out errors of geometry plus effect terms on the model linearised at the geometric
+fit: how ``analyze`` scores every candidate explanation, and how the tie rule and the
+discriminating design measure how far apart two explanations lie on the data."""
+from __future__ import annotations
+
+import numpy as np
+
+from cellcal.solvers.estimation import crossval, identifiability
+from cellcal.solvers.analysis.effects import Term
+from cellcal.solvers.analysis.extended_model import embed, norm_scale, param_columns, stack_param_bases
+from cellcal.solvers.identification.identify import Identification
+from cellcal.solvers.identification.measurement_model import Layout, Observations, jacobian_chunks
+from cellcal.solvers.analysis.robust_scoring import LINEAR, RobustScoring
+
+NESTED_RTOL = 0.02  # one term's columns lie in another's span to this relative residual (2%)
+
+
+class LinearisedScorer:
+    """Held-out errors of geometry plus effect terms, one Gauss-Newton step from the geometric fit.
+
+    A term's parameters enter only where this data can separate them from the
+    geometry. The Jacobian columns of the geometry and of every term are computed a
+    block of rows at a time and kept only as one R factor per fold (with the baseline
+    residuals as last column): every candidate's identifiability analysis and fold
+    steps come from these small factors, and the held-out errors of many candidates
+    take one more pass over the rows together.
+    """
+
+    def __init__(self, model, geometric_fit: Identification, obs: Observations, folds: np.ndarray,
+                 prior_mm: float, terms=(), robust: RobustScoring = LINEAR):
+        self.model, self.geometric_fit, self.obs, self.folds, self.prior_mm = model, geometric_fit, obs, folds, prior_mm
+        self.robust = robust
+        self.baseline_residuals_mm = geometric_fit.residuals_mm
+        # the geometry's columns: its free parameters, and with point-form data each point's position
+        self.n_geometry = int(geometric_fit.free.sum()) + getattr(geometric_fit, "n_point_columns", 0)
+        self.terms = list(terms)
+        self._at: dict[int, slice] = {}
+        col = self.n_geometry
+        for t in self.terms:
+            self._at[id(t)] = slice(col, col + t.size)
+            col += t.size
+        self.n_columns = col
+        self._structural: dict[int, np.ndarray] = {}  # columns of terms that change the rigid model, (N, 3, m)
+        self.factors = crossval.FoldFactors(folds, col)
+        for rows, j in self._columns():
+            self.factors.add(rows, *robust.weighted(rows, j, self.baseline_residuals_mm[rows]))
+        self.r = self.factors.r_all()[:col, :col]  # R factor of all columns, all rows
+        self.scale = norm_scale(np.linalg.norm(self.r, axis=0), len(obs))
+
+    def _columns(self):
+        """(rows, [geometry | every term] columns (n, 3, n_columns)) over all rows in blocks."""
+        fit, obs = self.geometric_fit, self.obs
+        n_free = int(fit.free.sum())
+        points = getattr(fit, "point_columns", None)  # point-form data: point_analysis.PointGeometry
+        for rows, _, jx, jq in jacobian_chunks(fit.layout, fit.x, obs, with_joints=True):
+            out = np.empty((len(jx), 3, self.n_columns))
+            out[:, :, :n_free] = jx[:, :, fit.free]
+            if points is not None:  # each point's position, estimated with the geometry in every fold
+                out[:, :, n_free: self.n_geometry] = points(rows)
+            for t in self.terms:
+                out[:, :, self._at[id(t)]] = self._term_columns(t, rows, jx, jq)
+            if points is not None:  # what the rows measure (a contact: the distance along the ball's normal)
+                out = fit.project(rows, out)
+            yield rows, out
+
+    def _term_columns(self, term: Term, rows, jacobian_x, jacobian_q) -> np.ndarray:
+        """d p / d theta of a term at the geometric fit, for these rows (n, 3, m)."""
+        return term_columns(self.model, self.geometric_fit, self.obs, term, rows, jacobian_x, jacobian_q,
+                            self._structural)
+
+    def term_estimated(self, term: Term) -> np.ndarray:
+        """Indices, among the term's own parameters, of those these data separate from the geometry."""
+        return np.flatnonzero(np.isin(self._term_cols(term), self.estimated((term,))[self.n_geometry:]))
+
+    def _term_cols(self, term: Term) -> np.ndarray:
+        """Columns of a term, or of the scored parts it was composed of."""
+        return np.concatenate([np.arange(self.n_columns)[self._at[id(t)]]
+                               for t in term.extra.get("parts", (term,))]).astype(int)
+
+    def _cols(self, terms: tuple[Term, ...]) -> np.ndarray:
+        return np.concatenate([np.arange(self.n_geometry)] + [self._term_cols(t) for t in terms]).astype(int)
+
+    def estimated(self, terms: tuple[Term, ...]) -> np.ndarray:
+        """Columns (into all columns) of geometry and of the terms' parameters this data separates from it."""
+        cols = self._cols(terms)
+        r = np.linalg.qr(self.r[:, cols], mode="r")  # R factor of these columns alone
+        geometry = np.arange(len(cols)) < self.n_geometry
+        keep = identifiability.analyse(r / self.scale[cols], geometry, ~geometry, noise_mm=None,
+                                       prior_mm=self.prior_mm, with_condition=False, n_rows=3 * len(self.obs)).keep
+        keep[geometry] = True
+        return cols[keep]
+
+    def heldout_errors_many(self, term_sets) -> np.ndarray:
+        """(len(term_sets), N) held-out error of each measurement, for each set of terms with geometry."""
+        steps = np.concatenate([self.factors.steps(self.estimated(tuple(ts))) for ts in term_sets])
+        return crossval.heldout_errors(self._columns(), self.baseline_residuals_mm, self.factors, steps)
+
+    def steps(self, terms: tuple[Term, ...]) -> np.ndarray:
+        """(1, folds, p) each fold's step with geometry and these terms, for ``heldout_errors_of_steps``."""
+        return self.factors.steps(self.estimated(tuple(terms)))
+
+    def heldout_errors_of_steps(self, steps: np.ndarray) -> np.ndarray:
+        """(len(steps), N) held-out error of each measurement for each set of fold steps (folds, p)."""
+        return crossval.heldout_errors(self._columns(), self.baseline_residuals_mm, self.factors, steps)
+
+    def mean_mm(self, errors: np.ndarray) -> np.ndarray:
+        """Held-out score of errors along the last axis (``RobustScoring.mean_mm``)."""
+        return self.robust.mean_mm(errors)
+
+    def heldout_errors_mm(self, terms: tuple[Term, ...]) -> np.ndarray:
+        """(N,) held-out error of each measurement with geometry and these terms."""
+        return self.heldout_errors_many([terms])[0]
+
+    def separation_mm2(self, fitted: Term, refitted: Term) -> float:
+        """Residual sum of squares (mm^2) left on these data when geometry + `refitted` is fitted to
+        what geometry + `fitted`, fitted to the data, predicts: how far apart the data put the two
+        explanations (the T-criterion of the design already measured). Computed in the space of the
+        R factor of [columns | residuals], which keeps every inner product of those vectors."""
+        full = self.factors.r_all()
+        fitted_cols, refitted_cols = full[:, self.estimated((fitted,))], full[:, self.estimated((refitted,))]
+        predicted = fitted_cols @ np.linalg.lstsq(fitted_cols, full[:, self.n_columns], rcond=None)[0]
+        miss = predicted - refitted_cols @ np.linalg.lstsq(refitted_cols, predicted, rcond=None)[0]
+        return float(miss @ miss)
+
+    def is_nested(self, inner: Term, outer: Term) -> bool:
+        """Does geometry + outer span every column of inner? (Then outer explains nothing
+        that inner cannot, wherever the two tie.)"""
+        a = self.r[:, self._cols((outer,))]
+        b = self.r[:, self._term_cols(inner)]
+        coef = np.linalg.lstsq(a, b, rcond=None)[0]
+        return bool(np.linalg.norm(a @ coef - b) <= NESTED_RTOL * np.linalg.norm(b))
+
+
+def term_columns(model, fit: Identification, obs: Observations, term: Term, rows, jacobian_x, jacobian_q,
+                 structural: dict) -> np.ndarray:
+    """d p / d theta of a term at the fit, for these rows of obs (n, 3, m). A term that changes the
+    rigid model has its columns computed once over all rows and kept in `structural`."""
+    if term.model is not None:  # one new rigid parameter: its Jacobian column in the new layout
+        if id(term) not in structural:
+            layout = Layout(term.model, obs.target_names)
+            x = embed(fit.x, fit.layout.n_kin, term.model.n_params - model.n_params)
+            columns = np.empty((len(obs), 3, term.size))
+            for block, _, j in jacobian_chunks(layout, x, obs):
+                columns[block] = j[:, :, model.n_params: term.model.n_params]
+            structural[id(term)] = columns
+        return structural[id(term)][rows]
+    columns = np.zeros((len(jacobian_x), 3, term.size))
+    if term.joint_basis is not None:
+        columns += term.joint_basis[rows].columns(jacobian_q)
+    if term.cart_basis is not None:
+        columns += term.cart_basis[rows]
+    if term.param_basis:
+        params, basis = stack_param_bases(term.param_basis)
+        columns += param_columns(jacobian_x, (params, basis[rows]))
+    return columns

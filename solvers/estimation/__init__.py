@@ -1,0 +1,1 @@
+"""Estimation that knows no robot: least squares in chunks, fit results, identifiability, grouped cross-validation."""

@@ -1,0 +1,399 @@
+"""Grouped k-fold cross-validation on a linearised model.
+
+Rows measured at the same or at neighbouring joint configurations carry nearly
+the same information, so they go into one fold: held-out data must be data the
+fit has not effectively seen. Each fold's estimate is one Gauss-Newton step from
+a fit to all rows, using only the fold's training rows; near a least-squares
+minimum (and the kinematics is very nearly linear over calibration-sized
+changes) that step is the fold's own solution to second order.
+
+Data logged along a path (a tracker sampling a robot program: consecutive rows a
+degree or so apart) chain into one neighbour group. Such data (the largest group holds
+more than one fold's share of the rows) are cut into blocks along the row order instead,
+whole blocks to a fold, and the rows of other folds that lie within the neighbour radius
+of a fold's rows are left out of that fold's training (``FoldIds.exclude``): the gap a
+neighbour needs, so the held-out block is data the fit has not effectively seen.
+
+The Jacobian is never needed whole: per-fold R factors (``FoldFactors``) give every
+fold's normal equations, and the held-out errors take one more pass over its rows.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from cellcal.solvers.estimation.lsq import RFactor, chunks, stacked_r
+
+
+NEIGHBOUR_RAD = np.deg2rad(2.0)  # configurations this close carry nearly the same information: one fold
+
+
+def groups(q: np.ndarray, radius_rad: float = 0.0) -> np.ndarray:
+    """Group id per row: rows within radius_rad (max over joints) of each other are linked.
+
+    Ids are numbered in order of each group's first row. The links are found a block of
+    rows at a time and merged into the groups found so far, so a log that lingers at one
+    configuration (thousands of rows within the radius) never holds all its pairs at once.
+    """
+    q = np.asarray(q, dtype=float)
+    if radius_rad <= 0:
+        _, ids = np.unique(np.round(q, 6), axis=0, return_inverse=True)
+        return np.asarray(ids).ravel()
+    n = len(q)
+    tree = cKDTree(q)
+    label = np.arange(n)  # a row of each group stands for it; merged block by block
+    for block in chunks(n, GROUP_BLOCK_ROWS):
+        rows = tree.indices[block]  # in the tree's order: each block is a compact region
+        pairs = cKDTree(q[rows]).sparse_distance_matrix(tree, radius_rad, p=np.inf, output_type="ndarray")
+        a, b = label[rows[pairs["i"]]], label[pairs["j"]]
+        linked = a != b
+        if linked.any():
+            graph = coo_matrix((np.ones(int(linked.sum())), (a[linked], b[linked])), shape=(n, n))
+            label = connected_components(graph, directed=False)[1][label]
+    _, first, inverse = np.unique(label, return_index=True, return_inverse=True)
+    return np.argsort(np.argsort(first))[inverse.ravel()]
+
+
+GROUP_BLOCK_ROWS = 2048
+
+
+PATH_BLOCKS_PER_FOLD = 10  # path-ordered data: blocks along the row order per fold
+SUBFOLDS = 2  # each fold's groups dealt into this many sub-folds: the inner folds of a nested selection
+
+
+class FoldIds(np.ndarray):
+    """Fold of each row (an int array), with the rows each fold's training leaves out beside its
+    own: ``exclude[k]`` (row indices, k indexing the sorted fold ids) or None when there are none.
+    Indexing or arithmetic gives plain fold ids without exclusions."""
+
+    exclude: tuple[np.ndarray, ...] | None = None
+    sub: np.ndarray | None = None  # sub-fold of each row (whole groups), None for path-ordered data
+
+    def __array_finalize__(self, obj):
+        self.exclude = None
+        self.sub = None
+
+
+def fold_ids(q: np.ndarray, folds: int, seed: int = 0, radius_rad: float = 0.0) -> FoldIds:
+    """Fold of each row, whole groups at a time, folds of nearly equal group count.
+
+    When the neighbour groups chain most of the data together (the largest holds more than
+    1/folds of the rows: a path logged along a program), blocks of consecutive rows take the
+    place of groups and each fold's training leaves out the rows within radius_rad of it
+    (``path_fold_ids``)."""
+    q = np.asarray(q, dtype=float)
+    group = groups(q, radius_rad)
+    n_groups = int(group.max()) + 1
+    if radius_rad > 0 and np.bincount(group).max() * folds > len(q):
+        distinct = int(groups(q).max()) + 1
+        if distinct < folds:
+            raise ValueError(f"only {distinct} distinct configurations: too few for {folds}-fold cross-validation")
+        return path_fold_ids(q, folds, seed, radius_rad)
+    if n_groups < folds:
+        raise ValueError(f"only {n_groups} distinct configurations: too few for {folds}-fold cross-validation")
+    order = np.random.default_rng(seed).permutation(n_groups)
+    fold_of_group, sub_of_group = np.empty(n_groups, dtype=int), np.empty(n_groups, dtype=int)
+    fold_of_group[order] = np.arange(n_groups) % folds
+    sub_of_group[order] = (np.arange(n_groups) // folds) % SUBFOLDS
+    out = fold_of_group[group].view(FoldIds)
+    out.sub = sub_of_group[group]
+    return out
+
+
+def path_fold_ids(q: np.ndarray, folds: int, seed: int, radius_rad: float) -> FoldIds:
+    """Folds for rows in path order: PATH_BLOCKS_PER_FOLD blocks of consecutive rows per fold (fewer
+    when rows are few), whole blocks to a fold at random; each fold's training excludes the rows of
+    other folds within radius_rad (max over joints) of any of its rows."""
+    n = len(q)
+    n_blocks = max(folds, min(folds * PATH_BLOCKS_PER_FOLD, n // 2))
+    block = np.minimum(np.arange(n) * n_blocks // n, n_blocks - 1)
+    order = np.random.default_rng(seed).permutation(n_blocks)
+    fold_of_block = np.empty(n_blocks, dtype=int)
+    fold_of_block[order] = np.arange(n_blocks) % folds
+    out = fold_of_block[block].view(FoldIds)
+    exclude = []
+    for k in range(folds):
+        own = out == k
+        others = np.flatnonzero(~own)
+        dist, _ = cKDTree(q[own]).query(q[others], p=np.inf, distance_upper_bound=radius_rad)
+        exclude.append(others[dist <= radius_rad])
+        if 2 * len(exclude[-1]) > len(others):
+            raise ValueError(
+                f"the {n} configurations keep returning to the same places (more than half of the rows lie within "
+                f"{np.rad2deg(radius_rad):.0f} deg of a block held out for {folds}-fold cross-validation): too few "
+                f"configurations a fit has not seen to score it on; measure more distinct poses")
+    out.exclude = tuple(exclude)
+    return out
+
+
+class FoldFactors:
+    """The Jacobian J (3 rows per measurement, p columns) and residuals r of a linearised model,
+    kept as one R factor of [J | r] per fold, a block of rows at a time.
+
+    Everything the held-out steps need is in these (p + 1) x (p + 1) factors: the normal
+    equations of any fold's training rows over any subset of columns, and the R factor of
+    all rows (``r_all``) for the identifiability analysis.
+    """
+
+    def __init__(self, folds: np.ndarray, p: int):
+        exclude = getattr(folds, "exclude", None)  # FoldIds: rows each fold's training also leaves out
+        self.folds = np.asarray(folds)
+        self.ids, self.index = np.unique(self.folds, return_inverse=True)
+        self.index = self.index.ravel()
+        self.p = p
+        self._acc = [RFactor(p + 1) for _ in self.ids]
+        self._gap = None  # (folds, N) bool: rows left out of each fold's training beside its own
+        if exclude is not None and any(len(e) for e in exclude):
+            self._gap = np.zeros((len(self.ids), len(self.folds)), dtype=bool)
+            for k, rows in enumerate(exclude):
+                self._gap[k, rows] = True
+            self._gap_acc = [RFactor(p + 1) for _ in self.ids]
+            # the inner folds of a nested selection leave out the gaps of two folds at once: the rows
+            # of each (fold, which folds' training leaves them out) class kept apart (``inner``)
+            bits = (self._gap * (1 << np.arange(len(self.ids)))[:, None]).sum(0)
+            keys = self.index * (1 << len(self.ids)) + bits
+            self._classes = np.unique(keys[bits > 0])
+            self._class_of = np.full(len(self.folds), -1)
+            self._class_of[bits > 0] = np.searchsorted(self._classes, keys[bits > 0])
+            self._class_acc = [RFactor(p + 1) for _ in self._classes]
+        sub = getattr(folds, "sub", None)  # FoldIds: sub-folds, the inner folds of a nested selection
+        self._sub = None if sub is None or self._gap is not None else np.asarray(sub)
+        if self._sub is not None:
+            self._n_sub = int(self._sub.max()) + 1
+            self._sub_grams = np.zeros((len(self.ids), self._n_sub, p + 1, p + 1))
+        self._grams = None
+        self._all_grams = None
+
+    def add(self, rows, j: np.ndarray, r: np.ndarray) -> None:
+        """Rows (a slice or indices of the measurements): j (n, 3, p), r (n, 3)."""
+        n = len(r)
+        block = np.concatenate([np.reshape(j, (3 * n, self.p)), np.reshape(r, (3 * n, 1))], axis=1)
+        fold = np.repeat(self.index[rows], 3)
+        for k, acc in enumerate(self._acc):
+            acc.add(block[fold == k])
+        if self._gap is not None:
+            for k, acc in enumerate(self._gap_acc):
+                acc.add(block[np.repeat(self._gap[k, rows], 3)])
+            cls = np.repeat(self._class_of[rows], 3)
+            for c in np.unique(cls[cls >= 0]):
+                self._class_acc[c].add(block[cls == c])
+        if self._sub is not None:
+            sub = np.repeat(self._sub[rows], 3)
+            for k in np.unique(fold):
+                for s in range(self._n_sub):
+                    mine = block[(fold == k) & (sub == s)]
+                    self._sub_grams[k, s] += mine.T @ mine
+        self._grams = None
+        self._all_grams = None
+
+    @property
+    def factors(self) -> list[np.ndarray]:
+        return [acc.r for acc in self._acc]
+
+    def r_all(self) -> np.ndarray:
+        """R factor of [J | r] over every row."""
+        return stacked_r(self.factors)
+
+    def training(self, k: int):
+        """Normal matrix J^T J and J^T r of every row outside fold k (k indexes self.ids) and outside
+        its gap (the rows of other folds too close to it, path-ordered data)."""
+        if self._grams is None:  # every fold's training Gram matrix, once: the total less the fold's own
+            grams = [f.T @ f for f in self.factors]
+            total = np.sum(grams, axis=0)
+            self._grams = [total - g for g in grams]
+            if self._gap is not None:
+                self._grams = [g - a.r.T @ a.r for g, a in zip(self._grams, self._gap_acc)]
+        g = self._grams[k]
+        return g[: self.p, : self.p], g[: self.p, self.p]
+
+    def _fold_grams(self):
+        """([J | r]^T [J | r] of each fold's rows], of every row, [of each gap class's rows])."""
+        if self._all_grams is None:
+            grams = [f.T @ f for f in self.factors]
+            classes = [a.r.T @ a.r for a in self._class_acc] if self._gap is not None else []
+            self._all_grams = (grams, np.sum(grams, axis=0), classes)
+        return self._all_grams
+
+    def outer(self) -> list:
+        """(training Gram, held-out Gram) of [J | r] for each fold: the cross-validation over every row,
+        in the form ``inner`` gives."""
+        grams, _, _ = self._fold_grams()
+        out = []
+        for k in range(len(self.ids)):
+            self.training(k)
+            out.append((self._grams[k], grams[k]))
+        return out
+
+    def inner_parts(self, k: int):
+        """(Gram of fold k's training rows, the sub-fold Grams (folds, sub-folds, p+1, p+1), the (fold,
+        sub-fold) pairs held out in turn): each inner training of ``inner`` is the first less one of the
+        second, without a copy of either; None for path-ordered data, whose inner trainings also leave
+        out gaps (use ``inner``)."""
+        if self._sub is None:
+            return None
+        grams, total, _ = self._fold_grams()
+        pairs = [(j, s) for j in range(len(self.ids)) if j != k for s in range(self._n_sub)
+                 if self._sub_grams[j, s].any()]
+        return total - grams[k], self._sub_grams, np.array(pairs, dtype=int).reshape(-1, 2)
+
+    def inner(self, k: int) -> list:
+        """(training Gram, held-out Gram) of [J | r] for each inner fold of fold k's training rows (k
+        indexes self.ids): the sub-folds of the other folds (``FoldIds.sub``: whole neighbour groups),
+        or for path-ordered data the other folds, each held out in turn from fold k's training rows.
+        There an inner training leaves out the gaps of both folds, an inner held-out fold the rows of
+        fold k's gap: nothing of fold k, or too close to it, enters a choice made for fold k."""
+        grams, total, classes = self._fold_grams()
+        n = len(self.ids)
+        out = []
+        if self._sub is not None:
+            for j in range(n):
+                for held in (self._sub_grams[j] if j != k else ()):
+                    if held.any():  # an empty sub-fold holds nothing out
+                        out.append((total - grams[k] - held, held))
+            return out
+        for j in range(n):
+            if j == k:
+                continue
+            train, held = total - grams[k] - grams[j], grams[j].copy()
+            if self._gap is not None:
+                for key, g in zip(self._classes, classes):
+                    fold, bits = int(key) >> n, int(key) & ((1 << n) - 1)
+                    if fold not in (k, j) and (bits >> k & 1 or bits >> j & 1):
+                        train = train - g
+                    if fold == j and bits >> k & 1:
+                        held = held - g
+            out.append((train, held))
+        return out
+
+    def inner_sse(self, k: int) -> float:
+        """Held-out sum of squares of the inner folds of fold k's training rows (``inner``), every column
+        estimated on each inner training: how a model does on fold k's training rows alone, for a choice
+        between models made for fold k."""
+        out = 0.0
+        for train, held in self.inner(k):
+            w = np.append(-_solve(train[: self.p, : self.p], train[: self.p, self.p]), 1.0)
+            out += float(w @ held @ w)
+        return out
+
+    def steps(self, cols, penalty=None, deviation=None, lams=(0.0,)) -> np.ndarray:
+        """Gauss-Newton steps over the columns cols on each fold's training rows, (len(lams), folds, p),
+        zero outside cols. Optional L2 prior lam * sum(penalty * (deviation + step)^2) over cols."""
+        cols = np.asarray(cols, dtype=int)
+        penalty = np.zeros(len(cols)) if penalty is None else penalty
+        deviation = np.zeros(len(cols)) if deviation is None else deviation
+        out = np.zeros((len(lams), len(self.ids), self.p))
+        for k in range(len(self.ids)):
+            normal, grad = self.training(k)
+            normal, grad = normal[np.ix_(cols, cols)], grad[cols]
+            for g, lam in enumerate(lams):
+                out[g, k, cols] = -_solve(normal + lam * np.diag(penalty), grad + lam * penalty * deviation)
+        return out
+
+
+# The prior weights a nested ridge chooses among (``ridge_steps``), each relative to a penalised column's own
+# squared norm over the training rows: from none to a prior that weighs like 1% of the rows, a factor 100
+# apart (finer grids changed Agile Justin's held-out mean by under 0.005 mm and cost twice the solves). A
+# fit of hundreds of effect parameters (a tree's compliance at every place) leaves directions its training
+# rows barely see (scaled normal matrix conditioned ~1e11 on Agile Justin, where the folds choose 1e-6);
+# with no weight an unlucky fold's step along them can cost more than all the rest gains.
+RIDGE_GRID = (0.0, 1e-8, 1e-6, 1e-4, 1e-2)
+
+
+def ridge_steps(factors: FoldFactors, cols, penalised: np.ndarray, deviation: np.ndarray,
+                grid=RIDGE_GRID) -> tuple[np.ndarray, np.ndarray]:
+    """(steps (1, folds, p), each fold's chosen weight): each fold's Gauss-Newton step over cols with an L2
+    prior pulling the penalised columns' values (the linearisation point's, ``deviation`` over cols, plus
+    the step) towards zero, its weight lam * the column's squared norm over the training rows, lam from
+    grid chosen inside the fold's own training rows (``FoldFactors.inner``: the held-out sum of squares
+    of the inner folds, summed; the smallest weight on a tie). Nothing of a fold decides its own weight."""
+    cols = np.asarray(cols, dtype=int)
+    penalised, deviation = np.asarray(penalised, bool), np.asarray(deviation, dtype=float)
+    idx = np.concatenate([cols, [factors.p]])
+    out = np.zeros((1, len(factors.ids), factors.p))
+    chosen = np.zeros(len(factors.ids))
+
+    def step(normal, grad, lam):
+        pen = lam * np.diag(normal) * penalised
+        return -_solve(normal + np.diag(pen), grad + pen * deviation)
+
+    for k in range(len(factors.ids)):
+        sse = np.zeros(len(grid))
+        for train, held in factors.inner(k):
+            t, h = train[np.ix_(idx, idx)], held[np.ix_(idx, idx)]
+            for g, lam in enumerate(grid):
+                w = np.append(step(t[:-1, :-1], t[:-1, -1], lam), 1.0)
+                sse[g] += w @ h @ w
+        best = int(np.argmin(sse))
+        normal, grad = factors.training(k)
+        out[0, k, cols] = step(normal[np.ix_(cols, cols)], grad[cols], grid[best])
+        chosen[k] = grid[best]
+    return out, chosen
+
+
+def training_rows(folds: np.ndarray, k: int) -> np.ndarray:
+    """Rows of fold k's training (k indexes the sorted fold ids): every other fold, less its gap."""
+    folds_arr = np.asarray(folds)
+    train = folds_arr != np.unique(folds_arr)[k]
+    exclude = getattr(folds, "exclude", None)
+    if exclude is not None:
+        train[exclude[k]] = False
+    return np.flatnonzero(train)
+
+
+def inner_fold_ids(folds: np.ndarray, k: int) -> tuple[np.ndarray, FoldIds]:
+    """(fold k's training rows, their fold ids with the gaps among them): the folds of a choice made
+    inside fold k's training (nested cross-validation), the other folds held out in turn."""
+    rows = training_rows(folds, k)
+    inner = np.asarray(folds)[rows].view(FoldIds)
+    exclude = getattr(folds, "exclude", None)
+    if exclude is not None:
+        at = np.full(len(folds), -1)
+        at[rows] = np.arange(len(rows))
+        inner.exclude = tuple(at[e][at[e] >= 0] for i, e in enumerate(exclude) if i != k)
+    return rows, inner
+
+
+def heldout_errors(columns, r: np.ndarray, factors: FoldFactors, steps: np.ndarray) -> np.ndarray:
+    """Held-out point errors (len(steps), N): |r_i + J_i step(fold of i)| for each set of steps.
+
+    columns: iterable of (rows slice, J rows (n, 3, p)), the same columns the factors hold,
+    over all rows in blocks; r (N, 3) residuals (predicted - measured) at the linearisation point.
+    """
+    errs = np.empty((len(steps), len(r)))
+    for rows, j in columns:
+        fold = factors.index[rows]
+        out = errs[:, rows]  # a view: rows is a slice
+        for k in np.unique(fold):
+            sel = np.flatnonzero(fold == k)
+            moved = (j[sel].reshape(-1, factors.p) @ steps[:, k, :].T).reshape(len(sel), 3, len(steps))
+            pred = r[rows][sel][:, :, None] + moved
+            out[:, sel] = np.sqrt(np.sum(pred * pred, axis=1)).T
+    return errs
+
+
+def one_step_heldout(j: np.ndarray, r: np.ndarray, folds: np.ndarray, penalty: np.ndarray | None = None,
+                     deviation: np.ndarray | None = None, lams=(0.0,)) -> np.ndarray:
+    """Held-out point errors (len(lams), N) of a linearised least-squares model.
+
+    j: (N, 3, p) Jacobian and r: (N, 3) residuals (predicted - measured) at the
+    all-rows fit; penalty (p,) and deviation (p,): an optional L2 prior
+    lam * sum(penalty * (deviation + step)^2), evaluated for every lam.
+    """
+    p = j.shape[2]
+    factors = FoldFactors(folds, p)
+    blocks = [(rows, j[rows]) for rows in chunks(len(r))]
+    for rows, jr in blocks:
+        factors.add(rows, jr, r[rows])
+    steps = factors.steps(np.arange(p), penalty, deviation, lams)
+    return heldout_errors(blocks, r, factors, steps)
+
+
+def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Normal equations: Cholesky when positive definite, least squares when (near) singular."""
+    try:
+        return cho_solve(cho_factor(a, lower=True, check_finite=False), b, check_finite=False)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(a, b, rcond=None)[0]

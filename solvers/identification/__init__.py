@@ -1,0 +1,1 @@
+"""Kinematic identification: the measurement model, the geometric fit, pose design, ISO 9283."""
