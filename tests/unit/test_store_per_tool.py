@@ -68,11 +68,11 @@ def schema_6_store(path: Path) -> None:
 
 
 def test_a_schema_6_store_is_upgraded_and_its_old_rows_belong_to_tool_1_or_the_tool_they_measured(tmp_path):
-    assert SCHEMA_VERSION == 7
+    assert SCHEMA_VERSION >= 7
     schema_6_store(tmp_path / STORE_FILE)
     store = Store.open(tmp_path)
     try:
-        assert store.db.execute("PRAGMA user_version").fetchone()[0] == 7 and store.integrity() == "ok"
+        assert store.db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION and store.integrity() == "ok"
         assert [(r.id, r.tool_id) for r in store.runs()] == [(3, 1), (2, 2), (1, 1)]
         assert [(f["run_id"], f["tool_id"]) for f in store.tool_frames()] == [(1, 1), (2, 2), (None, 1)]
         assert [f["run_id"] for f in store.writes_not_undone(2)] == [2]
@@ -83,7 +83,7 @@ def test_a_schema_6_store_is_upgraded_and_its_old_rows_belong_to_tool_1_or_the_t
         store.close()
     again = Store.open(tmp_path)  # opened again: nothing left to migrate, the rows as they were
     try:
-        assert again.db.execute("PRAGMA user_version").fetchone()[0] == 7
+        assert again.db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
         assert [r.tool_id for r in again.runs()] == [2, 1, 2, 1]
     finally:
         again.close()
@@ -135,7 +135,7 @@ def test_the_last_passed_result_is_looked_up_per_tool_when_asked(tmp_path):
     try:
         for tool_id in (1, 2, 1):
             run = store.begin_run("tcp-laser", "two.yaml", tool_id=tool_id)
-            store.db.execute("UPDATE runs SET state = 'done', write_back = 1, result_json = ? WHERE id = ?",
+            store.db.execute("UPDATE runs SET state = 'done', passed_gates = 1, result_json = ? WHERE id = ?",
                              (json.dumps({"tool": tool_id}), run))
         assert store.last_passed_result("tcp-laser")[0] == 3  # any tool: the newest
         assert store.last_passed_result("tcp-laser", tool_id=2) == (2, {"tool": 2})
