@@ -47,7 +47,7 @@ def measured_frame(result: Result) -> np.ndarray | None:
     if result.tool_frame is None or not result.determines:
         return None
     frame = np.asarray(result.tool_frame, dtype=float)
-    if result.verdict is not Verdict.OK or result.change is None:
+    if result.verdict != Verdict.OK or result.change is None:
         return frame
     change, determines = result.change, frozenset(result.determines)
     tip = axis = None

@@ -195,7 +195,7 @@ class Result:
         if self.cycle_time_s is not None:
             out["cycle_time_s"] = self.cycle_time_s
         if self.verdict is not None:
-            out["verdict"] = self.verdict
+            out["verdict"] = self.verdict.value
         if self.change is not None:
             out["change"] = self.change
         out.update(self.extra)
