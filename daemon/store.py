@@ -21,9 +21,8 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from cellcal.daemon import store_schema
-from cellcal.daemon.store_schema import (MEASURED_KINDS, MIGRATIONS, OPEN_STATES, RUN_COLUMNS,  # noqa: F401
-                                         SCHEMA_VERSION, STORE_FILE, STORE_FILES, RunRow, json_value, run_row,
-                                         tool_id_value)
+from cellcal.daemon.store_schema import (MEASURED_KINDS, OPEN_STATES, RUN_COLUMNS, SCHEMA_VERSION, STORE_FILE,
+                                         STORE_FILES, RunRow, json_value, run_row, tool_id_value)
 
 DEFAULT_STATE_DIR = "/var/lib/cellcal"  # systemd's StateDirectory=cellcal; $STATE_DIRECTORY overrides
 

@@ -149,7 +149,7 @@ class RunRow:
     tool_frame_before: str | None = None
     frame_owed: int = 0
     tool_id: int | None = None  # the tool of the cell's table the run was for (None: the cell has no tool)
-    verdict: Verdict | str | None = None  # a check's (None: a calibration, or no result); a word unknown here stays text
+    verdict: Verdict | str | None = None  # a check's (None: a calibration or no result); unknown words stay text
 
 
 _VERDICT_WORDS = frozenset(v.value for v in Verdict)

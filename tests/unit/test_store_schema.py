@@ -7,16 +7,17 @@ store writes and reads the verdict as a :class:`Verdict`.
 from __future__ import annotations
 
 import json
-import sqlite3
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from cellcal.daemon import status_api
 from cellcal.daemon.store import Store
-from cellcal.daemon.store_schema import MIGRATIONS, SCHEMA_VERSION, STORE_FILE
+from cellcal.daemon.store_schema import STORE_FILE
 from cellcal.routines.framework.base import Gate, Result
 from cellcal.solvers.tool_frames.verdict import Verdict
+from support.old_stores import old_store, upgraded  # tests/support/old_stores.py
 
 # (routine, write_back, result_json) as the schema-7 code recorded them, and the verdict each reads after
 SCHEMA_7_RUNS = (
@@ -34,24 +35,18 @@ def columns(db) -> list[str]:
     return [r[1] for r in db.execute("PRAGMA table_info(runs)")]
 
 
-def schema_7_store(path: Path) -> None:
-    db = sqlite3.connect(path)
-    for script in MIGRATIONS[:7]:
-        db.executescript(script)
-    db.execute("PRAGMA user_version = 7")
-    for routine, write_back, result, _ in SCHEMA_7_RUNS:
-        db.execute("INSERT INTO runs (routine, cell, started_at, state, write_back, result_json, tool_id) "
-                   "VALUES (?, 'sim', 1.0, 'done', ?, ?, 1)", (routine, write_back, result))
-    db.commit()
-    db.close()
+@pytest.fixture
+def schema_7(tmp_path) -> Path:
+    """A state folder whose store the schema-7 code made, with SCHEMA_7_RUNS in it as it wrote them."""
+    with old_store(tmp_path / STORE_FILE, 7) as db:
+        db.executemany("INSERT INTO runs (routine, cell, started_at, state, write_back, result_json, tool_id) "
+                       "VALUES (?, 'sim', 1.0, 'done', ?, ?, 1)", [run[:3] for run in SCHEMA_7_RUNS])
+    return tmp_path
 
 
-def test_a_schema_7_store_gets_passed_gates_and_the_verdicts_of_its_old_runs(tmp_path):
-    assert SCHEMA_VERSION >= 9
-    schema_7_store(tmp_path / STORE_FILE)
-    store = Store.open(tmp_path)
+def test_a_schema_7_store_gets_passed_gates_and_the_verdicts_of_its_old_runs(schema_7):
+    store = upgraded(schema_7)
     try:
-        assert store.db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION and store.integrity() == "ok"
         assert "write_back" not in columns(store.db) and {"passed_gates", "verdict"} <= set(columns(store.db))
         rows = sorted(store.runs(), key=lambda r: r.id)
         assert [r.passed_gates for r in rows] == [bool(w) for _, w, _, _ in SCHEMA_7_RUNS]
@@ -61,16 +56,15 @@ def test_a_schema_7_store_gets_passed_gates_and_the_verdicts_of_its_old_runs(tmp
         assert store.last_passed_result("tcp-laser")[0] == 1  # it reads the renamed column
     finally:
         store.close()
-    ro = status_api.open_store(tmp_path)  # the status API reads the filled column, not the JSON
+    ro = status_api.open_store(schema_7)  # the status API reads the filled column, not the JSON
     try:
         assert ro.last_verdict(1)["run_id"] == 3 and ro.last_verdict(1)["verdict"] == "ok"
     finally:
         ro.close()
 
 
-def test_a_new_store_has_the_columns_of_an_upgraded_one_in_the_same_order(tmp_path):
-    schema_7_store(tmp_path / "old.db")
-    old, new = Store(tmp_path / "old.db"), Store(tmp_path / "new.db")
+def test_a_new_store_has_the_columns_of_an_upgraded_one_in_the_same_order(schema_7, tmp_path):
+    old, new = Store.open(schema_7), Store(tmp_path / "new" / STORE_FILE)
     try:
         assert columns(old.db) == columns(new.db)
     finally:
