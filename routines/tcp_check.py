@@ -29,7 +29,8 @@ What it determines, and what it cannot:
 A plan that determines neither (at the stated ``repeatability_mm``) is refused before
 anything moves, saying why.
 
-Verdicts (``verdict`` in the JSON; the bands apply only to what was determined):
+Verdicts (``verdict`` in the JSON; the bands apply only to what was determined), decided from
+the numbers alone by :func:`cellcal.solvers.tool_frames.verdict.check_verdict`:
 
 * ``ok``: every determined change within the inner band; nothing is written;
 * ``corrected``: a determined change beyond the inner band, none beyond the outer band,
