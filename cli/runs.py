@@ -41,7 +41,7 @@ def _run_summary(r, written: set[int]) -> dict:
     the tool of the cell's tool table the run was for (null: the cell describes no tool)."""
     return {"id": r.id, "routine": r.routine, "cell": r.cell, "tool_id": r.tool_id, "started_at": r.started_at,
             "finished_at": r.finished_at, "state": r.state, "result_code": r.result_code, "reason": r.reason,
-            "passed_gates": r.write_back, "written_back": r.id in written}
+            "passed_gates": r.passed_gates, "written_back": r.id in written}
 
 
 DATASET_CHECK_TEXT = {"matches": "as recorded: its sha256 matches", "changed": "CHANGED since it was recorded: "
@@ -87,7 +87,7 @@ def cmd_runs_show(args) -> int:
             print(f"  {r.reason}")
         if out["written_back"]:
             print("  passed every gate; its tool frame was written back")
-        elif r.write_back:
+        elif r.passed_gates:
             print("  passed every gate; no tool frame written back")
         for s in out["states"]:
             print(f"  {time.strftime('%H:%M:%S', time.localtime(s['at']))}  {s['state']}"

@@ -15,6 +15,7 @@ all at one time, give no rate (None) and say why.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -23,6 +24,7 @@ from cellcal.routines.framework import tool_frame
 from cellcal.routines.framework.base import Result
 from cellcal.solvers.geometry import se3
 from cellcal.solvers.tool_frames.tcp_laser import axis_pair
+from cellcal.solvers.tool_frames.verdict import Verdict, beyond_drift, drift_verdict
 
 SECONDS_PER_WEEK = 7 * 24 * 3600.0
 CALIBRATION_ROUTINES = ("tcp-laser", "tcp-npoint", "tcf", "tcp-stylus")  # a full calibration of the tool
@@ -45,7 +47,7 @@ def measured_frame(result: Result) -> np.ndarray | None:
     if result.tool_frame is None or not result.determines:
         return None
     frame = np.asarray(result.tool_frame, dtype=float)
-    if result.verdict != "ok" or result.change is None:
+    if result.verdict != Verdict.OK or result.change is None:
         return frame
     change, determines = result.change, frozenset(result.determines)
     tip = axis = None
@@ -88,7 +90,7 @@ def _slope(x, y) -> float | None:
 def trend(rows: list[dict], tool_id: int) -> dict:
     """The drift history of a tool from its measured frames (``Store.measured_frames``, oldest
     first): one JSON-able object (docs/cli.md ``tool trend``)."""
-    full = [r for r in rows if r["kind"] == "calibration" and r["written"]]
+    full = full_calibrations(rows)
     first = full[0] if full else None
     points, last = [], None
     for r in rows:
@@ -129,22 +131,85 @@ def trend(rows: list[dict], tool_id: int) -> dict:
             "latest": latest, "rate": rate, "points": points}
 
 
+def full_calibrations(rows: list[dict]) -> list[dict]:
+    """The full calibrations (written back) of `rows`, a tool's measured frames, oldest first."""
+    return [r for r in rows if r["kind"] == "calibration" and r["written"]]
+
+
+def since_last_calibration(frame, determines, rows: list[dict]) -> tuple[dict, dict] | None:
+    """(the last full calibration's row, :func:`change_between` of `frame` and its frame), or
+    None when `rows` hold no full calibration."""
+    full = full_calibrations(rows)
+    if not full:
+        return None
+    return full[-1], change_between(frame, frozenset(determines), full[-1]["frame"])
+
+
+def _drift_words(change: dict, last: dict, bands) -> str | None:
+    """Why a change since the last full calibration (`last`) is beyond the drift alarm, or None."""
+    tip, axis = beyond_drift(change["tip_mm"], change["axis_deg"], bands)
+    beyond = []
+    if tip:
+        beyond.append(f"tip {change['tip_mm']:.3f} mm from the last full calibration's (run {last['run_id']}), "
+                      f"beyond the drift alarm {bands.drift_mm:g} mm")
+    if axis:
+        beyond.append(f"axis {change['axis_deg']:.3f} deg from the last full calibration's (run {last['run_id']}), "
+                      f"beyond the drift alarm {bands.drift_deg:g} deg")
+    return "; ".join(beyond) or None
+
+
 def drift_alarm(frame, determines, rows: list[dict], bands) -> str | None:
     """Why a check's measured `frame` ends in the drift alarm (its change since the last full
     calibration in `rows` beyond the tool's ``drift_mm`` / ``drift_deg``), or None: within them,
     the alarm off, or no full calibration to compare with."""
     if bands.drift_mm is None and bands.drift_deg is None:
         return None
-    full = [r for r in rows if r["kind"] == "calibration" and r["written"]]
-    if not full:
-        return None
-    last = full[-1]
-    change = change_between(frame, frozenset(determines), last["frame"])
-    beyond = []
-    if bands.drift_mm is not None and change["tip_mm"] is not None and change["tip_mm"] > bands.drift_mm:
-        beyond.append(f"tip {change['tip_mm']:.3f} mm from the last full calibration's (run {last['run_id']}), "
-                      f"beyond the drift alarm {bands.drift_mm:g} mm")
-    if bands.drift_deg is not None and change["axis_deg"] is not None and change["axis_deg"] > bands.drift_deg:
-        beyond.append(f"axis {change['axis_deg']:.3f} deg from the last full calibration's (run {last['run_id']}), "
-                      f"beyond the drift alarm {bands.drift_deg:g} deg")
-    return "; ".join(beyond) or None
+    found = since_last_calibration(frame, determines, rows)
+    return None if found is None else _drift_words(found[1], found[0], bands)
+
+
+@dataclasses.dataclass(frozen=True)
+class DriftJudgement:
+    """What a check's place in its tool's history adds to its result: the verdict (``drift``
+    when it drifted beyond the drift alarm, else the check's own), why it drifted, and whether
+    no full calibration of the tool was found to compare with."""
+
+    verdict: Verdict | None
+    why: str | None = None
+    never_calibrated: bool = False
+
+    @property
+    def notes(self) -> tuple[str, ...]:
+        """The notes it puts before the check's own."""
+        if self.why is not None:
+            return (f"drift alarm: {self.why}; nothing written",)
+        return (NEVER_CALIBRATED,) if self.never_calibrated else ()
+
+    def applied_to(self, result: Result) -> Result:
+        """`result` as the run records and reports it: a new Result with this verdict, these notes
+        first and ``never_calibrated`` in its JSON; `result` itself is left as the routine gave it."""
+        if self.verdict == result.verdict and not self.notes and not self.never_calibrated:
+            return result
+        extra = {**result.extra, "never_calibrated": True} if self.never_calibrated else dict(result.extra)
+        return dataclasses.replace(result, verdict=self.verdict, notes=[*self.notes, *result.notes], extra=extra)
+
+
+def judge(result: Result, rows: list[dict], bands, calibrated: bool) -> DriftJudgement:
+    """A check's drift judgement, decided after its own verdict (an alarm stays an alarm): its
+    measured frame against the last full calibration in `rows` (the tool's measured frames) and
+    the tool's drift alarm in `bands`. `calibrated`: a full calibration of the tool is known
+    (in `rows`, or one written before the store kept measured frames); without one the check
+    says so and keeps its verdict. A calibration's result (no verdict) is judged nothing."""
+    if result.verdict is None:
+        return DriftJudgement(None)
+    if not calibrated:
+        return DriftJudgement(result.verdict, never_calibrated=True)
+    frame = measured_frame(result)
+    if result.verdict not in (Verdict.OK, Verdict.CORRECTED) or frame is None:
+        return DriftJudgement(result.verdict)
+    found = since_last_calibration(frame, result.determines, rows)
+    if found is None:
+        return DriftJudgement(result.verdict)
+    last, change = found
+    verdict = drift_verdict(result.verdict, change["tip_mm"], change["axis_deg"], bands)
+    return DriftJudgement(verdict, _drift_words(change, last, bands) if verdict is Verdict.DRIFT else None)

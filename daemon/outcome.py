@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import math
 
-VERDICTS = {None: 0, "ok": 1, "corrected": 2, "alarm": 3, "drift": 4}  # register value of each verdict
+from cellcal.solvers.tool_frames.verdict import Verdict
+
+VERDICTS = {None: 0, Verdict.OK: 1, Verdict.CORRECTED: 2, Verdict.ALARM: 3, Verdict.DRIFT: 4}  # register values
 CHANGE_KEYS = {"change_x": "x_mm", "change_y": "y_mm", "change_z": "z_mm",
                "tilt_x": "tilt_x_deg", "tilt_y": "tilt_y_deg"}
 SCALE = 1000  # register counts per mm, and per degree
@@ -29,12 +31,12 @@ def _signed16(value: float | None) -> int:
     return counts & 0xFFFF
 
 
-def registers(verdict: str | None, tool_id: int, change: dict | None) -> dict[str, int]:
+def registers(verdict: Verdict | str | None, tool_id: int, change: dict | None) -> dict[str, int]:
     """The outcome registers' raw values: verdict (0 a calibration or no result, 1 ok, 2
     corrected, 3 alarm, 4 drift alarm), the tool's id, and the change (``change``: keys of CHANGE_KEYS'
     values, None where not determined; None altogether when nothing was measured)."""
     change = change or {}
-    out = {"verdict": VERDICTS[verdict], "tool_id": int(tool_id) & 0xFFFF}
+    out = {"verdict": VERDICTS[None if verdict is None else Verdict(verdict)], "tool_id": int(tool_id) & 0xFFFF}
     out.update({name: _signed16(change.get(key)) for name, key in CHANGE_KEYS.items()})
     return out
 

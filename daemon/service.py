@@ -416,7 +416,8 @@ class Service:
             return self._end(run_id, "fault", ResultCode.CHECK_ALARM, f"tool check alarm: {exc}")
         except (RoutineError, ValueError, np.linalg.LinAlgError) as exc:
             return self._end(run_id, "fault", ResultCode.COMPUTATION_FAILED, str(exc))
-        drifted = self._judge_drift(run_id, routine, result)
+        judgement = self._judge_drift(run_id, routine, result)
+        result, drifted = judgement.applied_to(result), judgement.why  # a new Result: the routine's stays as it was
         self.store.record_result(run_id, result)
         self._record_measured(run_id, routine, result)
         if self.report is not None:
@@ -454,30 +455,22 @@ class Service:
         return self._end(run_id, "done", ResultCode.OK, f"tool frame written back ({mm:.3f} mm, {deg:.3f} deg "
                                                          "from the previous one)", result, wrote=True)
 
-    def _judge_drift(self, run_id: int, routine: str, result: Result) -> str | None:
-        """A check's drift alarm, decided after its own verdict (an alarm stays an alarm): why its
-        measured frame is beyond the tool's drift alarm since the last full calibration, with
-        the verdict turned to ``drift``; else None. A check of a tool no full calibration in this
-        store has written says so (``self._history_note``)."""
+    def _judge_drift(self, run_id: int, routine: str, result: Result) -> drift.DriftJudgement:
+        """A check's drift judgement (:func:`.drift.judge`) against the tool's history in the store.
+        A check of a tool no full calibration in this store has written says so
+        (``self._history_note``)."""
         if result.verdict is None or getattr(self._run_cell, "tool", None) is None:
-            return None
+            return drift.DriftJudgement(result.verdict)
         rows = self.store.measured_frames(self._tool_id())
         # a calibration written before the store kept measured frames (schema 6) counts too
-        if not any(r["kind"] == "calibration" and r["written"] for r in rows) and not any(
-                self._last_passed(name) for name in drift.CALIBRATION_ROUTINES):
+        calibrated = bool(drift.full_calibrations(rows)) or any(
+            self._last_passed(name) for name in drift.CALIBRATION_ROUTINES)
+        judgement = drift.judge(result, rows, self._run_cell.tool.bands, calibrated)
+        if judgement.never_calibrated:
             self._history_note = drift.NEVER_CALIBRATED
-            result.notes.insert(0, drift.NEVER_CALIBRATED)
-            result.extra["never_calibrated"] = True
-            return None
-        frame = drift.measured_frame(result)
-        if result.verdict not in ("ok", "corrected") or frame is None:
-            return None
-        why = drift.drift_alarm(frame, result.determines, rows, self._run_cell.tool.bands)
-        if why is not None:
-            result.verdict = "drift"
-            result.notes.insert(0, f"drift alarm: {why}; nothing written")
-            log.warning("run %d: %s: drift alarm: %s", run_id, routine, why)
-        return why
+        if judgement.why is not None:
+            log.warning("run %d: %s: drift alarm: %s", run_id, routine, judgement.why)
+        return judgement
 
     def _record_measured(self, run_id: int, routine: str, result: Result) -> None:
         """The tool frame the run measured, in the tool's drift history (whatever the verdict;

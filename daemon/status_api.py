@@ -20,7 +20,8 @@ from urllib.parse import quote
 from cellcal.config.cells import TOOL_IDS
 from cellcal.daemon.drift import trend
 from cellcal.daemon.service import RESULT_MEANINGS, ResultCode
-from cellcal.daemon.store import SCHEMA_VERSION, STORE_FILE, Store, StoreError, _run
+from cellcal.daemon.store import Store, StoreError
+from cellcal.daemon.store_schema import RUN_COLUMNS, SCHEMA_VERSION, STORE_FILE, run_row
 from cellcal.routines.framework.base import tool_frame_json
 
 API_VERSION = 1
@@ -50,17 +51,14 @@ class ReadOnlyStore(Store):
 
     def last_verdict(self, tool_id: int) -> dict | None:
         """The newest check of tool `tool_id` that reached a verdict: {"run_id", "verdict", "at"}."""
-        for run_id, finished, result in self.db.execute(
-                "SELECT id, COALESCE(finished_at, started_at), result_json FROM runs WHERE tool_id = ? AND "
-                "result_json LIKE '%\"verdict\"%' ORDER BY id DESC LIMIT 20", (int(tool_id),)):
-            verdict = _result(result).get("verdict")
-            if verdict is not None:
-                return {"run_id": run_id, "verdict": verdict, "at": finished}
-        return None
+        row = self.db.execute("SELECT id, verdict, COALESCE(finished_at, started_at) FROM runs WHERE tool_id = ? AND "
+                              "verdict IS NOT NULL ORDER BY id DESC LIMIT 1", (int(tool_id),)).fetchone()
+        return None if row is None else {"run_id": row[0], "verdict": row[1], "at": row[2]}
 
     def last_run_of(self, tool_id: int):
-        row = self.db.execute("SELECT * FROM runs WHERE tool_id = ? ORDER BY id DESC LIMIT 1", (int(tool_id),)).fetchone()
-        return None if row is None else _run(row)
+        row = self.db.execute(f"SELECT {RUN_COLUMNS} FROM runs WHERE tool_id = ? ORDER BY id DESC LIMIT 1",
+                              (int(tool_id),)).fetchone()
+        return None if row is None else run_row(row)
 
     def tool_ids(self) -> set[int]:
         """Every tool id any run, written frame or measured frame names."""
@@ -143,7 +141,7 @@ def run_summary(row, written: set[int], state_dir: str | Path) -> dict:
     return {"id": row.id, "routine": row.routine, "cell": row.cell, "tool_id": row.tool_id,
             "started_at": row.started_at, "finished_at": row.finished_at, "state": row.state,
             "result_code": row.result_code, "result_name": result_name(row.result_code), "reason": row.reason,
-            "verdict": _result(row.result_json).get("verdict"), "passed_gates": row.write_back,
+            "verdict": row.verdict, "passed_gates": row.passed_gates,
             "written_back": row.id in written, "report_url": report_url(row.report_path, state_dir)}
 
 

@@ -1,11 +1,12 @@
 """The results store: every run, its states, dataset, parameters, gates, the tool frames
-written to the controller, and every tool frame a run measured, per tool (the drift history). SQLite in WAL mode (standard library ``sqlite3``).
+written to the controller, and every tool frame a run measured, per tool (the drift history).
+SQLite in WAL mode (standard library ``sqlite3``).
 
-The schema is versioned (``PRAGMA user_version``) and brought up to date by the
-migrations below, one transaction each, when the store is opened. Every write is one
-short transaction, so a process killed at any moment leaves a store that opens with its
-integrity intact and every run recorded before the kill still there; a run the daemon
-was in the middle of is marked ``interrupted`` when it next starts.
+Its schema and migrations are :mod:`.store_schema`'s; they are applied, one transaction each,
+when the store is opened. Every write is one short transaction, so a process killed at any
+moment leaves a store that opens with its integrity intact and every run recorded before the
+kill still there; a run the daemon was in the middle of is marked ``interrupted`` when it
+next starts.
 """
 from __future__ import annotations
 
@@ -17,106 +18,13 @@ import sqlite3
 import stat
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 
-DEFAULT_STATE_DIR = "/var/lib/cellcal"  # systemd's StateDirectory=cellcal; $STATE_DIRECTORY overrides
+from cellcal.daemon import store_schema
+from cellcal.daemon.store_schema import (MEASURED_KINDS, OPEN_STATES, RUN_COLUMNS, SCHEMA_VERSION, STORE_FILE,
+                                         STORE_FILES, RunRow, json_value, run_row, tool_id_value)
 
-MIGRATIONS = (
-    # 1: runs with their state trail, parameters and gates; tool frames written or restored
-    """
-    CREATE TABLE runs (
-        id INTEGER PRIMARY KEY AUTOINCREMENT,
-        routine TEXT NOT NULL,
-        cell TEXT NOT NULL,
-        started_at REAL NOT NULL,
-        finished_at REAL,
-        state TEXT NOT NULL,
-        result_code INTEGER,
-        reason TEXT,
-        dataset_path TEXT,
-        dataset_sha256 TEXT,
-        report_path TEXT,
-        write_back INTEGER NOT NULL DEFAULT 0,
-        result_json TEXT
-    );
-    CREATE TABLE states (
-        run_id INTEGER NOT NULL REFERENCES runs(id),
-        at REAL NOT NULL,
-        state TEXT NOT NULL,
-        message TEXT
-    );
-    CREATE TABLE parameters (
-        run_id INTEGER NOT NULL REFERENCES runs(id),
-        name TEXT NOT NULL, value REAL, std REAL, unit TEXT
-    );
-    CREATE TABLE gates (
-        run_id INTEGER NOT NULL REFERENCES runs(id),
-        name TEXT NOT NULL, passed INTEGER NOT NULL, value REAL, limit_value REAL, why TEXT
-    );
-    CREATE TABLE tool_frames (
-        id INTEGER PRIMARY KEY AUTOINCREMENT,
-        run_id INTEGER REFERENCES runs(id),
-        at REAL NOT NULL,
-        action TEXT NOT NULL,
-        frame_before TEXT,
-        frame_after TEXT NOT NULL
-    );
-    CREATE INDEX states_by_run ON states(run_id);
-    """,
-    # 2: events that belong to no run (panel connection lost and back, start-up, shutdown)
-    """
-    CREATE TABLE events (
-        at REAL NOT NULL,
-        kind TEXT NOT NULL,
-        message TEXT
-    );
-    """,
-    # 3: the tool frame the robot program applies at its start, before and after each write
-    """
-    ALTER TABLE tool_frames ADD COLUMN stored_before TEXT;
-    ALTER TABLE tool_frames ADD COLUMN stored_after TEXT;
-    """,
-    # 4: the controller's tool frame when each run began (given back after a run that died)
-    "ALTER TABLE runs ADD COLUMN tool_frame_before TEXT;",
-    # 5: a run that may have left the controller on another tool frame than the one it had
-    # before, until that frame is back (or a newer one was written): owed across restarts
-    "ALTER TABLE runs ADD COLUMN frame_owed INTEGER NOT NULL DEFAULT 0;",
-    # 6: every tool frame a run measured, per tool (calibrations and checks alike, written or
-    # not): the tool's drift history (daemon/drift.py, ``cellcal tool trend``)
-    """
-    CREATE TABLE measured_frames (
-        id INTEGER PRIMARY KEY AUTOINCREMENT,
-        run_id INTEGER NOT NULL REFERENCES runs(id),
-        tool_id INTEGER NOT NULL,
-        at REAL NOT NULL,
-        kind TEXT NOT NULL,
-        routine TEXT NOT NULL,
-        frame TEXT NOT NULL,
-        determines TEXT NOT NULL,
-        written INTEGER NOT NULL DEFAULT 0
-    );
-    CREATE INDEX measured_frames_by_tool ON measured_frames(tool_id, id);
-    """,
-    # 7: every run, and every tool frame written or restored, belongs to a tool of the cell's tool
-    # table (NULL: a cell that describes no tool). A run before this measured its tool's frame
-    # under that tool's id (6), else it was for tool 1, the one tool a file's ``tool`` describes.
-    # tool_frames carries the id itself, not through a join on runs: each tool's write history
-    # (what ``tool rollback`` walks back) reads from its own index, and a row whose run is gone or
-    # was never recorded (run_id NULL) still says whose frame it holds.
-    """
-    ALTER TABLE runs ADD COLUMN tool_id INTEGER;
-    UPDATE runs SET tool_id = COALESCE((SELECT m.tool_id FROM measured_frames m WHERE m.run_id = runs.id
-                                        ORDER BY m.id LIMIT 1), 1);
-    ALTER TABLE tool_frames ADD COLUMN tool_id INTEGER;
-    UPDATE tool_frames SET tool_id = COALESCE((SELECT r.tool_id FROM runs r WHERE r.id = tool_frames.run_id), 1);
-    CREATE INDEX tool_frames_by_tool ON tool_frames(tool_id, id);
-    CREATE INDEX runs_by_tool ON runs(tool_id, id);
-    """,
-)
-MEASURED_KINDS = ("calibration", "check")  # a full calibration's frame, or a check's
-SCHEMA_VERSION = len(MIGRATIONS)
-OPEN_STATES = ("checking", "running", "solving", "gates", "writing back")
+DEFAULT_STATE_DIR = "/var/lib/cellcal"  # systemd's StateDirectory=cellcal; $STATE_DIRECTORY overrides
 
 
 def state_dir(override: str | None = None) -> Path:
@@ -138,30 +46,6 @@ def file_sha256(path: str | Path) -> str:
             digest.update(block)
     return digest.hexdigest()
 
-
-@dataclass(frozen=True)
-class RunRow:
-    id: int
-    routine: str
-    cell: str
-    started_at: float
-    finished_at: float | None
-    state: str
-    result_code: int | None
-    reason: str | None
-    dataset_path: str | None
-    dataset_sha256: str | None
-    report_path: str | None
-    write_back: bool
-    result_json: str | None
-    tool_frame_before: str | None = None
-    frame_owed: int = 0
-    tool_id: int | None = None  # the tool of the cell's table the run was for (None: the cell has no tool)
-
-
-STORE_FILE = "cellcal.db"
-# what the service writes in its state folder besides reports and datasets (cellcal.lock: daemon/claims.py)
-STORE_FILES = (STORE_FILE, STORE_FILE + "-wal", STORE_FILE + "-shm", "cellcal.lock")
 
 
 def _user(uid: int) -> str:
@@ -283,10 +167,7 @@ class Store:
             raise StoreError(f"schema version {version} is newer than this cellcal's {SCHEMA_VERSION}")
         for number in range(version, SCHEMA_VERSION):
             with self._tx() as db:
-                for statement in MIGRATIONS[number].split(";"):
-                    if statement.strip():
-                        db.execute(statement)
-                db.execute(f"PRAGMA user_version = {number + 1}")
+                store_schema.migrate(db, number)
 
     def integrity(self) -> str:
         return self.db.execute("PRAGMA integrity_check").fetchone()[0]
@@ -300,14 +181,14 @@ class Store:
         with self._tx() as db:
             run_id = db.execute("INSERT INTO runs (routine, cell, started_at, state, tool_id) "
                                 "VALUES (?, ?, ?, 'checking', ?)",
-                                (routine, cell, now, _tool_or_none(tool_id))).lastrowid
+                                (routine, cell, now, tool_id_value(tool_id))).lastrowid
             db.execute("INSERT INTO states VALUES (?, ?, 'checking', NULL)", (run_id, now))
         return int(run_id)
 
     def record_run_tool(self, run_id: int, tool_id: int | None) -> None:
         """The tool run `run_id` is for, when it is known only after :meth:`begin_run` (None: none)."""
         with self._tx() as db:
-            db.execute("UPDATE runs SET tool_id = ? WHERE id = ?", (_tool_or_none(tool_id), run_id))
+            db.execute("UPDATE runs SET tool_id = ? WHERE id = ?", (tool_id_value(tool_id), run_id))
 
     def record_state(self, run_id: int, state: str, message: str | None = None) -> None:
         now = time.time()
@@ -316,12 +197,13 @@ class Store:
             db.execute("INSERT INTO states VALUES (?, ?, ?, ?)", (run_id, now, state, message))
 
     def record_result(self, run_id: int, result) -> None:
-        """Dataset (path and checksum), parameters, gates and the result JSON of a solved run."""
+        """Dataset (path and checksum), parameters, gates, verdict and the result JSON of a solved run."""
         sha = file_sha256(result.dataset) if result.dataset and Path(result.dataset).exists() else None
+        verdict = None if result.verdict is None else str(result.verdict)
         with self._tx() as db:
-            db.execute("UPDATE runs SET dataset_path = ?, dataset_sha256 = ?, write_back = ?, result_json = ? "
-                       "WHERE id = ?", (result.dataset, sha, int(result.passed_gates),
-                                        result.json_text(), run_id))
+            db.execute("UPDATE runs SET dataset_path = ?, dataset_sha256 = ?, passed_gates = ?, verdict = ?, "
+                       "result_json = ? WHERE id = ?", (result.dataset, sha, int(result.passed_gates), verdict,
+                                                        result.json_text(), run_id))
             db.executemany("INSERT INTO parameters VALUES (?, ?, ?, ?, ?)",
                            [(run_id, p.name, p.value, p.std, p.unit) for p in result.parameters])
             db.executemany("INSERT INTO gates VALUES (?, ?, ?, ?, ?, ?)",
@@ -388,17 +270,17 @@ class Store:
         """(run id, result JSON) of the newest run of `routine` (for tool `tool_id`; None: any
         tool) that passed every gate and ended done, or None."""
         row = self.db.execute("SELECT id, result_json FROM runs WHERE routine = ? AND state = 'done' AND "
-                              "write_back = 1 AND result_json IS NOT NULL AND (? IS NULL OR tool_id = ?) "
+                              "passed_gates = 1 AND result_json IS NOT NULL AND (? IS NULL OR tool_id = ?) "
                               "ORDER BY id DESC LIMIT 1", (routine, tool_id, tool_id)).fetchone()
         return None if row is None else (int(row[0]), json.loads(row[1]))
 
     def runs(self, limit: int = 50) -> list[RunRow]:
-        rows = self.db.execute("SELECT * FROM runs ORDER BY id DESC LIMIT ?", (limit,)).fetchall()
-        return [_run(r) for r in rows]
+        rows = self.db.execute(f"SELECT {RUN_COLUMNS} FROM runs ORDER BY id DESC LIMIT ?", (limit,)).fetchall()
+        return [run_row(r) for r in rows]
 
     def run(self, run_id: int) -> RunRow | None:
-        row = self.db.execute("SELECT * FROM runs WHERE id = ?", (run_id,)).fetchone()
-        return None if row is None else _run(row)
+        row = self.db.execute(f"SELECT {RUN_COLUMNS} FROM runs WHERE id = ?", (run_id,)).fetchone()
+        return None if row is None else run_row(row)
 
     def states(self, run_id: int) -> list[tuple[float, str, str | None]]:
         return [tuple(r) for r in self.db.execute("SELECT at, state, message FROM states WHERE run_id = ? "
@@ -428,8 +310,8 @@ class Store:
             db.execute("INSERT INTO tool_frames (run_id, at, action, frame_before, frame_after, stored_before, "
                        "stored_after, tool_id) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                        (run_id, time.time(), action, None if before is None else json.dumps(list(map(float, before))),
-                        json.dumps(list(map(float, after))), _json_or_none(stored_before), _json_or_none(stored_after),
-                        _tool_or_none(tool_id)))
+                        json.dumps(list(map(float, after))), json_value(stored_before), json_value(stored_after),
+                        tool_id_value(tool_id)))
 
     def tool_frames(self, tool_id: int | None = None) -> list[dict]:
         """Every tool frame written or restored, oldest first (of tool `tool_id`; None: of every
@@ -505,18 +387,3 @@ class Store:
 
     def events(self) -> list[tuple[float, str, str | None]]:
         return [tuple(r) for r in self.db.execute("SELECT at, kind, message FROM events ORDER BY rowid")]
-
-
-def _tool_or_none(tool_id: int | None) -> int | None:
-    """A tool id as stored: a whole number, or NULL for a cell that describes no tool (0 or None)."""
-    return None if tool_id is None or int(tool_id) == 0 else int(tool_id)
-
-
-def _json_or_none(value) -> str | None:
-    return None if value is None else json.dumps(value)
-
-
-def _run(row) -> RunRow:
-    values = list(row)
-    values[11] = bool(values[11])
-    return RunRow(*values)

@@ -29,7 +29,8 @@ What it determines, and what it cannot:
 A plan that determines neither (at the stated ``repeatability_mm``) is refused before
 anything moves, saying why.
 
-Verdicts (``verdict`` in the JSON; the bands apply only to what was determined):
+Verdicts (``verdict`` in the JSON; the bands apply only to what was determined), decided from
+the numbers alone by :func:`cellcal.solvers.tool_frames.verdict.check_verdict`:
 
 * ``ok``: every determined change within the inner band; nothing is written;
 * ``corrected``: a determined change beyond the inner band, none beyond the outer band,
@@ -66,11 +67,11 @@ from cellcal.config.reader import ConfigError, Section
 from cellcal.solvers.geometry import se3
 from cellcal.solvers.tool_frames import tcp_check as check
 from cellcal.solvers.tool_frames import tcp_laser as laser
+from cellcal.solvers.tool_frames.verdict import Measured, Verdict, check_verdict, determined
 from cellcal.routines.framework import gates, tool_frame
 from cellcal.routines.framework.base import CheckAlarm, PlanPromise, Gate, Parameter, PlanRefused, Result, RoutineError
 from cellcal.routines.tcp_laser import TcpLaser
 
-K_SIGMA = 3.0  # a change is determined for a band when K_SIGMA standard deviations fit in the inner band
 INSTALLED_BEAM_STD_MM = 0.5  # the beams as installed ([beams]): a fixture's placement
 MEASURED_BEAM_STD_MM = 0.01  # the beams as a tcp-laser calibration found them
 
@@ -197,9 +198,9 @@ class TcpCheck(TcpLaser):
             span = max(o.heights_mm) - min(o.heights_mm)
             axis_std = float(np.degrees(np.sqrt(2.0 / n) * o.repeatability_mm / span))
         determines = set()
-        if K_SIGMA * tip_std <= bands.inner_mm:
+        if determined(tip_std, bands.inner_mm):
             determines.add(tool_frame.TIP)
-        if K_SIGMA * axis_std <= bands.inner_deg:
+        if determined(axis_std, bands.inner_deg):
             determines.add(tool_frame.AXIS)
         return PlanPromise(float("nan"), tip_std, "mm", {"axis_std_deg": axis_std, "determines": sorted(determines)})
 
@@ -291,16 +292,16 @@ def _result(name, fit: check.CheckFit, geometry, cell: Cell, options: TcpCheckOp
     shift_mm = fit.tip_mm - ref.pose[:3] * 1e3
     tip_sigma = check.largest_std(fit.tip_cov_mm2)
     tip_std = np.sqrt(np.clip(np.diag(fit.tip_cov_mm2), 0.0, None))
-    tip_ok = K_SIGMA * tip_sigma <= bands.inner_mm
     tip_mm = float(np.linalg.norm(shift_mm))
     tilt_deg = tilt_std = None
-    axis_ok, tilt_norm, tilt_sigma = False, 0.0, float("inf")
+    tilt_norm, tilt_sigma = 0.0, float("inf")
     if fit.tilt_rad is not None:
         tilt_deg = np.degrees(fit.tilt_rad)
         tilt_std = np.degrees(np.sqrt(np.clip(np.diag(fit.tilt_cov_rad2), 0.0, None)))
         tilt_sigma = float(np.degrees(check.largest_std(fit.tilt_cov_rad2)))
-        axis_ok = K_SIGMA * tilt_sigma <= bands.inner_deg
         tilt_norm = float(np.linalg.norm(tilt_deg))
+    tip_ok = determined(tip_sigma, bands.inner_mm)
+    axis_ok = tilt_deg is not None and determined(tilt_sigma, bands.inner_deg)
     determines = frozenset(({tool_frame.TIP} if tip_ok else set()) | ({tool_frame.AXIS} if axis_ok else set()))
 
     params = [Parameter(f"tcp_{c}_mm", float(fit.tip_mm[j]), float(tip_std[j]), "mm") for j, c in enumerate("xyz")]
@@ -328,46 +329,13 @@ def _result(name, fit: check.CheckFit, geometry, cell: Cell, options: TcpCheckOp
                 f" is outside 0..{options.max_latency_ms:g} ms: are the barrier's and the robot's clocks the same?"))]
 
     # the verdict: what was determined against the bands; what was not, only when surely beyond the outer band
-    beyond, within_inner = [], True
-    dominant = "xyz"[int(np.argmax(np.abs(shift_mm)))]
-    tip_words = (f"tip {tip_mm:.3f} mm off (x {shift_mm[0]:+.3f}, y {shift_mm[1]:+.3f}, z {shift_mm[2]:+.3f} mm, "
-                 f"mostly along {dominant})")
-    if tip_mm - (0.0 if tip_ok else K_SIGMA * tip_sigma) > bands.outer_mm:
-        beyond.append(f"{tip_words}, beyond the outer band {bands.outer_mm:g} mm")
-    elif tip_ok and tip_mm > bands.inner_mm:
-        within_inner = False
-    if tilt_deg is not None:
-        tilt_words = (f"axis tilted {tilt_norm:.3f} deg (toward x {tilt_deg[0]:+.3f}, toward y {tilt_deg[1]:+.3f} "
-                      "deg)")
-        if tilt_norm - (0.0 if axis_ok else K_SIGMA * tilt_sigma) > bands.outer_deg:
-            beyond.append(f"{tilt_words}, beyond the outer band {bands.outer_deg:g} deg")
-        elif axis_ok and tilt_norm > bands.inner_deg:
-            within_inner = False
     failed = [g for g in gate_list if not g.passed]
-    notes = list(frame_notes)
-    if beyond:
-        verdict = "alarm"
-        notes.insert(0, f"alarm: {'; '.join(beyond)}: a bent tool or a collision? Nothing written; a full "
-                        "calibration (tcp-laser) is the operator's choice")
-    elif failed:
-        verdict = "alarm"
-        notes.insert(0, "alarm: the check's data do not say what changed ("
-                        + "; ".join(f"{g.name}: {g.why}" for g in failed) + "); nothing written")
-    elif not determines:
-        verdict = "alarm"
-        notes.insert(0, f"alarm: the check determined nothing a band can judge (tip to {tip_sigma:.3f} mm, axis to "
-                        f"{tilt_sigma:.3f} deg, 1 sigma); nothing written")
-    elif within_inner:
-        verdict = "ok"
+    judged = check_verdict(Measured(tip_mm, tip_sigma), None if tilt_deg is None else Measured(tilt_norm, tilt_sigma),
+                           bands, gates_passed=not failed)
+    notes = [_verdict_note(judged, determines, bands, shift_mm, tilt_deg, tip_sigma, tilt_sigma, failed),
+             *frame_notes]
+    if judged.verdict is Verdict.OK:
         frame = ref.pose.copy()
-        notes.insert(0, f"ok: {tool_frame.described(determines)} within the inner band ({bands.inner_mm:g} mm / "
-                        f"{bands.inner_deg:g} deg); nothing to write")
-    else:
-        verdict = "corrected"
-        notes.insert(0, f"corrected: {tip_words if tip_ok else ''}"
-                        f"{'; ' if tip_ok and axis_ok else ''}{tilt_words if axis_ok else ''}: within the outer band "
-                        f"({bands.outer_mm:g} mm / {bands.outer_deg:g} deg), determined to 3 sigma within the inner "
-                        "band: the measured frame is written back")
     undetermined_words = []
     if not tip_ok:
         undetermined_words.append(f"the tip (known to {tip_sigma:.3f} mm, 1 sigma: more than a third of inner_mm "
@@ -399,4 +367,35 @@ def _result(name, fit: check.CheckFit, geometry, cell: Cell, options: TcpCheckOp
              "compared_with": ref.source, "beams_from": beam_source, "n_edges": int(len(fit.residuals_mm)),
              "speed_mm_s": float(meta.get("speed_mm_s", options.speed_mm_s))}
     return Result(name, params, fit.residuals_mm, expected, fit.condition, gate_list, tool_frame=frame, notes=notes,
-                  extra=extra, determines=determines, verdict=verdict, change=change)
+                  extra=extra, determines=determines, verdict=judged.verdict, change=change)
+
+
+def _verdict_note(judged, determines, bands, shift_mm, tilt_deg, tip_sigma: float, tilt_sigma: float,
+                  failed) -> str:
+    """The words of a check's verdict (its first note): what it saw against which band."""
+    tip_mm = float(np.linalg.norm(shift_mm))
+    dominant = "xyz"[int(np.argmax(np.abs(shift_mm)))]
+    tip_words = (f"tip {tip_mm:.3f} mm off (x {shift_mm[0]:+.3f}, y {shift_mm[1]:+.3f}, z {shift_mm[2]:+.3f} mm, "
+                 f"mostly along {dominant})")
+    tilt_words = "" if tilt_deg is None else (
+        f"axis tilted {float(np.linalg.norm(tilt_deg)):.3f} deg (toward x {tilt_deg[0]:+.3f}, toward y "
+        f"{tilt_deg[1]:+.3f} deg)")
+    if judged.verdict is Verdict.ALARM:
+        beyond = ([f"{tip_words}, beyond the outer band {bands.outer_mm:g} mm"] if judged.tip.beyond_outer else []) \
+            + ([f"{tilt_words}, beyond the outer band {bands.outer_deg:g} deg"] if judged.axis.beyond_outer else [])
+        if beyond:
+            return (f"alarm: {'; '.join(beyond)}: a bent tool or a collision? Nothing written; a full "
+                    "calibration (tcp-laser) is the operator's choice")
+        if failed:
+            return ("alarm: the check's data do not say what changed ("
+                    + "; ".join(f"{g.name}: {g.why}" for g in failed) + "); nothing written")
+        return (f"alarm: the check determined nothing a band can judge (tip to {tip_sigma:.3f} mm, axis to "
+                f"{tilt_sigma:.3f} deg, 1 sigma); nothing written")
+    if judged.verdict is Verdict.OK:
+        return (f"ok: {tool_frame.described(determines)} within the inner band ({bands.inner_mm:g} mm / "
+                f"{bands.inner_deg:g} deg); nothing to write")
+    tip_ok, axis_ok = judged.tip.determined, judged.axis.determined
+    return (f"corrected: {tip_words if tip_ok else ''}"
+            f"{'; ' if tip_ok and axis_ok else ''}{tilt_words if axis_ok else ''}: within the outer band "
+            f"({bands.outer_mm:g} mm / {bands.outer_deg:g} deg), determined to 3 sigma within the inner "
+            "band: the measured frame is written back")

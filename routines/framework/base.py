@@ -25,6 +25,7 @@ from cellcal.config.cells import Cell
 from cellcal.config.reader import Section
 from cellcal.drivers.interfaces import DeviceError, Operator, Robot, Tracker, TriggerInput
 from cellcal.solvers.geometry import se3
+from cellcal.solvers.tool_frames.verdict import Verdict
 from cellcal.routines.framework.drawing import Drawing
 
 
@@ -152,13 +153,17 @@ class Result:
     cycle_time_s: float | None = None
     sim_truth: dict | None = None
     drawing: Drawing | None = None
-    # a check (tcp-check): "ok" (nothing to write), "corrected" (write tool_frame), "alarm" or "drift"
+    # a check (tcp-check): ok (nothing to write), corrected (write tool_frame), alarm or drift
     # (never write; the service ends the run with CHECK_ALARM or, for drift, which the service
-    # decides from the store, DRIFT_ALARM); None for a calibration
-    verdict: str | None = None
+    # decides from the store, DRIFT_ALARM); None for a calibration. Its word is given as one too.
+    verdict: Verdict | None = None
     # the measured change of the tool against the frame it was compared with, as the panel
     # carries it: {"x_mm", "y_mm", "z_mm", "tilt_x_deg", "tilt_y_deg"} (flange frame; None: not determined)
     change: dict | None = None
+
+    def __post_init__(self):
+        if self.verdict is not None:
+            self.verdict = Verdict(self.verdict)
 
     @property
     def passed_gates(self) -> bool:
@@ -190,7 +195,7 @@ class Result:
         if self.cycle_time_s is not None:
             out["cycle_time_s"] = self.cycle_time_s
         if self.verdict is not None:
-            out["verdict"] = self.verdict
+            out["verdict"] = self.verdict.value
         if self.change is not None:
             out["change"] = self.change
         out.update(self.extra)

@@ -181,6 +181,39 @@ def test_an_ok_checks_tilts_are_taken_back_as_the_check_counts_them_for_a_leanin
     np.testing.assert_allclose(tilts, [0.05, -0.03], atol=ROUNDING)
 
 
+def _ok_check(dx_mm: float) -> Result:
+    """An ok check that compared with frame() and saw the tip dx_mm along x."""
+    return Result("tcp-check", [], np.zeros(0), 0.0, 1.0, [], tool_frame=np.array(frame()), notes=["ok: within"],
+                  extra={"tip_shift_mm": dx_mm}, determines=frozenset(BOTH), verdict="ok",
+                  change={"x_mm": dx_mm, "y_mm": 0.0, "z_mm": 0.0, "tilt_x_deg": 0.0, "tilt_y_deg": 0.0})
+
+
+def test_the_drift_judgement_is_a_value_and_leaves_the_checks_result_as_the_routine_gave_it(store):
+    rows = history(store, [(0, "calibration", 0.0, 0.0, True, BOTH)])
+    result = _ok_check(0.3)
+    judgement = drift.judge(result, rows, Bands(drift_mm=0.2), calibrated=True)
+    assert judgement.verdict == "drift" and "tip 0.300 mm" in judgement.why
+    judged = judgement.applied_to(result)
+    assert judged.verdict == "drift" and judged.notes[0].startswith("drift alarm: tip 0.300 mm")
+    assert judged.notes[1:] == ["ok: within"] and judged.as_json()["verdict"] == "drift"
+    assert (result.verdict, result.notes, result.extra) == ("ok", ["ok: within"], {"tip_shift_mm": 0.3})
+    within = drift.judge(_ok_check(0.1), rows, Bands(drift_mm=0.2), calibrated=True)
+    assert (within.verdict, within.why, within.notes) == ("ok", None, ())
+    assert within.applied_to(result) is result  # nothing to add: the result as it was
+
+
+def test_a_check_of_a_tool_never_calibrated_keeps_its_verdict_and_says_so(store):
+    result = _ok_check(3.0)
+    judgement = drift.judge(result, [], Bands(drift_mm=0.2), calibrated=False)
+    assert judgement.never_calibrated and judgement.verdict == "ok" and judgement.why is None
+    judged = judgement.applied_to(result)
+    assert judged.notes == [drift.NEVER_CALIBRATED, "ok: within"] and judged.as_json()["never_calibrated"] is True
+    assert "never_calibrated" not in result.extra and result.notes == ["ok: within"]
+    calibration = Result("tcp-npoint", [], np.zeros(0), 0.0, 1.0, [], tool_frame=np.array(frame()),
+                         determines=frozenset({"tip"}))
+    assert drift.judge(calibration, [], Bands(drift_mm=0.2), calibrated=False) == drift.DriftJudgement(None)
+
+
 def test_the_drift_verdict_has_its_own_register_value():
     raw = outcome.registers("drift", 1, {"x_mm": 0.3})
     assert raw["verdict"] == 4 and outcome.decoded(raw)["verdict"] == "drift"

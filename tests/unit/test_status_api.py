@@ -179,5 +179,6 @@ def test_non_finite_numbers_become_null_and_the_state_carries_the_api_version():
     assert status_api.result_name(31) == "GATE_FAILED" and status_api.result_name(77) == "77"
     assert status_api.run_summary(SimpleNamespace(id=1, routine="r", cell="c", tool_id=None, started_at=0.0,
                                                   finished_at=None, state="checking", result_code=None, reason=None,
-                                                  result_json="not json", write_back=False, report_path=None),
+                                                  result_json="not json", passed_gates=False, verdict=None,
+                                                  report_path=None),
                                   set(), "/nowhere")["verdict"] is None
