@@ -4,7 +4,7 @@ robot program's start; put the arm somewhere; change the tool on the flange (``m
 move the kinematic-fixture plate to another placement (``place_plate``, the operator's part);
 and inject faults (a protective or emergency
 stop, optionally once the arm has moved for a while, dropped connections, a stalled
-controller, an RTDE input it does not keep). A mixin of :class:`.fake_ur.FakeUrController`,
+controller, an RTDE input it does not keep). A mixin of :class:`.controller.FakeUrController`,
 whose state it reads under the controller's lock."""
 from __future__ import annotations
 
