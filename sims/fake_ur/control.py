@@ -20,7 +20,7 @@ class ControlPort:
     """What the controller answers on its fake-only port."""
 
     def program_start(self, first: int) -> dict:
-        """What the robot program's first lines do (README, persistent tool frame): apply the
+        """What the robot program's first lines do (docs/integrator.md, persistent tool frame): apply the
         stored tool frame with set_tcp when the registers hold one of ours, else keep the TCP."""
         with self.lock:
             names = register_names(first)
