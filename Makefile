@@ -55,7 +55,7 @@ test-fast: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python bench/identify_bench.py
 
-# dist/cellcal-VERSION-py3-none-any.whl, for the cell PC (README: Installing on the cell PC).
+# dist/cellcal-VERSION-py3-none-any.whl, for the cell PC (docs/integrator.md: Installing on the cell PC).
 # Built with the lock file's setuptools; build/ goes first, as setuptools would otherwise
 # pack modules an earlier build left there.
 wheel: $(STAMP)

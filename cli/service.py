@@ -146,7 +146,7 @@ def install(cell: str, root: str = "/", force: bool = False) -> list[tuple[str, 
     program = executable()
     if not (program.is_file() and os.access(program, os.X_OK)):
         raise UsageError(f"no cellcal executable beside {sys.executable} ({program}): run `cellcal service "
-                         f"install` from the venv cellcal is installed in (README: Installing on the cell PC)")
+                         f"install` from the venv cellcal is installed in (docs/integrator.md: Installing on the cell PC)")
 
     def under_root(path: PurePosixPath) -> Path:
         return top / path.relative_to("/")

@@ -1,4 +1,4 @@
-"""The child process that owns ur_rtde's control and IO interfaces for :mod:`.ur_rtde_process`.
+"""The child process that owns ur_rtde's control and IO interfaces for :mod:`.process`.
 
 ur_rtde 1.6.5 is unsafe to run inside the daemon's own interpreter:
 

@@ -1,6 +1,6 @@
 """ur_rtde's control and IO interfaces in a child process, with deadlines on every call.
 
-:mod:`.ur_rtde_host` explains why ur_rtde must not run in the daemon's interpreter.
+:mod:`.host` explains why ur_rtde must not run in the daemon's interpreter.
 From here, ``call("control.moveJ", ...)`` returns the value, or raises
 :class:`DeviceError` by its deadline, never later. If the child dies (killed, or
 crashed inside ur_rtde), pending and later calls fail with the reason. ``close()`` ends

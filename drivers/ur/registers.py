@@ -4,7 +4,7 @@ ur_rtde's ``setTcp`` changes the tool frame of the running program only: the nex
 starts with the installation's TCP. So the frame is also written to general-purpose input
 registers, which the controller holds until it restarts (inputs retain their last received
 value, and keep it after the writer disconnects), and the robot program applies them with
-``set_tcp`` when it starts (the README shows the lines):
+``set_tcp`` when it starts (docs/integrator.md shows the lines):
 
     input_double_register_N .. N+5   x, y, z (m), rx, ry, rz (rad): flange -> TCP
     input_int_register_N             generation: the run whose frame it is; 0: none stored

@@ -1,8 +1,8 @@
 """Universal Robots arm: ur_rtde's control and IO interfaces, and the RTDE state stream.
 
-The state stream is read losslessly by :mod:`.ur_rtde_state`. ur_rtde's
+The state stream is read losslessly by :mod:`.state`. ur_rtde's
 RTDEControlInterface (and RTDEIOInterface) run in a child process
-(:mod:`.ur_rtde_process`), and this adapter owns every deadline. ur_rtde's own waits
+(:mod:`.process`), and this adapter owns every deadline. ur_rtde's own waits
 are blind: a synchronous move waits up to 300 s for its "done" register and never
 notices a dead connection meanwhile. So:
 

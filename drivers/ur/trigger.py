@@ -4,7 +4,7 @@ The controller samples its inputs every cycle and reports them in the RTDE strea
 (``actual_digital_input_bits`` with the cycle's ``timestamp``), so an edge is timed on
 the controller's clock: the same clock as the joint positions it will be matched with,
 to one cycle (2 ms on e-Series) and without network jitter. The stream is read without
-losing packages (:mod:`.ur_rtde_state`), so edges are found between consecutive
+losing packages (:mod:`.state`), so edges are found between consecutive
 controller cycles; the event time is that of the first cycle showing the new level.
 
 Bits are the controller's: standard inputs 0-7, configurable inputs 8-15, tool inputs

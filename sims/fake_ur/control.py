@@ -4,7 +4,7 @@ robot program's start; put the arm somewhere; change the tool on the flange (``m
 move the kinematic-fixture plate to another placement (``place_plate``, the operator's part);
 and inject faults (a protective or emergency
 stop, optionally once the arm has moved for a while, dropped connections, a stalled
-controller, an RTDE input it does not keep). A mixin of :class:`.fake_ur.FakeUrController`,
+controller, an RTDE input it does not keep). A mixin of :class:`.controller.FakeUrController`,
 whose state it reads under the controller's lock."""
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ class ControlPort:
     """What the controller answers on its fake-only port."""
 
     def program_start(self, first: int) -> dict:
-        """What the robot program's first lines do (README, persistent tool frame): apply the
+        """What the robot program's first lines do (docs/integrator.md, persistent tool frame): apply the
         stored tool frame with set_tcp when the registers hold one of ours, else keep the TCP."""
         with self.lock:
             names = register_names(first)

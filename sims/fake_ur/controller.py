@@ -3,7 +3,7 @@
 It serves RTDE (30004), the dashboard server (29999) and the script port (30003) on one
 address, runs a 500 Hz control cycle with a joint-space model of a UR arm built from our
 own robot model file, and executes the ur_rtde control script's register protocol
-natively (:mod:`.fake_ur_script`). A fake-only JSON port (30199, :mod:`.fake_ur_control`) lets tests read the
+natively (:mod:`.script`). A fake-only JSON port (30199, :mod:`.control`) lets tests read the
 true arm state and inject faults: a protective or emergency stop, optionally once the
 arm has been moving for a given time, dropped connections, a stalled controller, or an
 RTDE input it does not keep. RTDE inputs hold their last value after the writer leaves, as
@@ -11,7 +11,7 @@ a controller's do; ``program_start`` plays a robot program's first lines, which 
 tool frame stored in the input registers (:mod:`cellcal.drivers.ur.registers`).
 
 Given a cell file (``--cell-file``), it obeys that cell's hidden truth with the in-process
-cell's physics (:mod:`.truth`): it reports with the arm's drawing, while the real tool on
+cell's physics (:mod:`cellcal.sims.physics.truth`): it reports with the arm's drawing, while the real tool on
 the arm as built, off by each motion's repeatability, blocks the real beams and touches
 the real stylus; a contact search that meets the pivot's or a kinematic-fixture plate's
 socket settles in it, one that meets a stylus plate's ball stops there (a plate moved by
@@ -25,7 +25,7 @@ inputs (``mounted: {robot_inputs: [...]}``), they carry it.
 The ur_rtde constructors hold Python's GIL while they wait for the controller, so the
 fake must live in another process; the ports are fixed, so parallel fakes need distinct
 loopback addresses (any 127.x.y.z works on Linux). Start one with
-``python -m cellcal.sims.fake_ur.process --host 127.0.7.1`` or :class:`.fake_ur_process.FakeUrProcess`.
+``python -m cellcal.sims.fake_ur.process --host 127.0.7.1`` or :class:`.process.FakeUrProcess`.
 """
 from __future__ import annotations
 

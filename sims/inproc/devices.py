@@ -1,8 +1,8 @@
 """In-process simulated cell devices behind the driver interfaces, registered as "sim".
 
 A cell file says ``robot: {driver: sim}`` (and the same for trigger, tracker, panel);
-the driver registry builds one :class:`~.sim_world.SimWorld` per cell
-(:func:`~.sim_world.world_of_cell`, the ``sim`` backends' shared object) and hands it
+the driver registry builds one :class:`~.world.SimWorld` per cell
+(:func:`~.world.world_of_cell`, the ``sim`` backends' shared object) and hands it
 to each, so the trigger fires when the simulated arm crosses the beam and the tracker
 measures where the arm is. Built on their own (no ``world``), each device
 gets a private world of a UR10e at home, which is enough for unit tests of one device.

@@ -1,16 +1,16 @@
 """The in-process simulated cell: one arm, its light beams and one clock, shared by the sim devices.
 
-The simulated robot, trigger, tracker and panel of :mod:`.sim_devices` all look at one
+The simulated robot, trigger, tracker and panel of :mod:`.devices` all look at one
 ``SimWorld``, so a trigger sees the arm cross its beam and a tracker measures where the
 arm really is. Time is simulated: a motion is integrated in controller cycles as fast as
 the CPU allows, so a routine's sweep takes milliseconds of wall time in tests.
 
-The arm is the fake UR controller's (:class:`~.arm_motion.MovingArm`: our own forward
+The arm is the fake UR controller's (:class:`~cellcal.sims.physics.arm_motion.MovingArm`: our own forward
 kinematics of the robot model, trapezoidal joint and linear moves, 2 ms cycle), so the
 in-process cell and the cell behind the real client libraries move the TCP along the
 same path with the same timing.
 
-What the arm really does is the cell's :class:`~.truth.CellTruth`: the joints move the
+What the arm really does is the cell's :class:`~cellcal.sims.physics.truth.CellTruth`: the joints move the
 arm as built (not as drawn), the real tool body blocks the real beams and touches the
 real stylus, and each motion ends off by the arm's repeatability. The controller side
 (reported TCP pose, the TCP a routine sets) computes with the drawing, as a real

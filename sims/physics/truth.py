@@ -20,8 +20,8 @@ reality is from that, or states reality outright, and a seed draws the rest. Fro
   answer), drawn from its own stream of the seed so robot a's truth is the same as in a
   one-robot cell.
 
-The in-process cell (:mod:`.sim_world`) and the fake UR controller behind the network
-fakes (:mod:`.fake_ur`) are both built from one :class:`CellTruth`, so the same routine
+The in-process cell (:mod:`cellcal.sims.inproc.world`) and the fake UR controller behind the network
+fakes (:mod:`cellcal.sims.fake_ur`) are both built from one :class:`CellTruth`, so the same routine
 run in both cells is scored against the same truth. Routines and solvers never read
 it; tests and the run's report (``sim_truth`` in the JSON) do.
 """

@@ -179,7 +179,7 @@ class ExtendedModel:
 @dataclass(frozen=True)
 class ExtendedFit(FitResult):
     """Geometry and terms fitted together; status, message, success and nfev as
-    :func:`.lsq.levenberg_marquardt` (scipy's "lm") reports them, no covariance
+    :func:`cellcal.solvers.estimation.lsq.levenberg_marquardt` (scipy's "lm") reports them, no covariance
     (:func:`.physical_sizes.theta_covariance_root` makes the part that is needed)."""
 
     x: np.ndarray

@@ -1,7 +1,7 @@
 """Rigid-body helpers: rotations, homogeneous transforms, rigid fits.
 
 Everything is vectorised over leading dimensions. Lengths are in whatever unit
-the caller uses (the solvers use mm), angles in radians.
+the caller uses (the fits mm, inverse.py metres), angles in radians.
 """
 from __future__ import annotations
 

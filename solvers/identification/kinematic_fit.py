@@ -20,8 +20,9 @@ from cellcal.solvers.identification.measurement_model import Layout, Observation
 
 @dataclass(frozen=True)
 class Fit(FitResult):
-    """status, message, success and nfev as :func:`.lsq.levenberg_marquardt` (scipy's "lm") reports
-    them; no covariance (:func:`covariance` makes it for the fits that need it)."""
+    """status, message, success and nfev as
+    :func:`cellcal.solvers.estimation.lsq.levenberg_marquardt` (scipy's "lm") reports them; no
+    covariance (:func:`covariance` makes it for the fits that need it)."""
 
     x: np.ndarray  # full unknown vector, units as in Identification.x
     residuals_mm: np.ndarray  # (N, 3) predicted - measured

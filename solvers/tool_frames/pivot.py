@@ -17,7 +17,7 @@ frame: linear in the lines' offsets o and in a's part across the drawn axis
 
 Lengths are in mm (the maths holds in any unit; the routines pass mm and the results' names
 say mm); angles in radians. Both fits are closed form: they report status 1 and success, or
-success False with the reason when the design is singular (:mod:`.fit_result`).
+success False with the reason when the design is singular (:mod:`cellcal.solvers.estimation.fit_result`).
 """
 from __future__ import annotations
 

@@ -8,7 +8,7 @@ is from the stylus ball, to plan moves that cannot hit it.
 Identifiability (:func:`determined`, :func:`null_directions`): the rank of the contact
 model's Jacobian, read off its singular values; a direction the contacts do not see is
 named and no value along it is reported. :func:`contact_jacobian` extends the model with
-the arm's kinematic parameters (analytic, through :func:`.chain.point_jacobians`) to check
+the arm's kinematic parameters (analytic, through :func:`cellcal.solvers.geometry.chain.point_jacobians`) to check
 the claim of Chang et al. ("A Stylus-Based Calibration Method for Robotic Belt Grinding
 Tools", Appl. Sci. 2025) that contacts on one stylus identify 20 DH errors, 6 tool and 3
 stylus parameters: a small change of the parameters moves the flange, and the distance from the

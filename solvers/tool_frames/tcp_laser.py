@@ -20,7 +20,7 @@ axis), each beam's position across its line (2 per beam; the direction is taken 
 cell file: a turn about a vertical axis of a beam crossed only near one place moves
 nothing the sweeps see), each beam's reach (1 per beam), the latency (1). The rotation
 of the tool frame about its own axis is not a property of a round tool: it is fixed by
-the convention of :func:`.se3.rotvec_from_z`. The tool radius cannot be told from the
+the convention of :func:`cellcal.solvers.geometry.se3.rotvec_from_z`. The tool radius cannot be told from the
 beam's half width (only their sum acts); the tip is the drawn radius ahead of the
 fitted front centre.
 """
@@ -87,7 +87,7 @@ class LaserFit(FitResult):
     @property
     def tool_frame(self) -> np.ndarray:
         """[x, y, z, rx, ry, rz] (m, rad): origin at the tip, z along the axis, the rotation about
-        the axis by convention (:func:`.se3.rotvec_from_z`)."""
+        the axis by convention (:func:`cellcal.solvers.geometry.se3.rotvec_from_z`)."""
         return np.concatenate([self.tip_mm / 1e3, se3.rotvec_from_z(self.axis)])
 
 

@@ -15,7 +15,7 @@ from cellcal.daemon.write_back import tool_slot
 from cellcal.routines.framework.registry import panel_selectors
 
 SELECT = {name: number for number, name in panel_selectors().items()}
-# tcp-laser on the in-process cell finds the tip to about 0.01-0.02 mm (README); 0.1 mm is far above
+# tcp-laser on the in-process cell finds the tip to about 0.01-0.02 mm (docs/routines.md); 0.1 mm is far above
 # that on any machine and far below the 20 mm between the two tools' tips
 WITHIN_MM = 0.1
 

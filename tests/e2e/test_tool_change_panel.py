@@ -19,7 +19,7 @@ from support.daemon_harness import Net, controller_tcp, plc_reads, press_start, 
 pytestmark = pytest.mark.slow
 
 # each written frame against its tool's real one: tcp-laser's accuracy on sim-net is about
-# 0.01-0.02 mm (README); 0.05 mm leaves room for another machine's rounding, and is far below
+# 0.01-0.02 mm (docs/routines.md); 0.05 mm leaves room for another machine's rounding, and is far below
 # the 20 mm between the two tools' tips, so a frame of the wrong tool cannot pass
 WITHIN_MM = 0.05
 
@@ -106,7 +106,7 @@ def test_two_tools_calibrated_checked_and_changed_from_the_panel(net, cellcal_da
     spare_frame = controller_tcp(net)
     assert np.linalg.norm(spare_frame[:3] * 1e3 - real_tip_mm(net, 2)) <= WITHIN_MM
     # the robot program's start after a tool change reads its tool's own register block
-    # (README "Persistent tool frame"): block 0 the torch's frame of run 1, block 1 the spare's of run 3
+    # (docs/integrator.md "Persistent tool frame"): block 0 the torch's frame of run 1, block 1 the spare's of run 3
     for block, frame, run in ((0, torch, 1), (1, spare_frame, 3)):
         np.testing.assert_array_equal(stored_block(net, block), [*frame, run])
     check = press(net, "tcp-check")

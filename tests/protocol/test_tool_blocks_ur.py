@@ -3,7 +3,7 @@ over loopback, driven by the real ur_rtde client: block k from input register N+
 read back bit for bit and applied by the program of its tool at its start; a write to one
 block leaves the others alone; a tool beyond the blocks that fit below register 48 gets the
 running frame only; a block held by another client is refused naming its registers; and the
-README's BeforeStart lines for a tool changer read the registers the driver writes."""
+integrator page's BeforeStart lines for a tool changer read the registers the driver writes."""
 from __future__ import annotations
 
 import re
@@ -87,10 +87,10 @@ def test_a_block_held_by_another_client_is_refused_naming_its_registers(fake, co
         wire.sock.close()
 
 
-def test_the_readme_tool_changer_lines_read_the_block_the_driver_writes():
-    """The README's BeforeStart script for a tool changer computes its registers from a base
+def test_the_documented_tool_changer_lines_read_the_block_the_driver_writes():
+    """The integrator page's BeforeStart script for a tool changer computes its registers from a base
     register variable; evaluated for each block, they are the driver's names."""
-    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    text = (Path(__file__).resolve().parents[2] / "docs" / "integrator.md").read_text()
     script = text[text.index("# cellcal: apply this tool's stored frame"):]
     script = script[:script.index("```")]
     base = re.search(r"^\s*(\w+) = 24 \+ 6 \* (\w+)", script, re.M)

@@ -108,8 +108,8 @@ def test_rollback_restores_the_running_and_the_stored_frame_from_before_the_writ
     assert last["stored_before"] == {"tool_frame": FRAME_B.tolist(), "generation": run_id, "slot": 0}
 
 
-def test_the_readme_script_reads_the_registers_and_the_tag_the_driver_writes():
-    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+def test_the_documented_script_reads_the_registers_and_the_tag_the_driver_writes():
+    text = (Path(__file__).resolve().parents[2] / "docs" / "integrator.md").read_text()
     script = text[text.index("# cellcal: apply the stored tool frame"):]
     script = script[:script.index("```")]
     floats = [int(n) for n in re.findall(r"read_input_float_register\((\d+)\)", script)]

@@ -296,10 +296,10 @@ def _selector_values() -> dict[int, str]:
     return {int(k): v for k, v in panel_routines().items()}
 
 
-def test_the_readme_lists_every_routine_selector_value():
-    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+def test_the_integrator_page_lists_every_routine_selector_value():
+    text = " ".join((ROOT / "docs" / "integrator.md").read_text(encoding="utf-8").split())
     listed = re.search(r"holding register 0: ([^)]*)\)", text)
-    assert listed, "README no longer lists the selector values after 'holding register 0:'"
+    assert listed, "docs/integrator.md no longer lists the selector values after 'holding register 0:'"
     pairs = {int(n): name for n, name in re.findall(r"(\d+) ([a-z][a-z-]*)", listed.group(1))}
     assert pairs == _selector_values()
 

@@ -1,5 +1,7 @@
-"""The reference pages in docs/ say what the code does: the panel's register map, the
-exit-status table of the command line, the cause ids, the sub-commands; and nothing in
+"""The README and the pages in docs/ say what the code does: the panel's register map, the
+exit-status table of the command line, the cause ids, the sub-commands, the README's routine
+table, the ``--help`` blocks the pages show; the README stays short, its two commands are the
+Makefile's, every page is in the index and every link between them resolves; and nothing in
 the project points at the specification files it no longer needs (``spec/...``).
 
 Each check compares two independent sources, a table parsed out of a page and the
@@ -349,6 +351,120 @@ def test_cli_page_lists_every_sub_command_and_which_take_json():
         assert json_column == ("yes" if takes_json else "no"), f"cellcal {' '.join(words)}: --json"
 
 
+# -- the README: short, its two commands, its routine table against the registry ---------------------------
+
+
+README = ROOT / "README.md"
+README_MAX_LINES = 200
+
+
+def test_the_readme_stays_short():
+    lines = README.read_text(encoding="utf-8").splitlines()
+    assert len(lines) <= README_MAX_LINES, f"README.md has {len(lines)} lines; move detail to a page of docs/"
+
+
+def test_the_readme_shows_the_two_commands_and_the_makefile_has_them():
+    text = README.read_text(encoding="utf-8")
+    targets = set(re.findall(r"^([a-z][\w-]*):", (ROOT / "Makefile").read_text(encoding="utf-8"), re.M))
+    for command in ("make demo", "make test"):
+        assert re.search(rf"^{command}\s+#", text, re.M), f"the README no longer shows `{command}`"
+        assert command.split()[1] in targets
+
+
+def routine_table_mismatches(text: str) -> list[str]:
+    """Differences between the README's routine table and the routine classes the registry finds:
+    every routine in it once, with its panel selector and its cell file section."""
+    from cellcal.routines.framework import registry
+
+    try:
+        rows = table_under(text, "## Routines")
+    except LookupError as exc:
+        return [str(exc)]
+    out, documented = [], {}
+    for row in rows:
+        name = _code(row.get("routine", ""))
+        if name in documented:
+            out.append(f"{name} is in the table twice")
+        documented[name] = row
+    for name in sorted(set(documented) | set(registry.available())):
+        if name not in documented:
+            out.append(f"routine {name} is missing from the table")
+            continue
+        try:
+            cls = registry.routine_class(name)
+        except KeyError:
+            out.append(f"{name} is in the table but is no routine")
+            continue
+        row = documented[name]
+        selector = row.get("panel selector", "").strip()
+        expected = "—" if cls.selector is None else str(cls.selector)
+        if selector != expected:
+            out.append(f"{name}: panel selector {selector!r} in the table, {expected!r} in {cls.__module__}")
+        if _code(row.get("cell section", "")) != cls.section:
+            out.append(f"{name}: section {row.get('cell section')!r} in the table, {cls.section!r} in {cls.__module__}")
+        if not row.get("what it measures", "").strip():
+            out.append(f"{name}: says nothing of what it measures")
+    return out
+
+
+def test_the_readme_routine_table_matches_the_registry():
+    assert routine_table_mismatches(README.read_text(encoding="utf-8")) == []
+
+
+@pytest.mark.parametrize("old,new", [
+    ("| 7 | `tcp_check` |", "| 6 | `tcp_check` |"),              # a selector number
+    ("| 8 | `kinematic_fixture` |", "| 8 | `fixture` |"),           # a section
+])
+def test_the_routine_table_check_catches_a_wrong_row(old, new):
+    text = README.read_text(encoding="utf-8")
+    assert text.count(old) == 1, f"the README no longer has {old!r}; update this test"
+    assert routine_table_mismatches(text.replace(old, new))
+
+
+def test_the_routine_table_check_catches_a_dropped_routine():
+    text = README.read_text(encoding="utf-8")
+    row = next(line for line in text.splitlines() if line.startswith("| `tcp-check` |"))
+    assert routine_table_mismatches(text.replace(row + "\n", ""))
+
+
+# -- the --help blocks a page shows are what the command prints ---------------------------------------------
+
+
+HELP_BLOCK = re.compile(r"<summary><code>cellcal ([\w-]+) --help</code></summary>\s*```\n(.*?)```", re.S)
+
+
+def help_blocks() -> list[tuple[str, str, str]]:
+    """(page, sub-command, the block's text) of every ``cellcal X --help`` block in docs/."""
+    return [(page.name, m.group(1), m.group(2)) for page in sorted(DOCS.glob("*.md"))
+            for m in HELP_BLOCK.finditer(page.read_text(encoding="utf-8"))]
+
+
+def test_the_pages_show_some_help_blocks():
+    assert {command for _, command, _ in help_blocks()} >= {"compensate", "iso9283"}
+
+
+@pytest.mark.parametrize("page,command", [(p, c) for p, c, _ in help_blocks()])
+def test_a_help_block_is_what_the_command_prints(page, command, capsys, monkeypatch):
+    from cellcal.cli.main import main
+
+    monkeypatch.setenv("COLUMNS", "80")  # argparse wraps at the terminal's width; the pages at 80
+    block = next(text for p, c, text in help_blocks() if (p, c) == (page, command))
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    assert capsys.readouterr().out == block, f"{page}: the `cellcal {command} --help` block is out of date"
+
+
+# -- the index lists every page ------------------------------------------------------------------------------
+
+
+def test_the_docs_index_and_the_readme_list_every_page():
+    pages = {p.name for p in DOCS.glob("*.md")} - {"README.md"}
+    index = (DOCS / "README.md").read_text(encoding="utf-8")
+    readme = README.read_text(encoding="utf-8")
+    assert {p for p in pages if f"]({p})" not in index} == set()
+    assert {p for p in pages if f"](docs/{p})" not in readme} == set()
+
+
 # -- causes: docs/causes.md against solvers.analysis.effects ------------------------------------------------------
 
 
@@ -415,7 +531,7 @@ def test_the_pointer_check_leaves_docs_data_and_random_seeds_alone(line):
     assert stale_references(line) == []
 
 
-def test_links_between_the_reference_pages_resolve():
-    for page in DOCS.glob("*.md"):
+def test_links_between_the_pages_resolve():
+    for page in [*DOCS.glob("*.md"), README]:
         for target in re.findall(r"\]\(([^)#:]+\.md)(?:#[^)]*)?\)", page.read_text(encoding="utf-8")):
             assert (page.parent / target).is_file(), f"{page.name} links to {target}, which does not exist"

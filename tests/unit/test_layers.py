@@ -1,4 +1,4 @@
-"""The layer order of DESIGN.md, kept by the suite rather than by memory.
+"""The layer order of docs/architecture.md, kept by the suite rather than by memory.
 
 ``cli → (daemon, reports, …) → routines → (drivers, solvers)``; ``sims → drivers``;
 ``solvers`` imports nothing of ours; ``config`` (the readers of what people write)

@@ -76,8 +76,8 @@ def test_the_shipped_unit_runs_the_documented_venv_and_reads_the_installed_cell(
     template = service.unit_template()
     assert exec_start(template) == "/opt/cellcal/bin/cellcal daemon --cell /etc/cellcal/cell.yaml"
     assert "install -m" not in template and "/opt/cellcal/.venv" not in template
-    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text(encoding="utf-8")
-    assert "python3 -m venv /opt/cellcal" in readme and "cellcal service install --cell" in readme
+    page = (Path(__file__).resolve().parents[2] / "docs" / "integrator.md").read_text(encoding="utf-8")
+    assert "python3 -m venv /opt/cellcal" in page and "cellcal service install --cell" in page
 
 
 def test_the_same_cell_again_is_unchanged(root, capsys):
