@@ -14,9 +14,8 @@ from support.cell_edits import edited_cell
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
-from cellcal.routines.framework.registry import panel_selectors
+from support.service_panel import SELECT
 
-SELECT = {name: number for number, name in panel_selectors().items()}
 WAIT_S = 60.0  # a bound for a run that hangs, far above any case's real duration
 
 
