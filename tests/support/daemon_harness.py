@@ -172,7 +172,7 @@ def systemd_stop_timeout_s() -> float:
     """TimeoutStopSec of the shipped unit (config/cellcal.service): how long systemd waits after
     SIGTERM before it kills the service. A stop must end within it; how fast it usually is (well
     under a second unloaded) is not a test's to assert on a shared machine."""
-    unit = Path(__file__).resolve().parents[1] / "config" / "cellcal.service"
+    unit = Path(__file__).resolve().parents[2] / "config" / "cellcal.service"
     return float(re.search(r"^TimeoutStopSec=(\d+)", unit.read_text(), re.M).group(1))
 
 
