@@ -2,6 +2,37 @@
 import pytest
 
 
+@pytest.fixture(scope="module")
+def net_cell():
+    """The cell file a module's ``net`` serves, as ``cell_file(folder, host)`` for
+    daemon_harness.Net (None: its short sim-net). A module that needs another cell defines
+    a fixture of this name."""
+    return None
+
+
+@pytest.fixture(scope="module")
+def net(net_cell, tmp_path_factory):
+    """The networked simulated cell's fakes (daemon_harness.Net) on a loopback address of
+    their own, running for the whole test module, reset once at the start (``cell_net``
+    resets them again for a test). Stopped when the module ends."""
+    from support.daemon_harness import Net
+
+    net = Net(tmp_path_factory.mktemp("sim-net"), net_cell)
+    try:
+        net.reset()
+        yield net
+    finally:
+        net.close()
+
+
+@pytest.fixture
+def cell_net(net):
+    """The module's ``net`` reset for this test: the controller healthy, the arm at home with
+    the previous frame, no fault pending."""
+    net.reset()
+    return net
+
+
 @pytest.fixture
 def cellcal_daemon(tmp_path):
     """``daemon = cellcal_daemon(net)``: ``cellcal daemon`` (a subprocess, ``python -m

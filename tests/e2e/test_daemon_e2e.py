@@ -38,21 +38,6 @@ pytestmark = pytest.mark.slow
 INJECT_AFTER_MOTION_S = 0.15  # a fault of the controller once the arm has moved this long
 
 
-@pytest.fixture(scope="module")
-def net(tmp_path_factory):
-    net = Net(tmp_path_factory.mktemp("sim-net"))
-    try:
-        yield net
-    finally:
-        net.close()
-
-
-@pytest.fixture
-def cell_net(net):
-    net.reset()
-    return net
-
-
 def when_moving(net: Net, action, delay_s: float = 0.1) -> threading.Thread:
     """Run `action` once the fake arm has moved `delay_s` (a fault of a device other than the arm)."""
     def watch():

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from cellcal.daemon import service as service_module
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.drift import NEVER_CALIBRATED
 from cellcal.daemon.service import ResultCode, Service
@@ -20,8 +19,8 @@ from cellcal.daemon.store import Store
 from cellcal.reports.run import write_run_report
 from cellcal.reports.trend import write_trend_page
 from support.cell_edits import edited_cell  # tests/support/cell_edits.py
+from support.service_panel import press
 
-SELECT = {name: number for number, name in service_module.panel_routines().items()}
 DRAWN_TIP_M = np.array([0.0, 0.0, 0.150])  # sim.yaml's [tool]
 CROSSING_MM = [-691.4, -174.1, 450.0]  # sim.yaml's [beams]: both beams' point
 KNOWN_BEAMS = {"beams": [{"channel": 0, "point_mm": CROSSING_MM}, {"channel": 1, "point_mm": CROSSING_MM}]}
@@ -42,13 +41,6 @@ def service_on(cell, drivers, store, folder) -> Service:
     return Service(cell, drivers, store, out_dir=folder / "datasets",
                    report=lambda run_id, result, st: write_run_report(folder / "reports", run_id, result),
                    trend=lambda tool_id, t: write_trend_page(folder / "reports" / f"tool-{tool_id}", t))
-
-
-def press(service: Service, panel, routine: str):
-    panel.select_routine(SELECT[routine])
-    panel.press_start()
-    service.poll_panel()
-    return service.wait(120)
 
 
 def test_checks_build_the_history_and_a_drifted_tool_ends_in_the_drift_alarm(tmp_path):

@@ -2,33 +2,24 @@
 in-process simulated cell, scored against the arm's hidden geometry over the whole workspace."""
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 
 import pytest
 import yaml
 
-from cellcal.cli.main import main
 from cellcal.routines.framework.records import read_dataset
 from support.cell_edits import cell_document, edited_cell  # tests/support/cell_edits.py
+from support.cli_run import run_cli_captured
 
 # the issue's arm: hidden geometric errors of up to 0.5 mm and 0.05 deg, repeatability 0.03 mm
 ARM_ERRORS = {"sim_truth": {"arm_length_error_mm": 0.5, "arm_angle_error_deg": 0.05}}
-
-
-def _cellcal(*args) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main(list(args))
-    return code, out.getvalue(), err.getvalue()
 
 
 @pytest.fixture(scope="module")
 def sim_run(tmp_path_factory):
     folder = tmp_path_factory.mktemp("kinematic_fixture")
     cell = edited_cell(folder, "sim", ARM_ERRORS)
-    code, out, err = _cellcal("run", "kinematic-fixture", "--cell", str(cell), "--json", "--out", str(folder))
+    code, out, err = run_cli_captured("run", "kinematic-fixture", "--cell", str(cell), "--json", "--out", str(folder))
     assert code == 0, err
     return folder, cell, json.loads(out), next(folder.glob("kinematic-fixture-*.csv"))
 
@@ -62,7 +53,7 @@ def test_the_dataset_re_solves_offline_to_the_same_model(sim_run):
     fixture = cell_document(cell)["kinematic_fixture"]["fixture"]
     plate = folder / "plate.yaml"
     plate.write_text(yaml.safe_dump(fixture))
-    code, out, err = _cellcal("identify", "--robot", "ur10e", "--data", str(dataset), "--fixture", str(plate),
+    code, out, err = run_cli_captured("identify", "--robot", "ur10e", "--data", str(dataset), "--fixture", str(plate),
                               "--json")
     assert code == 0, err
     offline = {p["name"]: p["value"] for p in json.loads(out)["parameters"]}
@@ -78,7 +69,7 @@ def test_a_placement_beyond_reach_is_refused_before_anything_moves(tmp_path):
     def far(doc):
         doc["kinematic_fixture"]["placements"][0]["at_m"] = [-1.15, 0.95, 0.30]  # inside the box, 1.49 m out: beyond reach
     cell = edited_cell(tmp_path, "sim", far)
-    code, _, err = _cellcal("run", "kinematic-fixture", "--cell", str(cell), "--out", str(tmp_path))
+    code, _, err = run_cli_captured("run", "kinematic-fixture", "--cell", str(cell), "--out", str(tmp_path))
     assert code == 2 and "plan refused, nothing moved" in err and "placement p1" in err
     assert not list(tmp_path.glob("kinematic-fixture-*.csv"))
 
@@ -92,5 +83,5 @@ def test_a_placement_beyond_reach_is_refused_before_anything_moves(tmp_path):
 ])
 def test_bad_section_keys_are_refused_naming_the_key(tmp_path, edit, says):
     cell = edited_cell(tmp_path, "sim", lambda doc: edit(doc["kinematic_fixture"]))
-    code, _, err = _cellcal("run", "kinematic-fixture", "--cell", str(cell), "--dry-run")
+    code, _, err = run_cli_captured("run", "kinematic-fixture", "--cell", str(cell), "--dry-run")
     assert code == 2 and "kinematic_fixture" in err and says in err and "Traceback" not in err

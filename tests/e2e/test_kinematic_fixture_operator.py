@@ -14,9 +14,8 @@ from support.cell_edits import edited_cell
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
-from cellcal.routines.framework.registry import panel_selectors
+from support.service_panel import SELECT
 
-SELECT = {name: number for number, name in panel_selectors().items()}
 WAIT_S = 60.0  # a bound for a run that hangs, far above any case's real duration
 
 
@@ -137,20 +136,18 @@ def test_bad_move_by_keys_are_refused_naming_the_key(tmp_path, edit, says):
 
 
 def test_cellcal_run_without_a_terminal_to_ask_on_is_refused_before_anything_moves(tmp_path, monkeypatch):
-    import contextlib
     import io
 
-    from cellcal.cli.main import main
+    from support.cli_run import run_cli_captured
     cell = operator_cell(tmp_path)
     monkeypatch.setattr("sys.stdin", io.StringIO(""))  # a pipe or /dev/null: no terminal
-    err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        code = main(["run", "kinematic-fixture", "--cell", str(cell.path), "--out", str(tmp_path / "out")])
-    assert code == 2 and "move_by: operator" in err.getvalue() and "nothing moved" in err.getvalue()
-    assert "cellcal daemon" in err.getvalue() and "move_by: fixed" in err.getvalue()
+    code, _, err = run_cli_captured("run", "kinematic-fixture", "--cell", str(cell.path),
+                                    "--out", str(tmp_path / "out"))
+    assert code == 2 and "move_by: operator" in err and "nothing moved" in err
+    assert "cellcal daemon" in err and "move_by: fixed" in err
     assert not (tmp_path / "out").exists()
-    with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):  # the plan still checks
-        assert main(["run", "kinematic-fixture", "--cell", str(cell.path), "--dry-run"]) == 0
+    dry_run = run_cli_captured("run", "kinematic-fixture", "--cell", str(cell.path), "--dry-run")
+    assert dry_run[0] == 0  # the plan still checks
 
 
 def test_the_terminal_operator_confirms_with_enter_and_times_out_without(capsys):

@@ -38,18 +38,17 @@ def plate_by_hand(folder, host):
 
 
 @pytest.fixture(scope="module")
-def cell(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("sim-net-plate")
-    net = Net(folder, plate_by_hand)
+def net_cell():
+    return plate_by_hand
+
+
+@pytest.fixture(scope="module")
+def cell(net, tmp_path_factory):
+    daemon = Daemon(net, tmp_path_factory.mktemp("sim-net-plate"))
     try:
-        net.reset()
-        daemon = Daemon(net, folder)
-        try:
-            yield net, daemon
-        finally:
-            daemon.stop()
+        yield net, daemon
     finally:
-        net.close()
+        daemon.stop()
 
 
 class Plc:

@@ -3,16 +3,14 @@ spread over each ball's upper half), end to end on the in-process simulated cell
 hidden geometry over the whole workspace."""
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 
 import pytest
 import yaml
 
-from cellcal.cli.main import main
 from cellcal.routines.framework.records import read_dataset
 from support.cell_edits import cell_document, edited_cell  # tests/support/cell_edits.py
+from support.cli_run import run_cli_captured
 
 BALL_AND_TIP_MM = 9.0  # the sim cell's tip rounding is 3 mm: balls of 6 mm
 
@@ -26,18 +24,11 @@ def _stylus(doc, **section):
     s.update(orientations=6, approach_mm=3, **section)
 
 
-def _cellcal(*args) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main(list(args))
-    return code, out.getvalue(), err.getvalue()
-
-
 @pytest.fixture(scope="module")
 def stylus_run(tmp_path_factory):
     folder = tmp_path_factory.mktemp("kinematic_fixture_stylus")
     cell = edited_cell(folder, "sim", _stylus)
-    code, out, err = _cellcal("run", "kinematic-fixture", "--cell", str(cell), "--json", "--out", str(folder))
+    code, out, err = run_cli_captured("run", "kinematic-fixture", "--cell", str(cell), "--json", "--out", str(folder))
     assert code == 0, err
     return folder, cell, json.loads(out), next(folder.glob("kinematic-fixture-*.csv"))
 
@@ -74,7 +65,7 @@ def test_the_stylus_dataset_re_solves_offline_to_the_same_model(stylus_run):
     folder, cell, result, dataset = stylus_run
     plate = folder / "balls.yaml"
     plate.write_text(yaml.safe_dump(cell_document(cell)["kinematic_fixture"]["fixture"]))
-    code, out, err = _cellcal("identify", "--robot", "ur10e", "--data", str(dataset), "--fixture", str(plate),
+    code, out, err = run_cli_captured("identify", "--robot", "ur10e", "--data", str(dataset), "--fixture", str(plate),
                               "--json")
     assert code == 0, err
     doc = json.loads(out)
@@ -97,14 +88,14 @@ def test_the_stylus_dataset_re_solves_offline_to_the_same_model(stylus_run):
 ])
 def test_bad_stylus_keys_are_refused_naming_the_key(tmp_path, edit, says):
     cell = edited_cell(tmp_path, "sim", lambda doc: (_stylus(doc), edit(doc["kinematic_fixture"])))
-    code, _, err = _cellcal("run", "kinematic-fixture", "--cell", str(cell), "--dry-run")
+    code, _, err = run_cli_captured("run", "kinematic-fixture", "--cell", str(cell), "--dry-run")
     assert code == 2 and "kinematic_fixture" in err and says in err and "Traceback" not in err
     assert err.count("error") == 1  # one message
 
 
 def test_spots_on_sockets_are_refused(tmp_path):
     cell = edited_cell(tmp_path, "sim", lambda doc: doc["kinematic_fixture"].update(elevation_deg=[30, 80]))
-    code, _, err = _cellcal("run", "kinematic-fixture", "--cell", str(cell), "--dry-run")
+    code, _, err = run_cli_captured("run", "kinematic-fixture", "--cell", str(cell), "--dry-run")
     assert code == 2 and "elevation_deg" in err and "only with a stylus fixture" in err
 
 
@@ -113,6 +104,6 @@ def test_a_spot_no_tool_orientation_reaches_is_refused_before_anything_moves(tmp
     # needs the tool turned back toward the base, beyond the 40 deg tilt and the wrist's reach
     cell = edited_cell(tmp_path, "sim", lambda doc: _stylus(doc, elevation_deg=[20, 80],
                                                             placements=doc["kinematic_fixture"]["placements"][3:]))
-    code, _, err = _cellcal("run", "kinematic-fixture", "--cell", str(cell), "--out", str(tmp_path))
+    code, _, err = run_cli_captured("run", "kinematic-fixture", "--cell", str(cell), "--out", str(tmp_path))
     assert code == 2 and "plan refused, nothing moved" in err and "cannot be touched" in err and "placement p4" in err
     assert not list(tmp_path.glob("kinematic-fixture-*.csv"))

@@ -18,26 +18,11 @@ import pytest
 from support.cell_edits import edited_cell
 from cellcal.daemon.service import ResultCode
 from cellcal.daemon.store import Store
-from support.daemon_harness import Net, press_start, until_the_run_ends
+from support.daemon_harness import press_start, until_the_run_ends
 
 # A refused command touches no device: it ends in well under a second of its own; the bound
 # allows for starting a Python process with numpy on a loaded 2-core machine.
 REFUSED_WITHIN_S = 20.0
-
-
-@pytest.fixture(scope="module")
-def net(tmp_path_factory):
-    net = Net(tmp_path_factory.mktemp("sim-net"))
-    try:
-        yield net
-    finally:
-        net.close()
-
-
-@pytest.fixture
-def cell_net(net):
-    net.reset()
-    return net
 
 
 def cellcal(*argv: str) -> subprocess.CompletedProcess:

@@ -18,8 +18,8 @@ from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
 from cellcal.drivers.interfaces import RobotState
 from cellcal.routines.framework import registry
+from support.service_panel import press
 
-SELECT = {name: number for number, name in service_module.panel_routines().items()}
 CALIBRATED = np.array([0.0004, -0.0003, 0.1496, 0.004, -0.003, 0.0])  # a previous calibration's frame
 
 
@@ -30,15 +30,6 @@ def cell():
 
 def service_on(cell, drivers, folder, store=None) -> Service:
     return Service(cell, drivers, store or Store.open(folder / "state"), out_dir=folder / "state" / "datasets")
-
-
-def press(service: Service, panel, routine: str | int, *, abort: bool = False):
-    panel.select_routine(SELECT.get(routine, routine))
-    panel.press_start()
-    if abort:
-        panel.press_abort()
-    service.poll_panel()
-    return service.wait(120)
 
 
 def test_start_pressed_together_with_abort_starts_nothing(cell, tmp_path):

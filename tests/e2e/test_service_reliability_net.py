@@ -25,21 +25,6 @@ pytestmark = pytest.mark.slow
 FRAME_ATOL = 1e-12  # the controller reports the doubles it was given (daemon/write_back.py TOLERANCE is 1e-9)
 
 
-@pytest.fixture(scope="module")
-def net(tmp_path_factory):
-    net = Net(tmp_path_factory.mktemp("sim-net"))
-    try:
-        yield net
-    finally:
-        net.close()
-
-
-@pytest.fixture
-def cell_net(net):
-    net.reset()
-    return net
-
-
 def frame_on_controller(net: Net) -> np.ndarray:
     net.at_rest(0.0)
     return np.asarray(net.state()["tcp_offset"], dtype=float)

@@ -22,7 +22,7 @@ from types import SimpleNamespace
 import pytest
 
 from support import loopback
-from cellcal.daemon import service as service_module
+from support.service_panel import press
 from cellcal.daemon import status_server
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.service import ResultCode, Service
@@ -31,7 +31,6 @@ from cellcal.daemon.store import Store
 from cellcal.reports.run import write_run_report
 from cellcal.reports.trend import write_trend_page
 
-SELECT = {name: number for number, name in service_module.panel_routines().items()}
 SECRET = "cellcal-test-secret-outside-the-reports-folder"
 
 
@@ -57,10 +56,7 @@ def cell_run(tmp_path_factory):
                           trend=lambda tool_id, trend: write_trend_page(folder / "reports" / f"tool-{tool_id}", trend))
         outcomes = []
         for routine in ("tcp-npoint", "tcp-check"):
-            drivers.panel.select_routine(SELECT[routine])
-            drivers.panel.press_start()
-            service.poll_panel()
-            outcomes.append(service.wait(120))
+            outcomes.append(press(service, drivers.panel, routine))
         store.close()
     assert [o.code for o in outcomes] == [ResultCode.OK, ResultCode.OK], [o.reason for o in outcomes]
     (root / "secret.txt").write_text(SECRET)

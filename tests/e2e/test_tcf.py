@@ -2,9 +2,7 @@
 scored against the simulation's hidden truth."""
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 import json
 import re
 
@@ -12,7 +10,7 @@ import numpy as np
 import pytest
 
 from cellcal.daemon.cells import load_cell, open_drivers
-from cellcal.cli.main import main
+from support.cli_run import run_cli, run_cli_captured  # tests/support/cli_run.py
 from cellcal.routines.framework import runner
 from cellcal.routines.framework.base import PlanRefused, RoutineError
 from cellcal.routines.framework.records import read_dataset
@@ -50,12 +48,6 @@ def midpoints(rotations, directions, heights, axis, tip=np.array([0.4, -0.3, 150
 def tilted(deg, towards=(1.0, 0.3, 0.0)):
     t = np.asarray(towards) / np.linalg.norm(towards)
     return np.cos(np.deg2rad(deg)) * DRAWN + np.sin(np.deg2rad(deg)) * t
-
-
-def run(argv, capsys):
-    code = main(argv)
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def variant(tmp_path, changes=None, name="c.yaml"):
@@ -110,7 +102,7 @@ def test_heights_too_close_are_refused_before_anything_moves_saying_how_far_apar
     assert "the heights 15 and 20 mm are 5 mm apart" in message and "for 0.05 deg at 0.03 mm repeatability" in message
     apart = float(re.search(r"at least ([\d.]+) mm apart is needed", message).group(1))
     assert apart == pytest.approx(0.0116 * 70 / 0.05, rel=0.05)
-    code, _, stderr = run(["run", "tcf", "--cell", str(cell.path), "--out", str(tmp_path / "runs")], capsys)
+    code, _, stderr = run_cli(capsys, "run", "tcf", "--cell", str(cell.path), "--out", str(tmp_path / "runs"))
     assert code == 2 and "plan refused, nothing moved" in stderr and not (tmp_path / "runs").exists()
 
 
@@ -119,10 +111,8 @@ def test_heights_too_close_are_refused_before_anything_moves_saying_how_far_apar
 @pytest.fixture(scope="module")
 def sim_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("tcf")
-    stdout = io.StringIO()
-    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(io.StringIO()):
-        code = main(["run", "tcf", "--cell", "sim", "--json", "--out", str(out)])
-    return code, json.loads(stdout.getvalue()), next(out.glob("tcf-*.csv"))
+    code, stdout, _ = run_cli_captured("run", "tcf", "--cell", "sim", "--json", "--out", str(out))
+    return code, json.loads(stdout), next(out.glob("tcf-*.csv"))
 
 
 def test_tcf_finds_the_axis_within_what_the_repeatability_allows(sim_run):
@@ -140,7 +130,7 @@ def test_tcf_finds_the_axis_within_what_the_repeatability_allows(sim_run):
 
 def test_tcf_from_dataset_re_solves_to_the_same_frame(sim_run, capsys):
     _, result, dataset = sim_run
-    code, stdout, _ = run(["run", "tcf", "--cell", "sim", "--json", "--from", str(dataset)], capsys)
+    code, stdout, _ = run_cli(capsys, "run", "tcf", "--cell", "sim", "--json", "--from", str(dataset))
     assert code == 0 and json.loads(stdout)["tool_frame"]["pose_m_rad"] == result["tool_frame"]["pose_m_rad"]
 
 

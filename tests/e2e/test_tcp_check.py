@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from cellcal.cli import run as run_cmd
-from cellcal.cli.main import main
+from support.cli_run import run_cli  # tests/support/cli_run.py
 from cellcal.routines.framework import runner
 from support.cell_edits import edited_cell  # tests/support/cell_edits.py
 
@@ -35,15 +35,9 @@ def cell_file(tmp_path, shift_mm=(0.0, 0.0, 0.0), axis=(0.0, 0.0, 1.0), check=No
     return edited_cell(tmp_path, "sim", changes)
 
 
-def run(argv, capsys):
-    code = main(argv)
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
 def checked(tmp_path, capsys, **kw):
-    code, out, err = run(["run", "tcp-check", "--cell", str(cell_file(tmp_path, **kw)), "--json",
-                          "--out", str(tmp_path / "runs")], capsys)
+    code, out, err = run_cli(capsys, "run", "tcp-check", "--cell", str(cell_file(tmp_path, **kw)), "--json",
+                             "--out", str(tmp_path / "runs"))
     return code, json.loads(out), err
 
 
@@ -83,8 +77,8 @@ def test_a_bent_tool_is_an_alarm_that_says_what_it_saw_and_writes_nothing(tmp_pa
 
 def test_a_tool_too_far_off_to_cross_the_beams_is_an_alarm_naming_the_motion(tmp_path, capsys):
     """8 mm longer: the tool already blocks the beams where the approach starts."""
-    code, out, err = run(["run", "tcp-check", "--cell", str(cell_file(tmp_path, shift_mm=(0.0, 0.0, 8.0))),
-                          "--out", str(tmp_path / "runs")], capsys)
+    code, out, err = run_cli(capsys, "run", "tcp-check", "--cell", str(cell_file(tmp_path, shift_mm=(0.0, 0.0, 8.0))),
+                             "--out", str(tmp_path / "runs"))
     assert code == 1 and "tcp-check alarm" in err and "bent tool" in err and "Traceback" not in err
 
 
@@ -120,8 +114,8 @@ def test_dry_run_plans_and_checks_but_moves_nothing(tmp_path, capsys, monkeypatc
         raise AssertionError("--dry-run opened the cell's devices")
 
     monkeypatch.setattr(run_cmd, "open_drivers", no_drivers)
-    code, out, _ = run(["run", "tcp-check", "--cell", str(cell_file(tmp_path)), "--dry-run", "--json",
-                        "--out", str(tmp_path / "runs")], capsys)
+    code, out, _ = run_cli(capsys, "run", "tcp-check", "--cell", str(cell_file(tmp_path)), "--dry-run", "--json",
+                           "--out", str(tmp_path / "runs"))
     summary = json.loads(out)
     labels = [m["label"] for m in summary["plan"]]
     assert code == 0 and summary["within_limits"]
@@ -142,15 +136,15 @@ def test_dry_run_plans_and_checks_but_moves_nothing(tmp_path, capsys, monkeypatc
     ({"speed": 40}, "speed"),
 ])
 def test_bad_options_are_one_message_naming_the_key_and_nothing_moves(tmp_path, capsys, check, needle):
-    code, out, err = run(["run", "tcp-check", "--cell", str(cell_file(tmp_path, check={**KNOWN_BEAMS, **check})),
-                          "--out", str(tmp_path / "runs")], capsys)
+    cell = cell_file(tmp_path, check={**KNOWN_BEAMS, **check})
+    code, out, err = run_cli(capsys, "run", "tcp-check", "--cell", str(cell), "--out", str(tmp_path / "runs"))
     assert code == 2 and needle in err and "tcp_check" in err and "Traceback" not in err, err
     assert not (tmp_path / "runs").exists() or list((tmp_path / "runs").iterdir()) == []
 
 
 def test_a_plan_that_determines_nothing_for_a_band_is_refused_saying_why(tmp_path, capsys):
     """One height (no axis) and the beams as installed (no tip): nothing to judge."""
-    code, _, err = run(["run", "tcp-check", "--cell", str(cell_file(tmp_path, check={"heights_mm": [12]})),
-                        "--out", str(tmp_path / "runs")], capsys)
+    code, _, err = run_cli(capsys, "run", "tcp-check", "--cell", str(cell_file(tmp_path, check={"heights_mm": [12]})),
+                           "--out", str(tmp_path / "runs"))
     assert code == 2 and "determines nothing a band can judge" in err and "one height" in err, err
     assert not (tmp_path / "runs").exists() or list((tmp_path / "runs").iterdir()) == []

@@ -24,13 +24,8 @@ def full_laser_cell(folder, host):
 
 
 @pytest.fixture(scope="module")
-def net(tmp_path_factory):
-    net = Net(tmp_path_factory.mktemp("sim-net"), full_laser_cell)
-    try:
-        net.reset()
-        yield net
-    finally:
-        net.close()
+def net_cell():
+    return full_laser_cell
 
 
 def press(net: Net, routine: str) -> dict:

@@ -11,7 +11,7 @@ import pytest
 from cellcal.config.cells import CellFileError
 from cellcal.cli import run as run_cmd
 from cellcal.daemon.cells import load_cell, open_drivers
-from cellcal.cli.main import main
+from support.cli_run import run_cli  # tests/support/cli_run.py
 from cellcal.routines.framework import runner
 from cellcal.routines.framework.records import Dataset
 from support.cell_edits import edited_cell  # tests/support/cell_edits.py
@@ -40,12 +40,6 @@ def measured(cell, tmp_path, noise_seed=None):
         dataset = runner.measure(prepared, drivers, tmp_path, lambda message: None)
         truth = drivers.world.truth
     return dataset, truth
-
-
-def run(argv, capsys):
-    code = main(argv)
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 # -- the model against the simulation's physics -------------------------------------------------------
@@ -113,7 +107,7 @@ def test_errors_over_many_cells_stay_within_target_and_within_the_reported_uncer
 # -- the command line ---------------------------------------------------------------------------------
 
 def test_cellcal_run_writes_back_and_the_dataset_resolves_to_the_same_frame(tmp_path, capsys):
-    code, out, _ = run(["run", "tcp-laser", "--cell", "sim", "--json", "--out", str(tmp_path)], capsys)
+    code, out, _ = run_cli(capsys, "run", "tcp-laser", "--cell", "sim", "--json", "--out", str(tmp_path))
     result = json.loads(out)
     assert code == 0 and result["passed_gates"], result["reasons"]
     assert result["sim_truth"]["position_error_mm"] <= POSITION_MM
@@ -124,7 +118,7 @@ def test_cellcal_run_writes_back_and_the_dataset_resolves_to_the_same_frame(tmp_
                for n in result["notes"])
     path = result["dataset"]
     assert path and path.startswith(str(tmp_path))
-    code, out, _ = run(["run", "tcp-laser", "--from", path, "--json"], capsys)
+    code, out, _ = run_cli(capsys, "run", "tcp-laser", "--from", path, "--json")
     again = json.loads(out)
     assert code == 0 and again["dataset"] == path
     np.testing.assert_allclose(again["tool_frame"]["pose_m_rad"], result["tool_frame"]["pose_m_rad"], atol=1e-12)
@@ -136,7 +130,7 @@ def test_dry_run_plans_and_checks_but_moves_nothing(tmp_path, capsys, monkeypatc
         raise AssertionError("--dry-run opened the cell's devices")
 
     monkeypatch.setattr(run_cmd, "open_drivers", no_drivers)
-    code, out, _ = run(["run", "tcp-laser", "--cell", "sim", "--dry-run", "--json", "--out", str(tmp_path)], capsys)
+    code, out, _ = run_cli(capsys, "run", "tcp-laser", "--cell", "sim", "--dry-run", "--json", "--out", str(tmp_path))
     summary = json.loads(out)
     assert code == 0 and summary["within_limits"]
     labels = [m["label"] for m in summary["plan"]]
@@ -148,7 +142,7 @@ def test_a_barrier_not_where_the_cell_file_says_is_one_clear_error_and_no_datase
     """The beams really 40 mm from where [beams] says: the first measuring motion sees nothing."""
     path = variant(tmp_path, {"sim_truth": {"fixture_error_mm": 40}})
     out_dir = tmp_path / "runs"
-    code, out, err = run(["run", "tcp-laser", "--cell", str(path), "--json", "--out", str(out_dir)], capsys)
+    code, out, err = run_cli(capsys, "run", "tcp-laser", "--cell", str(path), "--json", "--out", str(out_dir))
     assert code == 1
     message = json.loads(out)["error"]["message"]
     assert "saw no edge on beam channel" in message and "is the barrier where [beams] says?" in message

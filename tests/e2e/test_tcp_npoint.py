@@ -2,9 +2,7 @@
 to end, scored against the simulation's hidden truth."""
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 import json
 import re
 
@@ -12,7 +10,7 @@ import numpy as np
 import pytest
 
 from cellcal.daemon.cells import load_cell, open_drivers
-from cellcal.cli.main import main
+from support.cli_run import run_cli, run_cli_captured  # tests/support/cli_run.py
 from cellcal.routines.framework import runner
 from cellcal.routines.framework.base import PlanRefused, RoutineError
 from cellcal.routines.framework.records import read_dataset
@@ -37,12 +35,6 @@ def seated_flanges(rotations, tool_point, pivot_point):
 
 def variant(tmp_path, changes=None, name="c.yaml"):
     return load_cell(edited_cell(tmp_path, "sim", changes, name=name))
-
-
-def run(argv, capsys):
-    code = main(argv)
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 # -- the maths ---------------------------------------------------------------------------------------
@@ -99,7 +91,7 @@ def test_too_little_spread_is_refused_before_anything_moves_saying_how_much_is_n
     assert routine.design(need).expected_error == pytest.approx(0.05, abs=0.001)
     assert 4.0 < need < 30.0
     out = tmp_path / "runs"
-    code, stdout, stderr = run(["run", "tcp-npoint", "--cell", str(cell.path), "--out", str(out)], capsys)
+    code, stdout, stderr = run_cli(capsys, "run", "tcp-npoint", "--cell", str(cell.path), "--out", str(out))
     assert code == 2 and "plan refused, nothing moved" in stderr and "at least" in stderr
     assert not out.exists()
 
@@ -133,10 +125,8 @@ def test_the_sim_socket_seats_a_tilted_tip_and_the_joints_are_off_by_the_arm_rep
 def sim_run(tmp_path_factory):
     """One run on the shipped sim cell through the command line: exit code, JSON, dataset."""
     out = tmp_path_factory.mktemp("npoint")
-    stdout = io.StringIO()
-    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(io.StringIO()):
-        code = main(["run", "tcp-npoint", "--cell", "sim", "--json", "--out", str(out)])
-    return code, json.loads(stdout.getvalue()), next(out.glob("tcp-npoint-*.csv"))
+    code, stdout, _ = run_cli_captured("run", "tcp-npoint", "--cell", "sim", "--json", "--out", str(out))
+    return code, json.loads(stdout), next(out.glob("tcp-npoint-*.csv"))
 
 
 def test_npoint_finds_the_tcp_within_0_05_mm_of_the_hidden_truth(sim_run):
@@ -155,15 +145,15 @@ def test_npoint_finds_the_tcp_within_0_05_mm_of_the_hidden_truth(sim_run):
 
 def test_from_dataset_re_solves_to_the_same_frame(sim_run, capsys):
     _, result, dataset = sim_run
-    code, stdout, _ = run(["run", "tcp-npoint", "--cell", "sim", "--json", "--from", str(dataset)], capsys)
+    code, stdout, _ = run_cli(capsys, "run", "tcp-npoint", "--cell", "sim", "--json", "--from", str(dataset))
     again = json.loads(stdout)
     assert code == 0 and again["tool_frame"]["pose_m_rad"] == result["tool_frame"]["pose_m_rad"]
     assert again["sim_truth"] == result["sim_truth"]
 
 
 def test_dry_run_plans_every_seat_and_moves_nothing(capsys, tmp_path):
-    code, stdout, _ = run(["run", "tcp-npoint", "--cell", "sim", "--dry-run", "--json", "--out", str(tmp_path)],
-                          capsys)
+    code, stdout, _ = run_cli(capsys, "run", "tcp-npoint", "--cell", "sim", "--dry-run", "--json",
+                              "--out", str(tmp_path))
     summary = json.loads(stdout)
     assert code == 0 and summary["within_limits"] and summary["moves"] == 27
     assert [m["kind"] for m in summary["plan"]].count("contact") == 8
@@ -221,7 +211,7 @@ def test_cli_reports_an_unreachable_pivot_with_one_message_and_no_dataset(tmp_pa
         off = (drivers.world.truth.pivot_m - cell.pivot_m) * 1e3
     assert np.hypot(off[0], off[1]) > 30
     out = tmp_path / "runs"
-    code, stdout, stderr = run(["run", "tcp-npoint", "--cell", str(cell.path), "--json", "--out", str(out)], capsys)
+    code, stdout, stderr = run_cli(capsys, "run", "tcp-npoint", "--cell", str(cell.path), "--json", "--out", str(out))
     assert code == 1 and "without touching the pivot" in json.loads(stdout)["error"]["message"]
     assert stderr.count("seat 1: the contact search") == 1
     assert not out.exists() or not list(out.iterdir())

@@ -7,14 +7,13 @@ from __future__ import annotations
 import numpy as np
 
 from support.cell_edits import edited_cell
+from support.service_panel import press
 from cellcal.daemon import outcome
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
 from cellcal.daemon.write_back import tool_slot
-from cellcal.routines.framework.registry import panel_selectors
 
-SELECT = {name: number for number, name in panel_selectors().items()}
 # tcp-laser on the in-process cell finds the tip to about 0.01-0.02 mm (docs/routines.md); 0.1 mm is far above
 # that on any machine and far below the 20 mm between the two tools' tips
 WITHIN_MM = 0.1
@@ -26,13 +25,6 @@ def two_tools(doc):
                     {"id": 2, "name": "spare", **tool, "tcp_m": [tool["tcp_m"][0], tool["tcp_m"][1],
                                                                  tool["tcp_m"][2] + 0.02]}]
     doc["mounted"] = {"robot_inputs": [16, 17]}  # the tool flange's two inputs
-
-
-def press(service: Service, panel, routine: str):
-    panel.select_routine(SELECT[routine])
-    panel.press_start()
-    service.poll_panel()
-    return service.wait(120)
 
 
 def test_each_start_is_for_the_tool_the_tool_changer_reports(tmp_path):

@@ -41,13 +41,8 @@ def two_tool_cell(folder, host):
 
 
 @pytest.fixture(scope="module")
-def net(tmp_path_factory):
-    net = Net(tmp_path_factory.mktemp("sim-net"), two_tool_cell)
-    try:
-        net.reset()
-        yield net
-    finally:
-        net.close()
+def net_cell():
+    return two_tool_cell
 
 
 def press(net: Net, routine: str, tool: int = 0) -> dict:

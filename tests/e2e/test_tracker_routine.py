@@ -12,9 +12,7 @@ resume tests use 10 + 2 poses chosen from 100 candidates, to keep them fast.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 import json
 from pathlib import Path
 
@@ -35,6 +33,7 @@ from cellcal.solvers.identification.measurement_model import Layout, Observation
 from cellcal.solvers.geometry.chain import forward
 from cellcal.solvers.identification.pose_design import Sight, move_time_s, sighted_candidates
 from support.cell_edits import edited_cell, replaced  # tests/support/cell_edits.py
+from support.cli_run import run_cli_captured
 from support.report_check import assert_report_draws, layer
 
 HOME = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
@@ -107,10 +106,8 @@ def campaign(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("tracker")
     path = variant(tmp, SECTION)
     out = tmp / "runs"
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        code = cli_main(["run", "tracker", "--cell", str(path), "--json", "--out", str(out)])
-    return {"code": code, "doc": json.loads(buf.getvalue()), "cell": load_cell(path), "path": path, "out": out}
+    code, stdout, _ = run_cli_captured("run", "tracker", "--cell", str(path), "--json", "--out", str(out))
+    return {"code": code, "doc": json.loads(stdout), "cell": load_cell(path), "path": path, "out": out}
 
 
 def test_the_campaign_reaches_the_floor_the_true_model_leaves(campaign):
@@ -338,11 +335,9 @@ def resumed(tmp_path_factory):
         with pytest.raises(DeviceError):
             runner.measure(runner.prepare("tracker", cell), drivers, out, lambda message: None)
     partial_path = next(out.iterdir())
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        code = cli_main(["run", "tracker", "--cell", str(path), "--resume", str(partial_path), "--json",
-                         "--out", str(out)])
-    doc = json.loads(buf.getvalue())
+    code, stdout, _ = run_cli_captured("run", "tracker", "--cell", str(path), "--resume", str(partial_path), "--json",
+                                       "--out", str(out))
+    doc = json.loads(stdout)
     return {"path": path, "cell": cell, "partial_path": partial_path, "code": code, "doc": doc,
             "partial": read_dataset(partial_path, "tracker", ("split", "target")),
             "whole": read_dataset(doc["dataset"], "tracker", ("split", "target"))}

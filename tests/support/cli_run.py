@@ -1,6 +1,9 @@
 """``cellcal`` called in process, as the unit tests of the commands do."""
 from __future__ import annotations
 
+import contextlib
+import io
+
 from cellcal.cli.main import main
 
 
@@ -9,6 +12,15 @@ def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
     code = main(list(argv))
     out, err = capsys.readouterr()
     return code, out, err
+
+
+def run_cli_captured(*argv: str) -> tuple[int, str, str]:
+    """(exit status, stdout, stderr) of ``cellcal ARGV`` where pytest's capsys is not at hand
+    (a module fixture's run)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(list(argv))
+    return code, out.getvalue(), err.getvalue()
 
 
 def one_message(err: str) -> str:

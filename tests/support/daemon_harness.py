@@ -26,13 +26,12 @@ import numpy as np
 
 from support import loopback
 from support.cell_edits import edited_cell, replaced
+from support.service_panel import SELECT
 from cellcal.daemon.cells import load_cell, open_drivers
-from cellcal.daemon.service import panel_routines
 from cellcal.sims.fake_ur.controller import DASHBOARD_PORT
 from cellcal.sims.fake_ur.process import ControlClient
 from cellcal.sims.net.cell import SimCell
 
-SELECT = {name: number for number, name in panel_routines().items()}
 RUN_TIMEOUT_S = 60.0
 READY_TIMEOUT_S = 60.0
 SHORT_SECTIONS = {

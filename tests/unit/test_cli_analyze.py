@@ -4,12 +4,7 @@ import json
 import pytest
 
 from cellcal.cli.main import main
-
-
-def run(argv, capsys):
-    code = main(argv)
-    out = capsys.readouterr()
-    return code, out.out, out.err
+from support.cli_run import run_cli  # tests/support/cli_run.py
 
 
 @pytest.fixture(scope="module")
@@ -21,8 +16,8 @@ def backlash_csv(tmp_path_factory):
 
 
 def test_analyze_json_has_every_key_the_contract_names(backlash_csv, tmp_path, capsys):
-    code, out, err = run(["analyze", "--robot", "ur5e", "--data", str(backlash_csv), "--json",
-                          "--report", str(tmp_path / "report")], capsys)
+    code, out, err = run_cli(capsys, "analyze", "--robot", "ur5e", "--data", str(backlash_csv), "--json",
+                             "--report", str(tmp_path / "report"))
     assert code == 0
     doc = json.loads(out)
     assert {"cause", "where", "magnitude", "baseline", "extended", "gain_pct", "candidates", "seconds"} <= set(doc)
@@ -40,25 +35,25 @@ def test_analyze_json_has_every_key_the_contract_names(backlash_csv, tmp_path, c
 def test_analyze_says_none_on_clean_data(tmp_path, capsys):
     path = tmp_path / "clean.csv"
     assert main(["sim-data", "--robot", "ur5e", "--poses", "150", "--seed", "5", "-o", str(path)]) == 0
-    code, out, _ = run(["analyze", "--robot", "ur5e", "--data", str(path)], capsys)
+    code, out, _ = run_cli(capsys, "analyze", "--robot", "ur5e", "--data", str(path))
     assert code == 0 and "finding: none" in out
 
 
 def test_analyze_refuses_bad_input_with_one_message(backlash_csv, tmp_path, capsys):
-    code, out, err = run(["analyze", "--robot", "ur10e", "--data", str(tmp_path / "missing.csv")], capsys)
+    code, out, err = run_cli(capsys, "analyze", "--robot", "ur10e", "--data", str(tmp_path / "missing.csv"))
     assert code == 2 and out == "" and "missing.csv" in err
     small = tmp_path / "small.csv"
     small.write_text("\n".join(backlash_csv.read_text().splitlines()[:12]) + "\n")
-    code, out, err = run(["analyze", "--robot", "ur5e", "--data", str(small)], capsys)
+    code, out, err = run_cli(capsys, "analyze", "--robot", "ur5e", "--data", str(small))
     assert code == 2 and "at least 30" in err
-    code, _, err = run(["sim-data", "--effect", "gravity:2", "-o", str(tmp_path / "x.csv")], capsys)
+    code, _, err = run_cli(capsys, "sim-data", "--effect", "gravity:2", "-o", str(tmp_path / "x.csv"))
     assert code == 2 and "gravity" in err
 
 
 def test_import_refuses_an_unknown_layout(tmp_path, capsys):
     src = tmp_path / "export.csv"
     src.write_text("x,y\n1,2\n")
-    code, out, err = run(["import", "dlr-justin", str(src), "-o", str(tmp_path / "out.csv")], capsys)
+    code, out, err = run_cli(capsys, "import", "dlr-justin", str(src), "-o", str(tmp_path / "out.csv"))
     assert code == 2 and "export.csv" in err and not (tmp_path / "out.csv").exists()
 
 
@@ -73,7 +68,7 @@ def test_analyze_takes_a_robust_loss_as_identify_does(backlash_csv, tmp_path, ca
         lines[i] = ",".join(cells)
     spoiled = tmp_path / "outliers.csv"
     spoiled.write_text("\n".join(lines) + "\n")
-    code, out, _ = run(["analyze", "--robot", "ur5e", "--data", str(spoiled), "--loss", "cauchy", "--json"], capsys)
+    code, out, _ = run_cli(capsys, "analyze", "--robot", "ur5e", "--data", str(spoiled), "--loss", "cauchy", "--json")
     doc = json.loads(out)
     assert code == 0 and doc["cause"] == "backlash" and doc["where"] == {"joint": 3}
     assert doc["heldout_trimmed_pct"] == 10.0

@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from cellcal.cli.main import main
+from support.cli_run import run_cli  # tests/support/cli_run.py
 from cellcal.config.robot_files import load_robot
 from cellcal.measurements.table import write_measurements
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
@@ -30,16 +30,10 @@ def campaign(tmp_path_factory):
     return folder, arm, val
 
 
-def run(argv, capsys):
-    code = main(argv)
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
 def test_json_has_every_key_the_contract_names(campaign, capsys):
     folder, arm, val = campaign
-    code, out, _ = run(["identify", "--robot", "ur5e", "--data", str(folder / "cal.csv"),
-                        "--validate", str(folder / "val.csv"), "--json"], capsys)
+    code, out, _ = run_cli(capsys, "identify", "--robot", "ur5e", "--data", str(folder / "cal.csv"),
+                           "--validate", str(folder / "val.csv"), "--json")
     assert code == 0
     doc = json.loads(out)  # stdout is one JSON object and nothing else
     for key in ("train", "validate"):
@@ -56,8 +50,8 @@ def test_json_has_every_key_the_contract_names(campaign, capsys):
 
 def test_split_column_reserves_validation_rows(campaign, capsys):
     folder, _, _ = campaign
-    code, out, _ = run(["identify", "--robot", "ur5e", "--data", str(folder / "split.csv"),
-                        "--regularize", "none", "--json"], capsys)
+    code, out, _ = run_cli(capsys, "identify", "--robot", "ur5e", "--data", str(folder / "split.csv"),
+                           "--regularize", "none", "--json")
     assert code == 0
     doc = json.loads(out)
     assert doc["train"]["n"] == 40 and doc["validate"]["n"] == 60
@@ -66,8 +60,8 @@ def test_split_column_reserves_validation_rows(campaign, capsys):
 
 def test_text_report_shows_before_and_after(campaign, capsys):
     folder, _, _ = campaign
-    code, out, err = run(["identify", "--robot", "ur5e", "--data", str(folder / "cal.csv"),
-                          "--validate", str(folder / "val.csv")], capsys)
+    code, out, err = run_cli(capsys, "identify", "--robot", "ur5e", "--data", str(folder / "cal.csv"),
+                             "--validate", str(folder / "val.csv"))
     assert code == 0
     assert "validation data" in out and "not identifiable" in out
     assert "cross-validation" in err  # progress goes to stderr
@@ -93,7 +87,7 @@ ROW = "10,20,30,40,50,60,1,2,3"
 def test_bad_files_get_one_clear_message_and_exit_2(tmp_path, capsys, name, text, needles):
     path = tmp_path / name
     path.write_text(text)
-    code, out, err = run(["identify", "--robot", "ur5e", "--data", str(path)], capsys)
+    code, out, err = run_cli(capsys, "identify", "--robot", "ur5e", "--data", str(path))
     assert code == 2
     assert out == ""
     assert len(err.strip().splitlines()) == 1
@@ -104,13 +98,13 @@ def test_bad_files_get_one_clear_message_and_exit_2(tmp_path, capsys, name, text
 def test_bad_usage_exits_2_naming_what_to_fix(campaign, tmp_path, capsys):
     folder, _, _ = campaign
     cal = str(folder / "cal.csv")
-    code, _, err = run(["identify", "--robot", "ur55", "--data", cal], capsys)
+    code, _, err = run_cli(capsys, "identify", "--robot", "ur55", "--data", cal)
     assert code == 2 and "ur55" in err and "ur5e" in err
-    code, _, err = run(["identify", "--robot", "ur5e", "--data", cal, "--fix", "d9"], capsys)
+    code, _, err = run_cli(capsys, "identify", "--robot", "ur5e", "--data", cal, "--fix", "d9")
     assert code == 2 and "d9" in err
     bad_model = tmp_path / "bad.yaml"
     bad_model.write_text("name: x\nconvention: dh\nlength_unit: inch\nangle_unit: deg\njoints: []\n")
-    code, _, err = run(["identify", "--robot", str(bad_model), "--data", cal], capsys)
+    code, _, err = run_cli(capsys, "identify", "--robot", str(bad_model), "--data", cal)
     assert code == 2 and "bad.yaml" in err and "length_unit" in err
 
 
@@ -129,9 +123,8 @@ def test_console_script_shows_no_traceback(tmp_path):
 
 
 def test_sim_campaign_writes_its_datasets_and_scores_against_truth(tmp_path, capsys):
-    code, out, _ = run(["sim-campaign", "--robot", "ur5e", "--poses", "40", "--candidates", "200",
-                        "--validate-poses", "100", "--regularize", "none", "--out", str(tmp_path), "--json"],
-                       capsys)
+    code, out, _ = run_cli(capsys, "sim-campaign", "--robot", "ur5e", "--poses", "40", "--candidates", "200",
+                           "--validate-poses", "100", "--regularize", "none", "--out", str(tmp_path), "--json")
     assert code == 0
     doc = json.loads(out)
     truth = doc["sim_truth"]
@@ -140,8 +133,8 @@ def test_sim_campaign_writes_its_datasets_and_scores_against_truth(tmp_path, cap
     assert truth["validation_vs_truth"]["after"]["mean_mm"] < 0.2 * truth["validation_vs_truth"]["before"]["mean_mm"]
     assert (tmp_path / "cal.csv").exists() and (tmp_path / "val.csv").exists()
     # the dataset on disk is the seam: identify re-run from it gives the same validation error
-    code, out2, _ = run(["identify", "--robot", "ur5e", "--data", str(tmp_path / "cal.csv"), "--validate",
-                         str(tmp_path / "val.csv"), "--regularize", "none", "--json"], capsys)
+    code, out2, _ = run_cli(capsys, "identify", "--robot", "ur5e", "--data", str(tmp_path / "cal.csv"), "--validate",
+                            str(tmp_path / "val.csv"), "--regularize", "none", "--json")
     assert code == 0
     rerun = json.loads(out2)
     assert rerun["validate"]["mean_mm"] == pytest.approx(truth["validation_measured"]["after"]["mean_mm"], rel=1e-6)

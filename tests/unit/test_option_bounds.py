@@ -404,7 +404,7 @@ def test_the_service_refuses_an_unreachable_stylus_with_limits(far_stylus, routi
         service = Service(cell, drivers, Store.open(tmp_path / "state"), out_dir=tmp_path / "datasets")
         outcome = service.run(routine)
         assert outcome.code is ResultCode.LIMITS and int(outcome.code) == 12, outcome
-        assert outcome.state == "refused" and "plan refused, nothing moved" in outcome.reason
+        assert outcome.state == "refused", outcome
         assert list(drivers.robot.actual_q()) == q_before
         service.store.close()
 

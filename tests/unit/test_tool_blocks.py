@@ -24,6 +24,7 @@ from cellcal.daemon.write_back import (no_block_note, read_frames, stored_json, 
 from cellcal.drivers.interfaces import DeviceError, StoredToolFrame
 from cellcal.sims.inproc.devices import SimRobot
 from support.cell_edits import DELETE, edited_cell  # tests/support/cell_edits.py
+from support.cli_run import refused  # tests/support/cli_run.py
 
 PIN = {"id": 1, "name": "pin", "tcp_m": [0.0, 0.0, 0.150], "axis": [0.0, 0.0, 1.0], "radius_m": 0.003,
        "length_m": 0.1}
@@ -287,11 +288,7 @@ BAD = [
 @pytest.mark.parametrize("name, tools, needles", BAD, ids=[b[0] for b in BAD])
 def test_a_bad_frame_block_gets_one_message(tmp_path, capsys, name, tools, needles):
     path = table(tmp_path, tools)
-    assert main(["run", "tcp-npoint", "--cell", str(path), "--dry-run"]) == 2  # input at fault
-    out = capsys.readouterr()
-    assert out.out == "" and "Traceback" not in out.err
-    assert len(out.err.strip().splitlines()) == 1, out.err  # one message
-    assert str(path) in out.err and all(n in out.err for n in needles), out.err
+    refused(capsys, ["run", "tcp-npoint", "--cell", path, "--dry-run"], 2, [str(path), *needles])  # input at fault
 
 
 def test_frame_block_is_a_tool_tables_key_only(tmp_path, capsys):

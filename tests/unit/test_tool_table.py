@@ -15,6 +15,7 @@ from cellcal.daemon.cells import load_cell
 from cellcal.sims.fake_ur.controller import FakeUrController
 from cellcal.sims.physics.truth import truth_of_cell
 from support.cell_edits import DELETE, edited_cell  # tests/support/cell_edits.py
+from support.cli_run import refused  # tests/support/cli_run.py
 
 PIN = {"id": 1, "name": "pin", "tcp_m": [0.0, 0.0, 0.150], "axis": [0.0, 0.0, 1.0], "radius_m": 0.003,
        "length_m": 0.1}
@@ -160,11 +161,7 @@ BAD = [
 @pytest.mark.parametrize("name, extra, tools, needles", BAD, ids=[b[0] for b in BAD])
 def test_a_bad_tool_table_gets_one_message(tmp_path, capsys, name, extra, tools, needles):
     path = two_tools(tmp_path, extra, tools=tools)
-    assert main(["run", "tcp-npoint", "--cell", str(path), "--dry-run"]) == 2  # input at fault
-    out = capsys.readouterr()
-    assert out.out == "" and "Traceback" not in out.err
-    assert len(out.err.strip().splitlines()) == 1, out.err  # one message
-    assert str(path) in out.err and all(n in out.err for n in needles), out.err
+    refused(capsys, ["run", "tcp-npoint", "--cell", path, "--dry-run"], 2, [str(path), *needles])  # input at fault
 
 
 def test_run_with_a_tool_the_cell_lacks_is_refused_before_anything_moves(tmp_path, capsys):
