@@ -173,7 +173,7 @@ def _billion_laughs(levels: int = 9) -> str:
 @pytest.fixture
 def bomb_cell(tmp_path) -> Path:
     """The shipped sim cell with the tool's TCP replaced by a billion laughs (a few hundred bytes)."""
-    from cellcal.config.cells import shipped_cells
+    from cellcal.config.cell_files import shipped_cells
 
     text = shipped_cells()["sim"].read_text()
     assert "  tcp_m: [0.0, 0.0, 0.150]" in text
