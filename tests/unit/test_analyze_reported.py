@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from cellcal.cli.main import main
 from cellcal.config.robot_files import load_robot
-from cellcal.measurements.table import write_measurements
+from cellcal.measurements.writer import write_measurements
 from cellcal.sims.physics.kinematic_arm import TrackerNoise
 from cellcal.sims.physics.physical_arm import HiddenEffect, PhysicalArm
 from cellcal.sims.physics.workspace import full_workspace, joint_sweeps

@@ -418,7 +418,7 @@ def _iso_rows(tmp_path: Path, change=None, cycles: int = 4) -> Path:
     import numpy as np
 
     from cellcal.config.robot_files import load_robot
-    from cellcal.measurements.table import write_measurements
+    from cellcal.measurements.writer import write_measurements
     from cellcal.solvers.geometry.chain import forward
 
     model = load_robot("ur5e")
@@ -481,7 +481,7 @@ def test_iso9283_with_30_clean_cycles_has_nothing_to_warn_of(tmp_path, capsys):
 def test_identify_warns_when_every_row_is_there_twice(tmp_path, capsys):
     import numpy as np
 
-    from cellcal.measurements.table import write_measurements
+    from cellcal.measurements.writer import write_measurements
 
     rng = np.random.default_rng(0)
     q = rng.uniform(-1.0, 1.0, (20, 6))
