@@ -43,7 +43,8 @@ from cellcal.config.robot_files import load_robot  # noqa: E402
 from cellcal.sims.physics.kinematic_arm import SimulatedArm  # noqa: E402
 from cellcal.sims.physics.workspace import full_workspace  # noqa: E402
 from cellcal.solvers.fixtures.fixture_design import select_seats  # noqa: E402
-from cellcal.solvers.fixtures.fixture_identify import FixtureOptions, PointData, identify_points  # noqa: E402
+from cellcal.solvers.fixtures.fixture_identify import identify_points  # noqa: E402
+from cellcal.solvers.fixtures.point_problem import FixtureOptions, PointData  # noqa: E402
 from cellcal.solvers.identification.identify import IdentifyOptions, identify  # noqa: E402
 from cellcal.solvers.identification.pose_design import select_poses  # noqa: E402
 

@@ -45,7 +45,7 @@ import json, sys, time
 import numpy as np
 from threadpoolctl import threadpool_limits
 from cellcal.config.robot_files import load_robot
-from cellcal.measurements.table import read_measurements
+from cellcal.measurements.reader import read_measurements
 from cellcal.solvers.analysis.analyze import analyze
 from cellcal.solvers.analysis.effects import Context, approach_directions
 from cellcal.solvers.identification.identify import identify

@@ -75,8 +75,9 @@ from cellcal.sims.physics.kinematic_arm import SimulatedArm  # noqa: E402
 from cellcal.sims.physics.workspace import full_workspace  # noqa: E402
 from cellcal.solvers.geometry import se3  # noqa: E402
 from cellcal.solvers.geometry.chain import forward  # noqa: E402
-from cellcal.solvers.fixtures.fixture_identify import (FixtureOptions, PointData, identify_points, predict_seats,  # noqa: E402
-                                              refit_points)
+from cellcal.solvers.fixtures.fixture_identify import identify_points, refit_points  # noqa: E402
+from cellcal.solvers.fixtures.fixture_predict import predict_seats  # noqa: E402
+from cellcal.solvers.fixtures.point_problem import FixtureOptions, PointData  # noqa: E402
 from cellcal.solvers.geometry.inverse import inverse_many  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results" / "stylus-puma.json"

@@ -7,9 +7,12 @@ import json
 from cellcal.config.fixture_files import read_fixture
 from cellcal.config.robot_files import load_robot
 from cellcal.routines.framework.base import jsonable
-from cellcal.measurements.table import check_joint_limits, joint_velocities, read_measurements, repeated_warning
+from cellcal.measurements.reader import joint_velocities, read_measurements
+from cellcal.measurements.table import check_joint_limits, repeated_warning
 from cellcal.solvers.analysis import point_analysis
-from cellcal.solvers.analysis.analyze import AnalyzeOptions, Finding, Scored, Transfer, analyze, transfer
+from cellcal.solvers.analysis.analyze import AnalyzeOptions, Finding, analyze
+from cellcal.solvers.analysis.naming import Scored
+from cellcal.solvers.analysis.transfer import Transfer, transfer
 from cellcal.solvers.identification.identify import LOSSES, IdentificationError
 from cellcal.solvers.analysis.effects import CAUSES, Context, approach_directions
 from cellcal.solvers.analysis.effects.cyclic_joint_error import order_search

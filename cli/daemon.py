@@ -112,7 +112,8 @@ def _serve_status_page(cell, service: Service, folder):
     if not spec.enabled:
         log.info("status page: off (status_page.enabled is false)")
         return None
-    from cellcal.daemon.status_server import StatusServer, exposure_warning  # only a daemon serving it needs it
+    from cellcal.daemon.status_http import exposure_warning  # only a daemon serving it needs these
+    from cellcal.daemon.status_server import StatusServer
 
     server = StatusServer(status=service.status, state_dir=folder, spec=spec,
                           tool_names={tool_id: tool.name for tool_id, tool in (cell.tools or {}).items()})

@@ -9,7 +9,8 @@ from cellcal.cli import identify_points, model_out
 from cellcal.cli.common import UsageError, number, print_progress, whole
 from cellcal.config.fixture_files import read_fixture
 from cellcal.config.robot_files import load_robot
-from cellcal.measurements.table import MeasurementTable, check_joint_limits, read_measurements, repeated_warning
+from cellcal.measurements.reader import read_measurements
+from cellcal.measurements.table import MeasurementTable, check_joint_limits, repeated_warning
 from cellcal.reports.identification import identification_json, identification_text
 from cellcal.solvers.identification.identify import LOSSES, REGULARIZE, IdentifyOptions, identify
 

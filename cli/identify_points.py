@@ -18,8 +18,8 @@ from cellcal.config.fixture_files import Fixture, FixtureError
 from cellcal.measurements.table import DatasetError, MeasurementTable
 from cellcal.reports.fixture_identification import fixture_json, fixture_text
 from cellcal.solvers.compensation.calibrated_model import from_fit
-from cellcal.solvers.fixtures.fixture_identify import (MIN_ROWS_PER_POINT, FixtureOptions, PointData, identify_points,
-                                              refit_points)
+from cellcal.solvers.fixtures.fixture_identify import MIN_ROWS_PER_POINT, identify_points, refit_points
+from cellcal.solvers.fixtures.point_problem import FixtureOptions, PointData
 
 
 def _keys(table: MeasurementTable) -> list[tuple[str, str]]:

@@ -5,7 +5,7 @@ from pathlib import Path
 
 from cellcal.cli.common import counted, print_progress, writable_file
 from cellcal.measurements.importers import IMPORTERS
-from cellcal.measurements.table import write_measurements
+from cellcal.measurements.writer import write_measurements
 
 
 def add_parser(sub) -> None:

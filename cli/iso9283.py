@@ -15,7 +15,8 @@ import json
 import numpy as np
 
 from cellcal.config.model_files import load_calibrated
-from cellcal.measurements.table import read_measurements, repeated_measurements
+from cellcal.measurements.reader import read_measurements
+from cellcal.measurements.table import repeated_measurements
 from cellcal.solvers.analysis.effects import Context, approach_directions
 from cellcal.solvers.identification.iso9283 import DISTANCE_PAIR, MIN_CYCLES, POSES, STANDARD_CYCLES, characteristics
 from cellcal.cli.common import ReportError, UsageError, counted, print_progress, writable_folder

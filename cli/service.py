@@ -28,7 +28,8 @@ from importlib import resources
 from pathlib import Path, PurePosixPath
 
 from cellcal.cli.common import UsageError
-from cellcal.config.cells import CellFileError, resolve_cell
+from cellcal.config.cell_files import resolve_cell
+from cellcal.config.cells import CellFileError
 from cellcal.config.reader import read_yaml
 from cellcal.daemon.cells import load_cell
 from cellcal.drivers import registry

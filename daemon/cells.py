@@ -11,7 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from cellcal.config.cells import Cell, CellFileError, read_cell, shipped_cells
+from cellcal.config.cell_files import read_cell, shipped_cells
+from cellcal.config.cells import Cell, CellFileError
 from cellcal.drivers import registry
 from cellcal.drivers.registry import DriverConfigError
 from cellcal.routines.framework import registry as routines

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from cellcal.reports.page import figure_html, plt, write_page
-from cellcal.solvers.analysis.analyze import Finding, Transfer
+from cellcal.solvers.analysis.analyze import Finding
+from cellcal.solvers.analysis.transfer import Transfer
 from cellcal.solvers.identification.measurement_model import Layout, Observations, jacobian
 from cellcal.solvers.geometry.se3 import rotvec_to_matrix
 

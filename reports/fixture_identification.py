@@ -9,7 +9,9 @@ from __future__ import annotations
 import numpy as np
 
 from cellcal.reports.identification import error_stats, fit_diagnostics
-from cellcal.solvers.fixtures.fixture_identify import FixtureIdentification, PointData, WorkspaceJudgement, judge_workspace
+from cellcal.solvers.fixtures.fixture_identify import FixtureIdentification
+from cellcal.solvers.fixtures.fixture_predict import WorkspaceJudgement, judge_workspace
+from cellcal.solvers.fixtures.point_problem import PointData
 
 
 def _human(value: float, is_angle: bool) -> float:

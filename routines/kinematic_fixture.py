@@ -88,8 +88,9 @@ from cellcal.config.fixture_files import CellFixture, cell_fixture
 from cellcal.config.reader import Section
 from cellcal.config.robot_files import load_robot
 from cellcal.solvers.geometry import se3
-from cellcal.solvers.fixtures.fixture_identify import (MIN_ROWS_PER_POINT, FixtureDataError, FixtureOptions, PointData,
-                                              identify_points, judge_workspace, predict_seats)
+from cellcal.solvers.fixtures.fixture_identify import MIN_ROWS_PER_POINT, FixtureDataError, identify_points
+from cellcal.solvers.fixtures.fixture_predict import judge_workspace, predict_seats
+from cellcal.solvers.fixtures.point_problem import FixtureOptions, PointData
 from cellcal.solvers.fixtures.fixture_design import select_seats
 from cellcal.solvers.geometry.inverse import dexterity, inverse, inverse_many, tcp_frames
 from cellcal.routines.framework import gates

@@ -15,7 +15,8 @@ import time
 import numpy as np
 
 from cellcal.config.robot_files import load_robot
-from cellcal.measurements.table import read_measurements, write_measurements
+from cellcal.measurements.reader import read_measurements
+from cellcal.measurements.writer import write_measurements
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.sims.physics.physical_arm import HiddenEffect, PhysicalArm
 from cellcal.sims.physics.workspace import full_workspace

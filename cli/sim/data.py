@@ -10,7 +10,7 @@ import numpy as np
 
 from cellcal.cli.common import SEED, UsageError, counted, number, print_progress, whole, writable_file
 from cellcal.config.robot_files import load_robot
-from cellcal.measurements.table import write_measurements
+from cellcal.measurements.writer import write_measurements
 from cellcal.sims.physics.physical_arm import CAUSE_IDS, HiddenEffect, PhysicalArm
 from cellcal.sims.physics.workspace import full_workspace
 

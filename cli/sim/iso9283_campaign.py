@@ -24,7 +24,8 @@ import time
 import numpy as np
 
 from cellcal.config.model_files import write_calibrated
-from cellcal.measurements.table import read_measurements, write_measurements
+from cellcal.measurements.reader import read_measurements
+from cellcal.measurements.writer import write_measurements
 from cellcal.solvers.geometry import se3
 from cellcal.solvers.analysis.analyze import AnalyzeOptions, analyze
 from cellcal.solvers.compensation.calibrated_model import from_fit

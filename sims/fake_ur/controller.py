@@ -38,7 +38,7 @@ from collections import deque
 
 import numpy as np
 
-from cellcal.config.cells import read_cell
+from cellcal.config.cell_files import read_cell
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.fake_ur import rtde
 from cellcal.sims.physics.arm_motion import ArmKinematics, JointMove, MovingArm, MotionFault, StopMotion

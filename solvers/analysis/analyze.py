@@ -21,6 +21,9 @@
 5. With the named term in the model, rank the rest again: a second effect
    (``find_second_effect``), and a fit of both. The named term, and the pair,
    are then fitted in full.
+
+Steps 3 to 5's rules (the thresholds, the scored candidates and the naming) are :mod:`.naming`'s;
+whether a finding holds on another data set, :mod:`.transfer`'s.
 """
 from __future__ import annotations
 
@@ -33,16 +36,15 @@ import numpy as np
 
 from cellcal.solvers.estimation import crossval, lsq
 from cellcal.solvers.analysis import physical_sizes, plausibility, selection, ties
-from cellcal.solvers.analysis.effects import CAUSES, Context, JointBasis, Term
-from cellcal.solvers.identification.identify import Identification, IdentifyOptions, identify, identify_variants
-from cellcal.solvers.analysis.extended_model import ExtendedFit, ExtendedModel, embed, fit_extended, norm_scale
+from cellcal.solvers.analysis.effects import CAUSES, Context, Term
+from cellcal.solvers.identification.identify import Identification, IdentifyOptions, identify_variants
+from cellcal.solvers.analysis.extended_model import ExtendedFit, embed, fit_extended
 from cellcal.solvers.identification.measurement_model import Layout, Observations, jacobian_chunks, predict
 from cellcal.solvers.analysis.linearised_scorer import LinearisedScorer
-from cellcal.solvers.analysis.robust_scoring import LINEAR, RobustScoring, trimmed_mean
+from cellcal.solvers.analysis.naming import (MIN_GAIN, MIN_MARGIN, Scored, deciding_grounds, find_second_effect,
+                                             name_cause, score_candidates)
+from cellcal.solvers.analysis.robust_scoring import LINEAR, RobustScoring
 
-MIN_GAIN = 0.10  # held-out mean error must drop by 10% against geometry alone
-MIN_MARGIN = 0.08  # ... and the best other cause must stay 8% above the named one
-MULTI_GAIN = 0.10  # a several-joint term must beat its cause's best single joint by this much
 NEIGHBOUR_RAD = crossval.NEIGHBOUR_RAD  # configurations this close share a fold
 
 
@@ -56,35 +58,6 @@ class AnalyzeOptions:
     nested: bool = True  # a cause with places is scored by its selection made inside each fold (False: the
     #                      selection made on all rows, scored on the same folds: optimistic; for comparison)
     strict_sizes: bool = plausibility.STRICT  # a lead of implausible size never names its cause (``name_cause``)
-
-
-@dataclass(frozen=True)
-class Scored:
-    """One model scored on held-out data."""
-
-    label: str
-    cause: str
-    where: dict
-    heldout_errors: np.ndarray  # (N,) per measurement, mm
-    theta: np.ndarray
-    magnitude: dict
-    x: np.ndarray
-    terms: tuple[Term, ...] = ()
-    residuals: np.ndarray | None = None  # (N, 3) in-sample, predicted - measured, mm
-    effect_mm: np.ndarray | None = None  # (N, 3) what the terms move each target by beyond what
-    #                                      geometry absorbs (single terms), mm
-    joint_delta: np.ndarray | None = None  # (N, nj) joint-space part of the terms, rad
-    details: dict | None = None  # what the fitted terms need for later use beyond their sizes (by cause
-    #                              when several), see ``Cause.details``
-
-    trim: float = 0.0  # fraction of the largest held-out errors the score leaves out (robust loss)
-    judged: object = None  # plausibility.Judgement of its linearised size (None: not judged)
-    prior_weights: tuple = ()  # fitted in full: each fold's weight of the prior "no effect" (``_heldout``)
-
-    @property
-    def heldout_mean_mm(self) -> float:
-        """The held-out score: the mean error (without the largest `trim` fraction under a robust loss)."""
-        return float(trimmed_mean(self.heldout_errors, self.trim))
 
 
 @dataclass(frozen=True)
@@ -123,23 +96,6 @@ class Finding:
         gain = self.baseline.heldout_mean_mm - self.both.heldout_mean_mm
         first = (self.baseline.heldout_mean_mm - self.extended.heldout_mean_mm) / gain if gain > 0 else 1.0
         return 100.0 * first, 100.0 * (1.0 - first)
-
-
-@dataclass(frozen=True)
-class Naming:
-    """What the naming rule decided."""
-
-    named: Scored | None  # None: the answer is ``none``
-    candidates: tuple[Scored, ...]  # best (lowest held-out mean) first, whatever was named
-    margin: float  # how much higher (fraction) the best other cause's held-out error is
-    notes: tuple[str, ...] = ()
-    tie: str = ""  # how a near-tie was settled: "nested", "both" (two effects), "ambiguous", "unseparated" or
-    #                "unsteady" (a nested lead the models chosen on all rows do not bear out: ``ties._unsteady``)
-    contenders: tuple[Scored, ...] = ()  # each cause's preferred candidate, best first (``contenders``);
-    #                                      () for made-up namings: then the first single place of each cause
-    grounds: str = ""  # why the named one is not the lowest-scored candidate ("" when it is, or none is named)
-    set_aside: tuple[Scored, ...] = ()  # contenders whose size is implausible for the robot's class, best first
-    plausibility: str = ""  # the grounds those were set aside on, when one of them led ("" else)
 
 
 def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = AnalyzeOptions(),
@@ -227,7 +183,7 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
         seconds=time.perf_counter() - started, notes=naming.notes,
         joint_range_deg=tuple((float(lo), float(hi)) for lo, hi in np.rad2deg([obs.q.min(0), obs.q.max(0)]).T),
         indistinguishable=tied.entries, grounds=grounds, scorer=scorer, undecided=undecided,
-        robot_class=robot_class, decided_by=_decided_by(naming, tied),
+        robot_class=robot_class, decided_by=deciding_grounds(naming, tied),
         decide_by=ties.decide_by(tied.entries) if undecided is not None else "")
 
 
@@ -238,184 +194,6 @@ def heldout_with_terms(model, obs: Observations, terms: Sequence[Term],
     folds = crossval.fold_ids(obs.q, options.folds, options.seed, NEIGHBOUR_RAD)
     geometric_fit = _geometric_baseline(model, obs, folds, options)[0]
     return LinearisedScorer(model, geometric_fit, obs, folds, options.prior_mm, terms).heldout_errors_mm(tuple(terms))
-
-
-def score_candidates(terms: Sequence[Term], scorer: LinearisedScorer, errors=None) -> list[Scored]:
-    """Each term scored alone with the geometry; best (lowest held-out mean) first, nothing else
-    considered (the naming's preferences are ``contenders``').
-    errors: the terms' held-out errors when already computed (one row per term)."""
-    x = scorer.geometric_fit.x
-    if errors is None:
-        errors = scorer.heldout_errors_many([(t,) for t in terms])
-    ranked = [Scored(label=t.label(), cause=t.cause, where=t.where, heldout_errors=e,
-                     theta=np.zeros(t.size), magnitude={}, x=x, terms=(t,), trim=scorer.robust.trim)
-              for t, e in zip(terms, errors)]
-    ranked.sort(key=lambda s: s.heldout_mean_mm)
-    return ranked
-
-
-def contenders(candidates: Sequence[Scored]) -> list[Scored]:
-    """Each cause's candidate in the contest between causes, best (lowest held-out mean) first: its
-    best-scored one, or its best single place when that scores within MULTI_GAIN of it (parsimony:
-    a single place says *where*)."""
-    by_cause: dict[str, list[Scored]] = {}
-    for c in sorted(candidates, key=lambda s: s.heldout_mean_mm):
-        by_cause.setdefault(c.cause, []).append(c)
-    out = []
-    for ranked in by_cause.values():
-        _prefer_single_place(ranked, lambda c: c.heldout_mean_mm, lambda c: c.terms[0])
-        out.append(ranked[0])
-    return sorted(out, key=lambda s: s.heldout_mean_mm)
-
-
-# -- naming: which cause, if any, the data supports ---------------------------------------------------------
-
-
-def name_cause(candidates: Sequence[Scored], baseline: Scored, scorer: LinearisedScorer,
-               strict_sizes: bool | None = None) -> Naming:
-    """The naming rule over the candidates (any order; the Naming lists them best first).
-
-    Each cause competes with its ``contenders`` entry. The best contender is named when
-    it beats geometry alone by MIN_GAIN and the contender of every other cause by
-    MIN_MARGIN. Below MIN_GAIN the answer is ``none``; within MIN_MARGIN the tie is
-    settled by ``_settle_tie``. strict_sizes (None: ``plausibility.STRICT``): a lead of a size beyond
-    what arms of the robot's class show names nothing even when no plausible explanation comes close.
-    """
-    strict_sizes = plausibility.STRICT if strict_sizes is None else strict_sizes
-    if not candidates:
-        return Naming(named=None, candidates=(), margin=0.0)
-    ranked = tuple(sorted(candidates, key=lambda s: s.heldout_mean_mm))
-    every = tuple(contenders(ranked))
-    # a size beyond what arms of the robot's class show is a reason against (``plausibility``): such a lead
-    # does not name its cause when an explanation of plausible size comes within MIN_MARGIN of it (and gains
-    # MIN_GAIN) -- the plausible contenders compete; when none does, the data prefer the lead clearly: it
-    # competes all the same with its size said (``strict_sizes``: nothing is named then)
-    aside = tuple(c for c in every if c.judged is not None and not c.judged.plausible)
-    rivals = tuple(c for c in every if all(c is not a for a in aside))
-    leading = [a for a in aside if (not rivals or a.heldout_mean_mm < rivals[0].heldout_mean_mm)
-               and 1.0 - a.heldout_mean_mm / baseline.heldout_mean_mm >= MIN_GAIN]
-    why_aside = "; ".join(f"{a.label} leads at {a.heldout_mean_mm:.4f} mm held-out but is set aside: it "
-                          f"{a.judged.text()}" for a in leading)
-    close = [r for r in rivals if leading and 1.0 - r.heldout_mean_mm / baseline.heldout_mean_mm >= MIN_GAIN
-             and r.heldout_mean_mm < (1.0 + MIN_MARGIN) * leading[0].heldout_mean_mm]
-    if leading and not close:
-        lead = leading[0]
-        if strict_sizes:
-            why_aside = (f"{lead.label} leads at {lead.heldout_mean_mm:.4f} mm held-out but is set aside: it "
-                         f"{lead.judged.text()}, and no explanation of a plausible size comes within "
-                         f"{100 * MIN_MARGIN:.0f}% of it")
-            return Naming(named=None, candidates=ranked, margin=0.0, notes=(why_aside,), contenders=rivals,
-                          set_aside=aside, plausibility=why_aside)
-        why_aside = (f"{lead.label} {lead.judged.text()}, but no explanation of a plausible size comes within "
-                     f"{100 * MIN_MARGIN:.0f}% of it: it competes all the same")
-        rivals, aside = every, ()
-    if not rivals:
-        note = "every explanation needs a size beyond what arms of this class show: none is named"
-        return Naming(named=None, candidates=ranked, margin=0.0, notes=(note,), set_aside=aside,
-                      plausibility=why_aside)
-    best = rivals[0]
-    gain = 1.0 - best.heldout_mean_mm / baseline.heldout_mean_mm
-    margin = (rivals[1].heldout_mean_mm / best.heldout_mean_mm - 1.0) if len(rivals) > 1 else 1.0
-    lowest = ranked[0]
-    grounds = ""
-    if lowest is not best and lowest.cause == best.cause:
-        grounds = (f"{best.label} rather than {lowest.label} ({lowest.heldout_mean_mm:.4f} mm held-out): several "
-                   f"places must beat the best single place of their cause by {100 * MULTI_GAIN:.0f}% "
-                   f"({100 * (1.0 - lowest.heldout_mean_mm / best.heldout_mean_mm):.1f}% here), and a single place "
-                   f"says where")
-    if gain < MIN_GAIN:
-        note = (f"best candidate {best.label} gains {100 * gain:.1f}% on held-out data, "
-                f"below the {100 * MIN_GAIN:.0f}% needed to name it")
-        return Naming(named=None, candidates=ranked, margin=margin, notes=(note,), contenders=rivals,
-                      set_aside=aside, plausibility=why_aside)
-    if margin >= MIN_MARGIN:
-        return Naming(named=best, candidates=ranked, margin=margin, contenders=rivals, grounds=grounds,
-                      set_aside=aside, plausibility=why_aside)
-    return dataclasses.replace(_settle_tie(best, rivals[1], ranked, baseline, margin, scorer), contenders=rivals,
-                               grounds=grounds, set_aside=aside, plausibility=why_aside)
-
-
-# The grounds a finding can be decided on (``Finding.decided_by``): the held-out gain over geometry alone
-# (MIN_GAIN), the margin over every other cause (MIN_MARGIN), a single place preferred to several
-# (MULTI_GAIN), the simpler of two nested explanations, two effects present together, a tie the data
-# leave open, and the physical plausibility of the sizes needed (``plausibility``).
-GROUNDS = ("gain", "margin", "single place", "nested", "two effects", "tie", "plausibility")
-
-
-def _decided_by(naming: Naming, tied) -> tuple[str, ...]:
-    """The words of GROUNDS that decided: what named the finding, or what left it ``none``."""
-    out = ["gain"]  # what is named gains MIN_GAIN; below it nothing is
-    if naming.named is not None and naming.tie == "":
-        out.append("margin")
-    if naming.named is not None and naming.grounds:
-        out.append("single place")
-    out += {"nested": ["nested"], "both": ["two effects"], "ambiguous": ["tie"], "unseparated": ["tie"],
-            "unsteady": ["tie"]}.get(
-        naming.tie, [])
-    if tied.entries and naming.named is None:
-        out.append("tie")
-    if naming.plausibility or tied.grounds.startswith("named on physical plausibility"):
-        out.append("plausibility")
-    return tuple(dict.fromkeys(out))
-
-
-def _settle_tie(best: Scored, runner_up: Scored, candidates: Sequence[Scored], baseline: Scored, margin: float,
-                scorer: LinearisedScorer) -> Naming:
-    """Two causes explain about as much. One explanation contained in the other: the
-    simpler one is named. Two effects (together they beat either by MIN_GAIN): the best
-    is named. Else the same structure, ambiguous: ``none``. The candidates keep their order."""
-    ranked = tuple(candidates)
-    simpler, larger = sorted((best, runner_up), key=lambda c: sum(t.size for t in c.terms))
-    if (1.0 - simpler.heldout_mean_mm / baseline.heldout_mean_mm >= MIN_GAIN
-            and simpler.terms[0].size < larger.terms[0].size and scorer.is_nested(simpler.terms[0], larger.terms[0])):
-        note = (f"{larger.label} fits about as well only through terms that are the same as "
-                f"{simpler.label}; the simpler explanation is named")
-        return Naming(named=simpler, candidates=ranked, margin=margin, notes=(note,), tie="nested")
-    pair_mean_mm = float(trimmed_mean(scorer.heldout_errors_mm(best.terms + runner_up.terms), best.trim))
-    if pair_mean_mm < (1.0 - MIN_GAIN) * min(best.heldout_mean_mm, runner_up.heldout_mean_mm):
-        note = (f"{best.label} and {runner_up.label} are both present: together they "
-                f"reach {pair_mean_mm:.4f} mm held-out")
-        return Naming(named=best, candidates=ranked, margin=margin, notes=(note,), tie="both")
-    note = (f"{best.label} and {runner_up.label} explain the data about equally well "
-            f"(held-out errors {100 * margin:.1f}% apart, {100 * MIN_MARGIN:.0f}% needed)")
-    return Naming(named=None, candidates=ranked, margin=margin, notes=(note,), tie="ambiguous")
-
-
-def find_second_effect(named: Scored, terms: Sequence[Term], places: dict, scores: selection.Scores,
-                       nested: bool = True) -> Scored | None:
-    """With the named effect in the model, the candidate of another cause that lowers the
-    held-out mean by MIN_GAIN more, or None; scored alone. A cause with places is searched
-    again with the named effect in the model (the same forward search, nested as the first)."""
-    scorer = scores.scorer
-    others = [t for t in terms if t.cause != named.cause and t.extra.get("all", True)]
-    searched = [s for s in (selection.select(CAUSES[cause], *p, scores, base=named.terms)
-                            for cause, p in places.items() if cause != named.cause) if s]
-    if not others and not searched:
-        return None
-    steps = ([scorer.steps(named.terms + (t,)) for t in others]
-             + [selection.nested_steps(scores, s, named.terms) if nested else scorer.steps(named.terms + (s.term,))
-                for s in searched])
-    candidates = others + [s.term for s in searched]
-    errors = scorer.heldout_errors_of_steps(np.concatenate(steps + [scorer.steps((t,)) for t in candidates]))
-    with_named = [(float(trimmed_mean(e, named.trim)), t, alone)
-                  for e, t, alone in zip(errors, candidates, errors[len(candidates):])]
-    with_named.sort(key=lambda entry: entry[0])
-    _prefer_single_place(with_named, lambda entry: entry[0], lambda entry: entry[1])
-    if not with_named or with_named[0][0] >= (1.0 - MIN_GAIN) * named.heldout_mean_mm:
-        return None
-    _, term, alone = with_named[0]
-    return score_candidates([term], scorer, [alone])[0]
-
-
-def _prefer_single_place(ranked: list, error, term) -> None:
-    """Parsimony, in place: a term spanning several joints must beat the best single-place
-    term of its cause by MULTI_GAIN, else the single place goes first (it says *where*)."""
-    if not ranked:
-        return
-    best = ranked[0]
-    singles = [i for i, r in enumerate(ranked) if term(r).cause == term(best).cause and not term(r).multi]
-    if singles and singles[0] != 0 and error(best) > (1.0 - MULTI_GAIN) * error(ranked[singles[0]]):
-        ranked.insert(0, ranked.pop(singles[0]))
 
 
 # -- fits: the geometric baseline, and geometry plus terms fitted in full -----------------------------------
@@ -560,125 +338,3 @@ def _physical_sizes(model, terms: tuple[Term, ...], fit: ExtendedFit) -> dict:
             sizes[t.cause] = {**sizes[t.cause], **flat, "places": entries}
         col += t.size
     return sizes
-
-
-# -- transfer: does the effect fitted on one data set hold on another? ---------------------------------------
-
-
-class TransferError(ValueError):
-    """The second data set cannot test the finding (its message says what is missing)."""
-
-
-@dataclass(frozen=True)
-class Transfer:
-    """The finding of data set A tried on data set B (another time, pose set or target).
-
-    Kinematics (and the effect's parameters) as fitted on A; only what B must set itself,
-    the instrument -> base frame and the target offsets, fitted on B."""
-
-    baseline_errors_mm: np.ndarray  # (M,) B's errors with A's geometric fit
-    extended_errors_mm: np.ndarray | None  # (M,) with A's geometry + effect fit; None: nothing named on A
-    carried: str  # label of the effect carried over ("" when none)
-    coverage_per_joint: tuple[float, ...]  # fraction of B's rows whose angle lies within A's range, per joint
-    coverage_all: float  # fraction of B's rows with every joint within A's ranges
-    note: str = ""
-
-    @property
-    def baseline_mean_mm(self) -> float:
-        return float(self.baseline_errors_mm.mean())
-
-    @property
-    def extended_mean_mm(self) -> float | None:
-        return None if self.extended_errors_mm is None else float(self.extended_errors_mm.mean())
-
-    @property
-    def gain_pct(self) -> float | None:
-        if self.extended_errors_mm is None:
-            return None
-        return 100.0 * (1.0 - self.extended_mean_mm / self.baseline_mean_mm)
-
-
-def transfer(model, finding: Finding, obs_a: Observations, obs_b: Observations, ctx_b: Context,
-             loss: str = "linear") -> Transfer:
-    """Score A's finding on B: A's geometric fit, and A's fit of geometry plus the named effect,
-    each with B's frame and target offsets refitted on B (everything else as on A); B's rows
-    inside A's joint ranges (``coverage``). When B cannot show the effect (it leaves a place of
-    the effect without the motion its basis needs) only the geometry is scored, and the note says why."""
-    lo, hi = obs_a.q.min(0), obs_a.q.max(0)
-    inside = (obs_b.q >= lo) & (obs_b.q <= hi)
-    start = identify(model, obs_b)  # B's own fit: where its frame and targets start from
-    layout = Layout(model, obs_b.target_names)
-    x_geo = np.concatenate([finding.baseline.x[: model.n_params], start.x[layout.n_kin:]])
-    baseline = _frame_refit(layout, obs_b, x_geo, (), np.zeros(0), loss)
-    extended, carried, note = None, "", ""
-    if finding.cause == "none":
-        note = ("no effect named on the first data set: nothing to carry over; the geometric fit alone is "
-                "scored on the second")
-    else:
-        named = finding.extended
-        ext_layout, x_ext = layout, x_geo.copy()
-        structural = [t for t in named.terms if t.model is not None]
-        if structural:  # a different rigid model: its extra parameters as fitted on A
-            ext_layout = Layout(structural[-1].model, obs_b.target_names)
-            x_ext = np.concatenate([named.x[: ext_layout.n_kin], start.x[layout.n_kin:]])
-        else:
-            x_ext[: model.n_params] = named.x[: model.n_params]
-        carried = named.label
-        try:
-            terms = tuple(_term_on_rows(t, model, layout, x_ext, obs_b, ctx_b) for t in named.terms
-                          if t.model is None)
-        except TransferError as exc:  # B cannot show the effect: the geometry alone is scored, and why said
-            carried, note = "", str(exc)
-        else:
-            extended = _frame_refit(ext_layout, obs_b, x_ext, terms, named.theta, loss)
-    return Transfer(baseline, extended, carried, tuple(float(f) for f in inside.mean(0)),
-                    float(inside.all(1).mean()), note)
-
-
-def _term_on_rows(term: Term, model, layout: Layout, x: np.ndarray, obs: Observations, ctx: Context) -> Term:
-    """The same term (same parameters, same meaning of theta) with its basis at other rows."""
-    if term.extra.get("parts"):  # several single parts side by side (cyclic orders of several joints)
-        parts = [_term_on_rows(p, model, layout, x, obs, ctx) for p in term.extra["parts"]]
-        basis = JointBasis.side_by_side([(p.joint_basis, p.size) for p in parts], len(obs), model.n_joints)
-        return dataclasses.replace(term, joint_basis=basis, extra={})
-    basis = term.joint_basis
-    if hasattr(basis, "values_of") and term.cart_basis is None and not term.param_basis:
-        joint = int(np.nonzero(basis.mix)[1][0])  # a function of one joint's angle: evaluate it at B's angles
-        return dataclasses.replace(term, joint_basis=JointBasis.of_angle(obs.q[:, joint], basis.values_of, joint,
-                                                                         model.n_joints, term.size))
-    same = [t for t in CAUSES[term.cause].terms(model, layout, x, obs, ctx)
-            if t.where == term.where and t.names == term.names]
-    if not same:
-        raise TransferError(f"{term.label()} cannot be evaluated on the second data set: it does not move the "
-                            "place of the effect enough (or lacks the columns it needs, e.g. payload, time or "
-                            "temperature); only the geometry is scored: measure it with that joint moving as in "
-                            "the first")
-    return same[0]
-
-
-def _frame_refit(layout: Layout, obs: Observations, x: np.ndarray, terms: tuple[Term, ...], theta: np.ndarray,
-                 loss: str) -> np.ndarray:
-    """(M,) errors after fitting only the base frame and target offsets (kinematics and theta held)."""
-    free = np.zeros(layout.size, bool)
-    free[layout.n_kin:] = True
-    model = ExtendedModel(layout, obs, x, free, terms)
-    n = model.n_free
-    theta = np.asarray(theta, dtype=float)[: model.n_theta]
-    first = lsq.RFactor(n)
-    for _, j in model.jacobian_chunks(np.concatenate([x[free], theta])):
-        first.add(j[:, :, :n].reshape(-1, n))
-    scale = norm_scale(np.linalg.norm(first.r, axis=0), len(obs))
-    f_scale = RobustScoring.of(loss, model.residuals_mm(np.concatenate([x[free], theta]))).f_scale_mm
-
-    def evaluate(z_free, jac):
-        z = np.concatenate([z_free, theta])
-        ne = lsq.NormalEquations(n, loss, f_scale)
-        if jac:
-            for _, j, residuals in model.jacobian_chunks(z, with_residuals=True):
-                ne.add(j[:, :, :n].reshape(-1, n), residuals.ravel())
-        else:
-            ne.add(None, model.residuals_mm(z).ravel())
-        return ne
-
-    sol = lsq.levenberg_marquardt(evaluate, x[free], 1.0 / scale, ftol=1e-10, xtol=1e-10, gtol=1e-8)
-    return np.linalg.norm(model.residuals_mm(np.concatenate([sol.x, theta])), axis=1)

@@ -35,7 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cellcal.solvers.analysis.analyze import MIN_MARGIN, Finding
+from cellcal.solvers.analysis.analyze import Finding
+from cellcal.solvers.analysis.naming import MIN_MARGIN
 from cellcal.solvers.analysis.linearised_scorer import term_columns
 from cellcal.solvers.analysis.effects import CAUSES, Context, JointBasis
 from cellcal.solvers.analysis.effects import periodic_spline

@@ -8,7 +8,7 @@ cause. The analysis judges every scored candidate by the size its linearised fit
 cause's own ``magnitude``) against the typical maximum for the robot's class
 (``TYPICAL_MAX``). A lead built on an implausible size does not name its cause when an
 explanation of plausible size comes within the naming margin of it: the plausible contenders
-compete (``analyze.name_cause``).
+compete (``naming.name_cause``).
 
 Robot classes (``robot_class``) follow the payload, which the robot file does not give; it is
 read from what the file does give:

@@ -27,7 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from cellcal.solvers.estimation import identifiability
-from cellcal.solvers.fixtures.fixture_identify import FixtureIdentification, PointData
+from cellcal.solvers.fixtures.fixture_identify import FixtureIdentification
+from cellcal.solvers.fixtures.point_problem import PointData
 from cellcal.solvers.identification.measurement_model import Layout, Observations, jacobian_chunks
 
 

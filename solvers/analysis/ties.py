@@ -1,7 +1,7 @@
 """Explanations the data cannot tell apart, said as such.
 
 Two causes tie when their best candidates' held-out errors lie within the naming
-margin of each other (``analyze.MIN_MARGIN``): a one-joint-at-a-time sweep, for
+margin of each other (``naming.MIN_MARGIN``): a one-joint-at-a-time sweep, for
 instance, makes the gravity torque on the swept joint a first harmonic of its angle,
 so compliance of that joint and a first-order cyclic error of it fit alike. The
 tie is reported with its reason: the same column span (one explanation's model
@@ -43,7 +43,7 @@ TYPICAL_MAX = {cause: (next(iter(q.suffixes)), plausibility.TYPICAL_MAX[cause][p
 class Tied:
     """One of several explanations the data cannot tell apart."""
 
-    scored: object  # analyze.Scored: the candidate as ranked
+    scored: object  # naming.Scored: the candidate as ranked
     why: str  # "same column span as ..." or "held-out error within the margin of ..."
     size: dict = dataclasses.field(default_factory=dict)  # the physical size it would need ({} not fitted)
     plausible: bool | None = None  # that size within the class's typical maximum; None when not judged
@@ -70,7 +70,7 @@ class Tied:
 
 @dataclass(frozen=True)
 class TieReport:
-    naming: object  # analyze.Naming, perhaps settled on physical plausibility
+    naming: object  # naming.Naming, perhaps settled on physical plausibility
     entries: tuple[Tied, ...] = ()
     grounds: str = ""
 

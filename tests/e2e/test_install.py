@@ -161,7 +161,7 @@ PROVENANCE = r"""
 import importlib, json, sys
 from importlib import metadata
 import cellcal
-from cellcal.config.cells import shipped_cells
+from cellcal.config.cell_files import shipped_cells
 from cellcal.config.robot_files import shipped_robots
 files = {m: importlib.import_module(m).__file__ for m in json.loads(sys.argv[1])}
 print(json.dumps({

@@ -23,7 +23,7 @@ import pytest
 
 from support import loopback
 from support.service_panel import press
-from cellcal.daemon import status_server
+from cellcal.daemon import status_http, status_server
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.status_server import StatusPageError, StatusServer
@@ -263,9 +263,9 @@ def test_an_absolute_url_in_the_request_line_reaches_nothing_either(server):
 def test_refusals_flood_no_log(server, caplog):
     caplog.set_level(logging.INFO, logger="cellcal.daemon.status")
     client = ("127.0.0.1", 0)  # a client address of its own, so another test's refusals do not count
-    server.note_bad(client[0] + "-flood", "first")
+    server.guard.note_bad(client[0] + "-flood", "first")
     for _ in range(30):
-        server.note_bad(client[0] + "-flood", "again")
+        server.guard.note_bad(client[0] + "-flood", "again")
     assert len([r for r in caplog.records if "flood" in r.getMessage()]) == 1
 
 
@@ -318,7 +318,7 @@ def test_a_slow_client_lets_go_of_its_thread(cell_state, monkeypatch):
 
 def test_a_client_dripping_its_request_is_cut_off(cell_state, monkeypatch):
     """Slowloris: a byte every 0.1 s never meets the socket timeout; the connection's life limit cuts it."""
-    monkeypatch.setattr(status_server, "MAX_CONNECTION_S", 0.5)
+    monkeypatch.setattr(status_http, "MAX_CONNECTION_S", 0.5)
     monkeypatch.setattr(status_server._Handler, "timeout", 60.0)  # only the life limit can cut it
     with loopback.held() as host, StatusServer(status=lambda: dict(STATUS), state_dir=cell_state,
                                                spec=spec(host=host, max_connections=1)) as srv:
@@ -356,7 +356,7 @@ def answered_again(srv, within_s: float = 3.0) -> bool:
 
 def test_a_taken_port_is_a_clear_error_and_stop_is_quick_and_idempotent(cell_state, monkeypatch):
     monkeypatch.setattr(status_server._Handler, "timeout", 60.0)
-    monkeypatch.setattr(status_server, "MAX_CONNECTION_S", 120.0)
+    monkeypatch.setattr(status_http, "MAX_CONNECTION_S", 120.0)
     with loopback.held() as host:
         first = StatusServer(status=lambda: dict(STATUS), state_dir=cell_state, spec=spec(host=host)).start()
         port = first.address[1]

@@ -26,7 +26,7 @@ from cellcal.cli.main import main as cli_main
 from cellcal.drivers.interfaces import DeviceError
 from cellcal.routines.framework import runner
 from cellcal.routines.framework.base import PlanRefused, RoutineError
-from cellcal.measurements.table import read_measurements
+from cellcal.measurements.reader import read_measurements
 from cellcal.routines.framework.records import read_dataset
 from cellcal.solvers.geometry.inverse import tcp_frames
 from cellcal.solvers.identification.measurement_model import Layout, Observations, predict

@@ -250,7 +250,7 @@ def exact_cell(tmp_path):
     """The sim-net cell file with the arm's repeatability 0 (it goes exactly where it is sent),
     its truth and its path."""
     from support.cell_edits import edited_cell
-    from cellcal.config.cells import read_cell
+    from cellcal.config.cell_files import read_cell
     from cellcal.sims.physics.truth import truth_of_cell
 
     path = edited_cell(tmp_path, "sim-net", {"sim_truth": {"repeatability_mm": 0.0}})

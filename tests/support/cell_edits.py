@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from cellcal.config.cells import CellFileError, shipped_cells
+from cellcal.config.cell_files import shipped_cells
+from cellcal.config.cells import CellFileError
 from cellcal.config.reader import read_yaml
 
 DELETE = object()

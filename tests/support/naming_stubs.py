@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cellcal.solvers.analysis.analyze import Scored
+from cellcal.solvers.analysis.naming import Scored
 from cellcal.solvers.analysis.effects import Term
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cellcal.measurements.table import write_measurements
+from cellcal.measurements.writer import write_measurements
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.solvers.geometry import se3
 from cellcal.solvers.geometry.chain import forward

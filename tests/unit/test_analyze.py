@@ -11,7 +11,8 @@ from cellcal.config.robot_files import load_robot
 from support.hidden_cases import make_case  # tests/support/hidden_cases.py: a fixture, not part of the package
 from support.naming_stubs import BASELINE, StubScorer, scored  # tests/support/naming_stubs.py
 from cellcal.sims.physics.physical_arm import HiddenEffect
-from cellcal.solvers.analysis.analyze import MIN_GAIN, MIN_MARGIN, analyze, name_cause
+from cellcal.solvers.analysis.analyze import analyze
+from cellcal.solvers.analysis.naming import MIN_GAIN, MIN_MARGIN, name_cause
 from cellcal.solvers.geometry.robot_model import parallel_joint_pairs
 
 ROBOTS = ("ur10e", "abb-irb4600", "elite-ec66")

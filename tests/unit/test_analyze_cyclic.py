@@ -124,7 +124,7 @@ def test_periodogram_finds_each_order_and_its_amplitude():
 @pytest.mark.slow
 def test_cli_states_orders_coverage_and_the_rigid_fallback_and_plots_them(tmp_path, capsys):
     from cellcal.cli.main import main
-    from cellcal.measurements.table import write_measurements
+    from cellcal.measurements.writer import write_measurements
 
     model, effects, visibility = draw_cyclic(0)
     case = make_case(model, effects, visibility, n=200, seed=7)

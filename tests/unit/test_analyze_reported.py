@@ -17,12 +17,13 @@ from scipy.spatial import cKDTree
 
 from cellcal.cli.main import main
 from cellcal.config.robot_files import load_robot
-from cellcal.measurements.table import write_measurements
+from cellcal.measurements.writer import write_measurements
 from cellcal.sims.physics.kinematic_arm import TrackerNoise
 from cellcal.sims.physics.physical_arm import HiddenEffect, PhysicalArm
 from cellcal.sims.physics.workspace import full_workspace, joint_sweeps
 from cellcal.solvers.estimation import crossval
-from cellcal.solvers.analysis.analyze import MIN_GAIN, MIN_MARGIN, MULTI_GAIN, NEIGHBOUR_RAD, analyze, name_cause
+from cellcal.solvers.analysis.analyze import NEIGHBOUR_RAD, analyze
+from cellcal.solvers.analysis.naming import MIN_GAIN, MIN_MARGIN, MULTI_GAIN, name_cause
 from cellcal.solvers.analysis.effects import Term
 from cellcal.solvers.analysis.ties import tied_explanations
 from support.hidden_cases import BASE_REPEATABILITY_MM, SWEEP_ROBOT, SWEEP_SPAN_DEG, sweep_case  # tests/support/hidden_cases.py

@@ -15,7 +15,8 @@ from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.physical_arm import HiddenEffect
 from cellcal.sims.physics.workspace import full_workspace, joint_sweeps
 from cellcal.solvers.estimation import crossval
-from cellcal.solvers.analysis.analyze import MIN_GAIN, AnalyzeOptions, analyze
+from cellcal.solvers.analysis.analyze import AnalyzeOptions, analyze
+from cellcal.solvers.analysis.naming import MIN_GAIN
 from support.hidden_cases import SWEEP_SPAN_DEG, _arm, make_case
 
 

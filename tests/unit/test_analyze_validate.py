@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from cellcal.config.robot_files import load_robot
-from cellcal.measurements.table import write_measurements
+from cellcal.measurements.writer import write_measurements
 from cellcal.sims.physics.physical_arm import HiddenEffect
 from cellcal.sims.physics.workspace import full_workspace
 from support.cli_run import refused, run_cli  # tests/support/cli_run.py

@@ -129,7 +129,7 @@ def a_file(tmp: Path) -> Path:
 
 def alias_bomb(tmp: Path) -> Path:
     """The sim cell with tool.tcp_m a billion laughs: nested aliases standing for 10**10 numbers."""
-    from cellcal.config.cells import shipped_cells
+    from cellcal.config.cell_files import shipped_cells
 
     bomb = ["lol0: &lol0 [1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]"]
     bomb += [f"lol{i}: &lol{i} [{', '.join([f'*lol{i - 1}'] * 10)}]" for i in range(1, 10)]

@@ -9,7 +9,7 @@ import pytest
 
 from support.cli_run import run_cli  # tests/support/cli_run.py
 from cellcal.config.robot_files import load_robot
-from cellcal.measurements.table import write_measurements
+from cellcal.measurements.writer import write_measurements
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.sims.physics.workspace import full_workspace
 

@@ -277,7 +277,8 @@ def test_compensate_counts_one_row_in_the_singular(tmp_path, capsys):
     ("deg", "800", "800 deg is beyond two turns, further than any joint turns (|value| must be at most 720)"),
 ])
 def test_a_joint_value_beyond_two_turns_is_refused_in_plain_words(tmp_path, unit, value, words):
-    from cellcal.measurements.table import DatasetError, read_measurements
+    from cellcal.measurements.reader import read_measurements
+    from cellcal.measurements.table import DatasetError
 
     data = tmp_path / "data.csv"
     joints = ",".join(f"q{j}_{unit}" for j in range(1, 7))

@@ -4,13 +4,9 @@ import os
 import numpy as np
 import pytest
 
-from cellcal.measurements.table import (
-    DatasetError,
-    MeasurementTable,
-    read_measurements,
-    write_measurements,
-    write_table,
-)
+from cellcal.measurements.reader import read_measurements
+from cellcal.measurements.table import DatasetError, MeasurementTable
+from cellcal.measurements.writer import write_measurements, write_table
 from cellcal.solvers.identification.measurement_model import Observations
 
 Q6_RAD = "q1_rad,q2_rad,q3_rad,q4_rad,q5_rad,q6_rad"

@@ -14,8 +14,9 @@ import pytest
 
 from cellcal.config.robot_files import load_robot
 from cellcal.cli.main import main
-from cellcal.measurements.table import write_measurements
-from cellcal.solvers.analysis.analyze import MIN_GAIN, MIN_MARGIN, Naming, analyze
+from cellcal.measurements.writer import write_measurements
+from cellcal.solvers.analysis.analyze import analyze
+from cellcal.solvers.analysis.naming import MIN_GAIN, MIN_MARGIN, Naming
 from cellcal.solvers.analysis.ties import DECIDE_LAMBDA, MEAN_PER_SIGMA, TYPICAL_MAX, tied_explanations
 from support.hidden_cases import SWEEP_ROBOT, elbow_pair, sweep_case  # tests/support/hidden_cases.py: a fixture
 from support.naming_stubs import BASELINE, StubScorer, scored  # tests/support/naming_stubs.py

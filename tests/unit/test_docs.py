@@ -301,7 +301,7 @@ def test_exit_status_check_catches_a_wrong_table(tmp_path, capsys, old, new):
 def test_the_command_line_ends_with_the_documented_status(tmp_path, capsys):
     """Bad usage, bad input, a failed computation and a success, run through cellcal.cli.main.main."""
     from cellcal.cli.main import main
-    from cellcal.measurements.table import write_measurements
+    from cellcal.measurements.writer import write_measurements
 
     table = exit_table((DOCS / "cli.md").read_text(encoding="utf-8"))
 

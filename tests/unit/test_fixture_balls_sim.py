@@ -7,7 +7,7 @@ import numpy as np
 
 from support.cell_edits import edited_cell  # tests/support/cell_edits.py
 
-from cellcal.config.cells import read_cell
+from cellcal.config.cell_files import read_cell
 from cellcal.sims.fake_ur.controller import FakeUrController
 from cellcal.sims.inproc.world import FixtureBall, PivotSocket, world_of_cell
 from cellcal.sims.physics.truth import pivot_rest_q

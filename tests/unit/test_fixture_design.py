@@ -1,5 +1,5 @@
 """The seat design of fixture calibration (solvers/fixtures/fixture_design.py) and the plan's prediction
-(fixture_identify.predict_seats), against the algebra they stand for and the hidden truth."""
+(fixture_predict.predict_seats), against the algebra they stand for and the hidden truth."""
 from __future__ import annotations
 
 import numpy as np
@@ -11,7 +11,9 @@ from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.sims.physics.workspace import full_workspace
 from cellcal.solvers.fixtures.fixture_design import RIDGE, contact_rows, information, seat_rows, select_seats
-from cellcal.solvers.fixtures.fixture_identify import FixtureOptions, PointData, identify_points, judge_workspace, predict_seats
+from cellcal.solvers.fixtures.fixture_identify import identify_points
+from cellcal.solvers.fixtures.fixture_predict import judge_workspace, predict_seats
+from cellcal.solvers.fixtures.point_problem import FixtureOptions, PointData
 from cellcal.solvers.geometry.chain import forward
 from cellcal.solvers.geometry.inverse import dexterity, inverse, inverse_many, tcp_poses
 

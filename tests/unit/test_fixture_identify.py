@@ -17,7 +17,9 @@ import pytest
 
 from cellcal.cli.main import main
 from cellcal.config.robot_files import load_robot
-from cellcal.measurements.table import DatasetError, read_measurements, write_measurements
+from cellcal.measurements.reader import read_measurements
+from cellcal.measurements.table import DatasetError
+from cellcal.measurements.writer import write_measurements
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.sims.physics.workspace import full_workspace
 

@@ -69,7 +69,7 @@ def _iso_file(path, bias_mm, cycles=4):
     """ur5e driven to the cube points' joints; measured = the model's position + a bias per pose +
     +-0.1 mm along x alternating by cycle (so RP = 0.1 exactly, with 4 cycles)."""
     from cellcal.config.robot_files import load_robot
-    from cellcal.measurements.table import write_measurements
+    from cellcal.measurements.writer import write_measurements
     from cellcal.solvers.geometry.chain import forward
 
     model = load_robot("ur5e")
@@ -102,7 +102,7 @@ def test_iso9283_command_reports_known_accuracy_and_repeatability(tmp_path, caps
 
 def test_iso9283_command_refuses_data_without_poses(tmp_path, capsys):
     from cellcal.cli.main import main
-    from cellcal.measurements.table import write_measurements
+    from cellcal.measurements.writer import write_measurements
 
     write_measurements(tmp_path / "plain.csv", q_rad=np.zeros((3, 6)), xyz_mm=np.ones((3, 3)))
     assert main(["iso9283", "--robot", "ur5e", "--data", str(tmp_path / "plain.csv")]) == 2

@@ -8,7 +8,8 @@ import pytest
 from cellcal.cli.main import main
 from cellcal.measurements.importers import dlr_justin
 from cellcal.config.robot_files import load_robot
-from cellcal.measurements.table import DatasetError, read_measurements
+from cellcal.measurements.reader import read_measurements
+from cellcal.measurements.table import DatasetError
 from cellcal.solvers.identification.identify import IdentifyOptions, identify
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "dlr-agile-justin" / "measurements.csv"

@@ -10,7 +10,8 @@ import pytest
 from scipy.optimize import least_squares
 
 from cellcal.config.robot_files import load_robot
-from cellcal.measurements.table import DatasetError, read_measurements
+from cellcal.measurements.reader import read_measurements
+from cellcal.measurements.table import DatasetError
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.sims.physics.physical_arm import HiddenEffect
 from cellcal.sims.physics.workspace import full_workspace
@@ -144,7 +145,7 @@ ROW = "0.1,0.2,0.3,0.4,0.5,0.6,100.0,200.0,300.0"
 
 
 def test_problems_are_reported_in_column_order_whatever_block_they_fall_in(tmp_path, monkeypatch):
-    import cellcal.measurements.table as dataset
+    import cellcal.measurements.reader as dataset
 
     monkeypatch.setattr(dataset, "_BLOCK_ROWS", 2)
     rows = [ROW] * 6
@@ -162,7 +163,7 @@ def test_problems_are_reported_in_column_order_whatever_block_they_fall_in(tmp_p
 
 
 def test_quoted_and_plain_rows_read_alike(tmp_path, monkeypatch):
-    import cellcal.measurements.table as dataset
+    import cellcal.measurements.reader as dataset
 
     monkeypatch.setattr(dataset, "_BLOCK_ROWS", 2)
     path = tmp_path / "cal.csv"
@@ -192,7 +193,7 @@ def test_neighbour_groups_found_block_by_block_are_the_connected_components_of_a
 
 
 def test_joint_velocity_columns_are_read_in_blocks_and_a_bad_value_is_named(tmp_path, monkeypatch):
-    import cellcal.measurements.table as dataset
+    import cellcal.measurements.reader as dataset
 
     monkeypatch.setattr(dataset, "_BLOCK_ROWS", 2)
     header = "q1_rad,q2_rad,q3_rad,q4_rad,q5_rad,q6_rad,x_mm,y_mm,z_mm," + ",".join(f"dq{j}_deg_s" for j in range(1, 7))

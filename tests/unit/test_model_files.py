@@ -101,7 +101,7 @@ def test_a_bad_effects_entry_is_refused_naming_the_key(tmp_path):
 
 
 def test_identify_and_analyze_write_models_with_provenance(compliance_finding, tmp_path, capsys):
-    from cellcal.measurements.table import write_measurements
+    from cellcal.measurements.writer import write_measurements
 
     model, campaign, _ = compliance_finding
     data = tmp_path / "data.csv"

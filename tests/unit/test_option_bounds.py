@@ -173,7 +173,7 @@ def _billion_laughs(levels: int = 9) -> str:
 @pytest.fixture
 def bomb_cell(tmp_path) -> Path:
     """The shipped sim cell with the tool's TCP replaced by a billion laughs (a few hundred bytes)."""
-    from cellcal.config.cells import shipped_cells
+    from cellcal.config.cell_files import shipped_cells
 
     text = shipped_cells()["sim"].read_text()
     assert "  tcp_m: [0.0, 0.0, 0.150]" in text
@@ -418,7 +418,7 @@ def _iso_rows(tmp_path: Path, change=None, cycles: int = 4) -> Path:
     import numpy as np
 
     from cellcal.config.robot_files import load_robot
-    from cellcal.measurements.table import write_measurements
+    from cellcal.measurements.writer import write_measurements
     from cellcal.solvers.geometry.chain import forward
 
     model = load_robot("ur5e")
@@ -481,7 +481,7 @@ def test_iso9283_with_30_clean_cycles_has_nothing_to_warn_of(tmp_path, capsys):
 def test_identify_warns_when_every_row_is_there_twice(tmp_path, capsys):
     import numpy as np
 
-    from cellcal.measurements.table import write_measurements
+    from cellcal.measurements.writer import write_measurements
 
     rng = np.random.default_rng(0)
     q = rng.uniform(-1.0, 1.0, (20, 6))

@@ -93,7 +93,7 @@ def test_every_data_file_under_the_rooms_is_covered_by_package_data():
 def test_what_the_program_reads_at_run_time_is_package_data():
     """The shipped robots and cells are found through importlib.resources, the unit too."""
     from cellcal.cli.service import unit_template
-    from cellcal.config.cells import shipped_cells
+    from cellcal.config.cell_files import shipped_cells
     from cellcal.config.robot_files import shipped_robots
 
     assert {"ur10e", "ur5e", "abb-irb4600"} <= set(shipped_robots())

@@ -9,11 +9,11 @@ import pytest
 
 from cellcal.cli.main import main
 from cellcal.config.robot_files import load_robot
-from cellcal.measurements.table import write_measurements
+from cellcal.measurements.writer import write_measurements
 from cellcal.sims.physics.physical_arm import HiddenEffect
 from cellcal.sims.physics.workspace import full_workspace
 from cellcal.solvers.analysis import plausibility
-from cellcal.solvers.analysis.analyze import GROUNDS, name_cause
+from cellcal.solvers.analysis.naming import GROUNDS, name_cause
 from cellcal.solvers.analysis.effects import CAUSES
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))

@@ -14,7 +14,8 @@ from support.point_data import plate_placements, seat, write  # tests/support/po
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.solvers.analysis import point_analysis
-from cellcal.solvers.fixtures.fixture_identify import FixtureOptions, PointData, identify_points
+from cellcal.solvers.fixtures.fixture_identify import identify_points
+from cellcal.solvers.fixtures.point_problem import FixtureOptions, PointData
 
 UR10E = load_robot("ur10e")
 BAR_MM = 200.0

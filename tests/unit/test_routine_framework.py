@@ -126,7 +126,8 @@ def test_a_dataset_of_another_routine_or_a_broken_one_is_refused_naming_the_line
 
 
 def test_a_routine_section_the_cell_cannot_run_is_refused_at_load(tmp_path):
-    from cellcal.config.cells import CellFileError, shipped_cells
+    from cellcal.config.cell_files import shipped_cells
+    from cellcal.config.cells import CellFileError
 
     text = shipped_cells()["sim"].read_text() + "\nhandshake:\n  points: 12\n"
     (tmp_path / "c.yaml").write_text(text)

@@ -14,7 +14,7 @@ import pytest
 from cellcal.cli import service
 from cellcal.cli.main import main
 from support.cell_edits import edited_cell
-from cellcal.config.cells import shipped_cells
+from cellcal.config.cell_files import shipped_cells
 
 UNIT = Path("etc/systemd/system/cellcal.service")
 CELL = Path("etc/cellcal/cell.yaml")

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellcal.config.cells import shipped_cells
+from cellcal.config.cell_files import shipped_cells
 from cellcal.daemon.claims import Device, DeviceClaim, FolderLock, InUseError, devices
 from cellcal.daemon.cells import load_cell
 from cellcal.daemon.store import Store, StoreError, check_state_folder
