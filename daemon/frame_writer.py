@@ -59,7 +59,7 @@ def tool_slot(cell, tool_id: int) -> int | None:
     """The block of the robot's stored tool frames that is tool `tool_id`'s: its ``frame_block``
     in the cell's tool table, else its place there (file order; a file's one ``tool``: 0). A
     cell that describes no tool has the one frame, block 0; None: the table has no such tool."""
-    tools = getattr(cell, "tools", None) or {}
+    tools = cell.tools
     if not tools:
         return 0
     return tool_blocks(tools).get(int(tool_id))
@@ -86,7 +86,7 @@ def no_block_note(robot: Robot, tool_id: int, slot: int | None) -> str | None:
 def tools_without_block(cell, robot: Robot) -> list[str]:
     """:func:`no_block_note` for every tool of the cell's table that has none (the daemon says
     them once at its start)."""
-    tools = getattr(cell, "tools", None) or {}
+    tools = cell.tools
     return [note for tool_id in tools if (note := no_block_note(robot, tool_id, tool_slot(cell, tool_id)))]
 
 
