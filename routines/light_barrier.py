@@ -58,13 +58,13 @@ class Step:
 
 
 class BarrierSweeps:
-    """The sweeps of routine `name` on `cell` (robot a's kinematic `model`), planned once.
-    `missed(error)`: what a motion that did not see the edges it must raises (the error itself
-    for a calibration; a check's alarm)."""
+    """The sweeps of routine `name` on `cell`, planned once, when first asked, with robot a's
+    kinematic model (`robot_model()`: the run's). `missed(error)`: what a motion that did not
+    see the edges it must raises (the error itself for a calibration; a check's alarm)."""
 
-    def __init__(self, name: str, cell: Cell, model, sweep: SweepPlan,
+    def __init__(self, name: str, cell: Cell, robot_model: Callable[[], object], sweep: SweepPlan,
                  missed: Callable[[RoutineError], Exception] = lambda error: error):
-        self.name, self.cell, self.model, self.sweep, self.missed = name, cell, model, sweep, missed
+        self.name, self.cell, self.robot_model, self.sweep, self.missed = name, cell, robot_model, sweep, missed
         self._steps: list[tuple[Move, Step]] | None = None
 
     @property
@@ -85,7 +85,7 @@ class BarrierSweeps:
         dirs = np.array([b.direction for b in cell.beams])
         reach = np.array([r_tool + b.radius_m for b in cell.beams])
         cross = laser.crossing_point(points, dirs)
-        home = tcp_poses(self.model, cell.home_q_rad, tool.tcp_pose)[0]
+        home = tcp_poses(self.robot_model(), cell.home_q_rad, tool.tcp_pose)[0]
         r_home = se3.rotvec_to_matrix(home[3:])
         travel_v, accel = cell.limits["tcp_speed_m_s"], cell.limits["tcp_accel_m_s2"]
         speed = o.speed_mm_s / 1e3

@@ -192,17 +192,12 @@ class TcpCheck(Routine):
             return options, f"the beams tcp-laser run {run_id} found were not used ({exc}): [beams] as installed"
         return replace(options, beams=beams), f"the beams where tcp-laser run {run_id} found them"
 
-    _sweeps: BarrierSweeps | None = None
-
-    @property
-    def sweeps(self) -> BarrierSweeps:
-        """The barrier sweeps of this check: upright only, no tilted orientations (planned once)."""
-        if self._sweeps is None:
-            o = self.options
-            self._sweeps = BarrierSweeps(self.name, self.cell, self.robot_model, SweepPlan(
-                o.speed_mm_s, o.heights_mm, min(o.heights_mm), 0.0, 0, o.spins_deg, o.search_mm, o.max_latency_ms),
-                missed=self._alarm)
-        return self._sweeps
+    def __init__(self, cell: Cell, options: TcpCheckOptions):
+        super().__init__(cell, options)
+        o = options  # the sweeps upright only: no tilted orientations
+        upright = SweepPlan(o.speed_mm_s, o.heights_mm, min(o.heights_mm), 0.0, 0, o.spins_deg, o.search_mm,
+                            o.max_latency_ms)
+        self.sweeps = BarrierSweeps(self.name, cell, lambda: self.robot_model, upright, missed=self._alarm)
 
     # -- what the plan can tell -----------------------------------------------------
 

@@ -54,17 +54,11 @@ MAX_STD = {"mm": 0.1, "rad": np.deg2rad(0.1), "ms": 1.0}  # a parameter this unc
 
 
 @dataclass(frozen=True)
-class TcpLaserOptions:
-    speed_mm_s: float
-    heights_mm: tuple[float, ...]
-    tilted_height_mm: float
-    tilt_deg: float
-    tilts: int
-    spins_deg: tuple[float, ...]
-    search_mm: float
+class TcpLaserOptions(SweepPlan):
+    """The sweeps (upright and tilted), and what the fit needs besides."""
+
     repeatability_mm: float
     trigger_jitter_ms: float
-    max_latency_ms: float
 
 
 class TcpLaser(Routine):
@@ -95,30 +89,24 @@ class TcpLaser(Routine):
         spins = section.sequence("spins_deg", [180.0, 0.0], nonempty=True)
         if not all(isinstance(s, (int, float)) and not isinstance(s, bool) and -180 <= s <= 180 for s in spins):
             section.fail("spins_deg", f"{spins!r}: turns in -180..180 deg")
-        options = TcpLaserOptions(
-            speed, tuple(float(h) for h in heights), section.number("tilted_height_mm", min(heights), low=low, high=high),
-            section.number("tilt_deg", 45.0, low=0.0, high=45.0), section.integer("tilts", 4, low=1, high=8),
-            tuple(float(s) for s in spins), section.number("search_mm", 3.0, above=0.0, high=20.0),
-            section.number("repeatability_mm", 0.02, above=0.0, high=1.0),
-            section.number("trigger_jitter_ms", 0.3, low=0.0, high=10.0),
-            section.number("max_latency_ms", 20.0, above=0.0, high=200.0))
+        tilted = section.number("tilted_height_mm", min(heights), low=low, high=high)
+        tilt_deg = section.number("tilt_deg", 45.0, low=0.0, high=45.0)
+        tilts = section.integer("tilts", 4, low=1, high=8)
+        search = section.number("search_mm", 3.0, above=0.0, high=20.0)
+        repeat = section.number("repeatability_mm", 0.02, above=0.0, high=1.0)
+        jitter = section.number("trigger_jitter_ms", 0.3, low=0.0, high=10.0)
+        latency = section.number("max_latency_ms", 20.0, above=0.0, high=200.0)
+        options = TcpLaserOptions(speed, tuple(float(h) for h in heights), tilted, tilt_deg, tilts,
+                                  tuple(float(s) for s in spins), search, latency, repeat, jitter)
         section.done()
         if options.tilt_deg < 5.0:  # tilts are what tell the beams' height from the tool's length
             section.fail("tilt_deg", f"{options.tilt_deg:g} is too small to separate the beams' height "
                                      "from the tool's length (5 deg or more)")
         return options
 
-    _sweeps: BarrierSweeps | None = None
-
-    @property
-    def sweeps(self) -> BarrierSweeps:
-        """The barrier sweeps of this cell file's plan (planned once, with the run's robot model)."""
-        if self._sweeps is None:
-            o = self.options
-            self._sweeps = BarrierSweeps(self.name, self.cell, self.robot_model, SweepPlan(
-                o.speed_mm_s, o.heights_mm, o.tilted_height_mm, o.tilt_deg, o.tilts, o.spins_deg, o.search_mm,
-                o.max_latency_ms))
-        return self._sweeps
+    def __init__(self, cell: Cell, options: TcpLaserOptions):
+        super().__init__(cell, options)
+        self.sweeps = BarrierSweeps(self.name, cell, lambda: self.robot_model, options)
 
     def plan(self) -> list[Move]:
         return self.sweeps.moves()
