@@ -17,7 +17,8 @@ from cellcal.cli.common import STATE_HELP, number, open_store, service_state_fol
 from cellcal.daemon.claims import held
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.notify import Notifier
-from cellcal.daemon.service import ResultCode, Service
+from cellcal.daemon.result_codes import ResultCode
+from cellcal.daemon.service import Service
 from cellcal.drivers.interfaces import DeviceError
 from cellcal.reports.run import write_run_report
 from cellcal.reports.trend import write_trend_page
@@ -69,7 +70,7 @@ def cmd_daemon(args) -> int:
                               reconnect=lambda: open_drivers(cell),
                               trend=lambda tool_id, trend: write_trend_page(folder / "reports" / f"tool-{tool_id}",
                                                                             trend))
-            service._panel("set_lamps", busy=False)
+            service.panel.call("set_lamps", busy=False)
             service.discard_requests("pending when the service started")
             service.announce_interrupted(interrupted)
             service.resume_owed_frame()

@@ -216,7 +216,7 @@ def cmd_run(args) -> int:
                 if cell.mounted_source.kind != "file":  # the panel or the tool changer says which tool is on
                     cell, prepared = _mounted(args, cell, drivers, prepared)
                 dataset = runner.measure(prepared, drivers, args.out, print_progress, operator=operator)
-            result = runner.solve(args.routine, cell, dataset)
+            result = runner.solve_run(prepared.context, dataset)  # the run's context: its section read once
     except PlanRefused as exc:
         raise UsageError(f"{args.cell}: plan refused, nothing moved: {exc}") from None
     except NotForThisCell as exc:  # the cell lacks what the routine needs: input at fault, as a refused plan

@@ -5,7 +5,7 @@ import json
 import time
 
 from cellcal.cli.common import RECORD_ID, STATE_HELP, UsageError, open_store, whole
-from cellcal.daemon.service import RESULT_MEANINGS, ResultCode
+from cellcal.daemon.result_codes import RESULT_MEANINGS, ResultCode
 from cellcal.daemon.store import file_sha256
 from cellcal.routines.framework.base import gate_line
 

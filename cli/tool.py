@@ -13,7 +13,7 @@ from cellcal.config.reader import ConfigError
 from cellcal.daemon.cells import NoToolMounted, load_cell, mounted_tool, open_drivers
 from cellcal.daemon.claims import devices, held
 from cellcal.daemon.drift import trend
-from cellcal.daemon.write_back import NothingToRestore, rollback
+from cellcal.daemon.frame_writer import NothingToRestore, rollback
 from cellcal.drivers.interfaces import DeviceError, RobotState
 from cellcal.routines.framework.base import frame_text, tool_frame_json
 

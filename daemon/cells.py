@@ -14,6 +14,7 @@ from pathlib import Path
 from cellcal.config.cell_files import read_cell, shipped_cells
 from cellcal.config.cells import Cell, CellFileError
 from cellcal.drivers import registry
+from cellcal.drivers.interfaces import OperatorPanel, Robot, Tracker, TriggerInput
 from cellcal.drivers.registry import DriverConfigError
 from cellcal.routines.framework import registry as routines
 
@@ -74,12 +75,18 @@ def mounted_tool(cell: Cell, drivers: "CellDrivers") -> int:
 
 @dataclass
 class CellDrivers:
-    robot: object = None
-    trigger: object = None
-    tracker: object = None
-    panel: object = None
-    world: object = None  # what in-process simulated devices share (their world), else None
-    robots: dict = field(default_factory=dict)  # every robot by name; "a" is `robot`
+    """The cell's devices, each behind its interface; None for a device the cell lacks."""
+
+    robot: Robot | None = None
+    trigger: TriggerInput | None = None
+    tracker: Tracker | None = None
+    panel: OperatorPanel | None = None
+    world: object | None = None  # what in-process simulated devices share (their world), else None
+    robots: dict[str, Robot] = field(default_factory=dict)  # every robot by name; "a" is `robot`
+
+    def device(self, kind: str) -> Robot | TriggerInput | Tracker | OperatorPanel | None:
+        """The device of a kind a routine needs (``Routine.needs``: robot, trigger, tracker, panel)."""
+        return {"robot": self.robot, "trigger": self.trigger, "tracker": self.tracker, "panel": self.panel}.get(kind)
 
     def close(self) -> None:
         """Close every device, even when one fails; the first failure is raised afterwards."""

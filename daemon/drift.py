@@ -158,16 +158,6 @@ def _drift_words(change: dict, last: dict, bands) -> str | None:
     return "; ".join(beyond) or None
 
 
-def drift_alarm(frame, determines, rows: list[dict], bands) -> str | None:
-    """Why a check's measured `frame` ends in the drift alarm (its change since the last full
-    calibration in `rows` beyond the tool's ``drift_mm`` / ``drift_deg``), or None: within them,
-    the alarm off, or no full calibration to compare with."""
-    if bands.drift_mm is None and bands.drift_deg is None:
-        return None
-    found = since_last_calibration(frame, determines, rows)
-    return None if found is None else _drift_words(found[1], found[0], bands)
-
-
 @dataclasses.dataclass(frozen=True)
 class DriftJudgement:
     """What a check's place in its tool's history adds to its result: the verdict (``drift``
@@ -194,9 +184,9 @@ class DriftJudgement:
         return dataclasses.replace(result, verdict=self.verdict, notes=[*self.notes, *result.notes], extra=extra)
 
 
-def judge(result: Result, rows: list[dict], bands, calibrated: bool) -> DriftJudgement:
+def judge(result: Result, frame, rows: list[dict], bands, calibrated: bool) -> DriftJudgement:
     """A check's drift judgement, decided after its own verdict (an alarm stays an alarm): its
-    measured frame against the last full calibration in `rows` (the tool's measured frames) and
+    measured `frame` (:func:`measured_frame`, taken before any judgement turns the verdict) against the last full calibration in `rows` (the tool's measured frames) and
     the tool's drift alarm in `bands`. `calibrated`: a full calibration of the tool is known
     (in `rows`, or one written before the store kept measured frames); without one the check
     says so and keeps its verdict. A calibration's result (no verdict) is judged nothing."""
@@ -204,7 +194,6 @@ def judge(result: Result, rows: list[dict], bands, calibrated: bool) -> DriftJud
         return DriftJudgement(None)
     if not calibrated:
         return DriftJudgement(result.verdict, never_calibrated=True)
-    frame = measured_frame(result)
     if result.verdict not in (Verdict.OK, Verdict.CORRECTED) or frame is None:
         return DriftJudgement(result.verdict)
     found = since_last_calibration(frame, result.determines, rows)

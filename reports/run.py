@@ -95,7 +95,7 @@ def write_run_report(folder: str | Path, run_id: int, result: Result, tool_id: i
                               + "; ".join(panel.title for panel in result.drawing.panels) + ".")
         drawing = (f"<h2>Measurements against the fitted geometry</h2><figure><img src='drawing.png' "
                    f"alt='{caption}'><figcaption>{caption}</figcaption></figure>")
-    before = result.extra.get("tool_frame_before")
+    before = result.tool_frame_before
     frame = result.frame or {}
     base_row = _frame_row(f"{frame['to']} in the {frame['from']} frame, found", frame["pose_m_rad"], lean=False) \
         if {"to", "from", "pose_m_rad"} <= set(frame) else ""

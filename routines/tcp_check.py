@@ -57,25 +57,24 @@ Section ``tcp_check`` of the cell file (all optional)::
 """
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from cellcal.config.cells import Cell
-from cellcal.config.reader import ConfigError, Section
-from cellcal.solvers.geometry import se3
+from cellcal.config.reader import Section
 from cellcal.solvers.tool_frames import tcp_check as check
-from cellcal.solvers.tool_frames import tcp_laser as laser
 from cellcal.solvers.tool_frames.verdict import Measured, Verdict, check_verdict, determined
 from cellcal.routines.framework import gates, tool_frame
-from cellcal.routines.framework.base import CheckAlarm, PlanPromise, Gate, Parameter, PlanRefused, Result, RoutineError
-from cellcal.routines.tcp_laser import TcpLaser
+from cellcal.routines.framework.base import (CheckAlarm, Devices, Gate, Move, Parameter, PlanPromise, PlanRefused,
+                                             Result, Routine, RoutineError)
+from cellcal.routines.framework.context import BeamPoint
+from cellcal.routines.framework.records import Dataset
+from cellcal.routines.light_barrier import NAN_COLUMNS, TEXT_COLUMNS, BarrierSweeps, SweepPlan, barrier_data
 
 INSTALLED_BEAM_STD_MM = 0.5  # the beams as installed ([beams]): a fixture's placement
 MEASURED_BEAM_STD_MM = 0.01  # the beams as a tcp-laser calibration found them
-
-
+MAX_BEAM_OFF_MM = 20.0  # a beam point this far off its beam of [beams] is not one a calibration found
 
 
 @dataclass(frozen=True)
@@ -87,22 +86,42 @@ class TcpCheckOptions:
     repeatability_mm: float
     trigger_jitter_ms: float
     max_latency_ms: float
-    beams: tuple[tuple[int, tuple[float, float, float]], ...]  # (channel, point mm); () = [beams]
-    beam_std_mm: float
-    # what the tcp-laser plan drawing needs of a calibration's options: no tilted orientations
-    tilts: int = 0
-    tilt_deg: float = 0.0
+    beams: tuple[BeamPoint, ...]  # where the beams are known to be (m), by channel; () = [beams] as installed
+    stated_beam_std_mm: float | None  # beam_std_mm as the section states it; None: by where the beams are from
 
     @property
-    def tilted_height_mm(self) -> float:
-        return min(self.heights_mm)
+    def beam_std_mm(self) -> float:
+        """The beams' uncertainty (1 sigma): as stated, else by what the beams are."""
+        if self.stated_beam_std_mm is not None:
+            return self.stated_beam_std_mm
+        return MEASURED_BEAM_STD_MM if self.beams else INSTALLED_BEAM_STD_MM
 
 
-class TcpCheck(TcpLaser):
+def checked_beams(points_m: dict, cell: Cell) -> tuple[BeamPoint, ...]:
+    """The beams where they are known to be (channel -> point, m), each of ``[beams]`` once and
+    near its line; ValueError saying what is wrong."""
+    channels = {b.channel for b in cell.beams}
+    for ch, point in points_m.items():
+        beam = next((b for b in cell.beams if b.channel == ch), None)
+        if beam is None:
+            raise ValueError(f"channel {ch}: each beam of [beams] (channels {sorted(channels)}) once")
+        off = (np.asarray(point, dtype=float) - beam.point_m) * 1e3
+        off -= (off @ beam.direction) * beam.direction
+        if np.linalg.norm(off) > MAX_BEAM_OFF_MM:
+            raise ValueError(f"channel {ch}: point_mm is {np.linalg.norm(off):.1f} mm off the beam of [beams] "
+                             f"(at most {MAX_BEAM_OFF_MM:g} mm): is it a tcp-laser result's point_mm, in mm?")
+    if set(points_m) != channels:
+        raise ValueError(f"give every beam of [beams] (channels {sorted(channels)}), not only {sorted(points_m)}")
+    return tuple(BeamPoint(ch, np.asarray(points_m[ch], dtype=float)) for ch in sorted(points_m))
+
+
+class TcpCheck(Routine):
     name = "tcp-check"
     section = "tcp_check"
     selector = 7
     needs = ("robot", "trigger")
+    text_columns = TEXT_COLUMNS
+    nan_columns = NAN_COLUMNS
 
     @classmethod
     def read_options(cls, section: Section, cell: Cell) -> TcpCheckOptions:
@@ -135,53 +154,51 @@ class TcpCheck(TcpLaser):
         latency = section.number("max_latency_ms", 20.0, above=0.0, high=200.0)
         beams = ()
         if "beams" in section:
-            channels = {b.channel for b in cell.beams}
             found = {}
             for item in section.items_of("beams", nonempty=True):
                 ch = item.integer("channel", required=True, low=0, high=17)
-                point = item.vector("point_mm", 3, required=True)
+                point_m = item.vector("point_mm", 3, required=True) / 1e3
                 item.done()
-                if ch not in channels or ch in found:
-                    section.fail("beams", f"channel {ch}: each beam of [beams] (channels {sorted(channels)}) once")
-                installed = next(b for b in cell.beams if b.channel == ch).point_m * 1e3
-                direction = next(b for b in cell.beams if b.channel == ch).direction
-                off = point - installed
-                off -= (off @ direction) * direction
-                if np.linalg.norm(off) > 20.0:
-                    section.fail("beams", f"channel {ch}: point_mm is {np.linalg.norm(off):.1f} mm off the beam of "
-                                          "[beams] (at most 20 mm): is it a tcp-laser result's point_mm, in mm?")
-                found[ch] = tuple(float(v) for v in point)
-            if set(found) != channels:
-                section.fail("beams", f"give every beam of [beams] (channels {sorted(channels)}), "
-                                      f"not only {sorted(found)}")
-            beams = tuple(sorted(found.items()))
-        beam_std = section.number("beam_std_mm", MEASURED_BEAM_STD_MM if beams else INSTALLED_BEAM_STD_MM,
-                                  low=0.0, high=50.0)
+                if ch in found:
+                    section.fail("beams", f"channel {ch}: each beam of [beams] (channels "
+                                          f"{sorted(b.channel for b in cell.beams)}) once")
+                found[ch] = point_m
+            try:
+                beams = checked_beams(found, cell)
+            except ValueError as exc:
+                section.fail("beams", str(exc))
+        beam_std = section.number("beam_std_mm", 0.0, low=0.0, high=50.0) if "beam_std_mm" in section else None
         section.done()
         return TcpCheckOptions(speed, tuple(float(h) for h in heights), tuple(float(s) for s in spins), search,
                                repeat, jitter, latency, beams, beam_std)
 
     @classmethod
-    def with_history(cls, cell: Cell, last_result) -> tuple[Cell, str | None]:
+    def with_history(cls, cell: Cell, options: TcpCheckOptions, last_result) -> tuple[TcpCheckOptions, str | None]:
         """In the service: the beams where the newest tcp-laser calibration that passed found
-        them, unless the cell file's ``tcp_check`` section gives them (then those)."""
-        section = dict(cell.routines.get(cls.section, {}))
-        if "beams" in section:
-            return cell, None
+        them (its result's ``beams[].point_mm``), unless the cell file's ``tcp_check`` section
+        gives them (then those)."""
+        if options.beams:
+            return options, None
         last = last_result("tcp-laser")
         if last is None:
-            return cell, None
+            return options, None
         run_id, found = last
-        beams = [{"channel": int(b["channel"]), "point_mm": [float(v) for v in b["point_mm"]]}
-                 for b in found.get("beams", []) if "channel" in b and "point_mm" in b]
-        if not beams:
-            return cell, None
-        variant = dataclasses.replace(cell, routines={**cell.routines, cls.section: {**section, "beams": beams}})
+        points_m = {int(b["channel"]): np.array([float(v) for v in b["point_mm"]]) / 1e3
+                    for b in found.get("beams", []) if "channel" in b and "point_mm" in b}
+        if not points_m:
+            return options, None
         try:
-            cls.read_options(variant.routine_section(cls.section), variant)
-        except ConfigError as exc:
-            return cell, f"the beams tcp-laser run {run_id} found were not used ({exc}): [beams] as installed"
-        return variant, f"the beams where tcp-laser run {run_id} found them"
+            beams = checked_beams(points_m, cell)
+        except ValueError as exc:
+            return options, f"the beams tcp-laser run {run_id} found were not used ({exc}): [beams] as installed"
+        return replace(options, beams=beams), f"the beams where tcp-laser run {run_id} found them"
+
+    def __init__(self, cell: Cell, options: TcpCheckOptions):
+        super().__init__(cell, options)
+        o = options  # the sweeps upright only: no tilted orientations
+        upright = SweepPlan(o.speed_mm_s, o.heights_mm, min(o.heights_mm), 0.0, 0, o.spins_deg, o.search_mm,
+                            o.max_latency_ms)
+        self.sweeps = BarrierSweeps(self.name, cell, lambda: self.robot_model, upright, missed=self._alarm)
 
     # -- what the plan can tell -----------------------------------------------------
 
@@ -219,61 +236,38 @@ class TcpCheck(TcpLaser):
             f"inner_mm {bands.inner_mm:g}; {axis}. Give tcp_check.beams from the last tcp-laser result, or two "
             "heights_mm further apart")
 
-    def plan(self):
+    def plan(self) -> list[Move]:
         self.check_design()
-        return super().plan()
+        return self.sweeps.moves()
 
     # -- measure ---------------------------------------------------------------------
 
-    def measuring_tool(self, robot) -> np.ndarray:
-        """The controller's own tool frame (what is checked), or the tool as drawn when it holds none."""
-        before = tool_frame.controller_frame(robot.tool_frame())
-        return self.cell.tool.tcp_pose if before is None else before
+    def measure(self, devices: Devices, robot, plan: list[Move], progress) -> Dataset:
+        """The sweeps with the controller on its own tool frame before the run (what is checked),
+        or on the tool as drawn when it holds none."""
+        before = self.tool_frame_before
+        if before is None:  # a routine built without a run's context
+            before = robot.tool_frame()
+        held = tool_frame.controller_frame(before)
+        tool = self.cell.tool.tcp_pose if held is None else held
+        return self.sweeps.measure(devices, robot, plan, progress, tool, before)
 
-    def _edges_of(self, i, events, starts, steps, plan):
-        try:
-            return super()._edges_of(i, events, starts, steps, plan)
-        except RoutineError as exc:
-            raise CheckAlarm(
-                f"tcp-check alarm: {exc}. The tool is more than search_mm {self.options.search_mm:g} mm off its "
-                "stored frame, or something else is in the beams: a bent tool, a collision? Nothing written; a full "
-                "calibration (tcp-laser) is the operator's choice") from None
+    def _alarm(self, error: RoutineError) -> CheckAlarm:
+        return CheckAlarm(
+            f"tcp-check alarm: {error}. The tool is more than search_mm {self.options.search_mm:g} mm off its "
+            "stored frame, or something else is in the beams: a bent tool, a collision? Nothing written; a full "
+            "calibration (tcp-laser) is the operator's choice")
 
     # -- solve -----------------------------------------------------------------------
 
     @classmethod
     def solve(cls, dataset, cell: Cell, options: TcpCheckOptions) -> Result:
+        geometry, edges, beams = barrier_data(dataset, {b.channel: b.point_m for b in options.beams})
         meta = dataset.meta
-        missing = [k for k in ("planned_tool", "tool_radius_m", "tool_length_m", "beams") if k not in meta]
-        if missing:
-            raise RoutineError(f"{dataset.path}: the dataset's meta lacks {', '.join(missing)}")
-        if len(dataset) == 0:
-            raise RoutineError(f"{dataset.path}: the dataset has no edges")
-        planned = np.asarray(meta["planned_tool"], dtype=float)
-        beams = [dict(b) for b in meta["beams"]]
         if options.beams:
-            given = dict(options.beams)
-            for b in beams:
-                if int(b["channel"]) in given:
-                    b["point_m"] = (np.asarray(given[int(b["channel"])]) / 1e3).tolist()
             beam_source = "tcp_check.beams (where the last tcp-laser calibration found them)"
         else:
             beam_source = "[beams] as installed"
-        channel_index = {int(b["channel"]): i for i, b in enumerate(beams)}
-        unknown = sorted({int(c) for c in dataset["channel"]} - set(channel_index))
-        if unknown:
-            raise RoutineError(f"{dataset.path}: edges on channels {unknown} of no beam in the dataset's meta")
-        r_tool = float(meta["tool_radius_m"]) * 1e3
-        geometry = laser.LaserGeometry(
-            r_tool, float(meta["tool_length_m"]) * 1e3, planned[:3] * 1e3, se3.rotvec_to_matrix(planned[3:])[:, 2],
-            np.array([b["point_m"] for b in beams], dtype=float) * 1e3,
-            np.array([np.asarray(b["direction"], float) / np.linalg.norm(b["direction"]) for b in beams]),
-            np.array([r_tool + float(b["radius_m"]) * 1e3 for b in beams]))
-        edges = laser.LaserEdges(
-            se3.rotvec_to_matrix(dataset.stack("flange_rx", "flange_ry", "flange_rz")),
-            dataset.stack("flange_x_m", "flange_y_m", "flange_z_m") * 1e3,
-            dataset.stack("vx_m_s", "vy_m_s", "vz_m_s") * 1e3,
-            np.array([channel_index[int(c)] for c in dataset["channel"]]), dataset["move"].astype(int))
         heights = {float(h) for h in dataset["height_mm"] if np.isfinite(h)}
         spins = meta.get("spins_deg", list(options.spins_deg))
         try:

@@ -28,7 +28,8 @@ from cellcal.routines.framework import registry
 from cellcal.routines.framework.base import FRAME_KEYS, gate_line, tool_frame_json
 from cellcal.daemon.cells import load_cell
 from cellcal.cli.common import UsageError, print_progress
-from cellcal.daemon.service import RESULT_MEANINGS, ResultCode, panel_routines
+from cellcal.daemon.panel import panel_routines
+from cellcal.daemon.result_codes import RESULT_MEANINGS, ResultCode
 
 RUN_TIMEOUT_S = 180.0
 READY_TIMEOUT_S = 60.0

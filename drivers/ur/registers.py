@@ -15,7 +15,7 @@ N is 24 unless the cell file says otherwise (``tool_frame_register``): the field
 range itself.
 
 A cell with several tools keeps one such block per tool: block k (the tool's slot,
-``cellcal.daemon.write_back.tool_slot``) starts at register N+6k, doubles N+6k..N+6k+5 and ints
+``cellcal.daemon.frame_writer.tool_slot``) starts at register N+6k, doubles N+6k..N+6k+5 and ints
 N+6k (generation) and N+6k+1 (tag). The registers end at 47, so there are
 :func:`block_count` blocks (N=24: 4); a tool beyond them keeps its frame only in the running
 program.

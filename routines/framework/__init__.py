@@ -1,1 +1,1 @@
-"""What every routine stands on: the plan and result types, the guard, records, gates, the registry and the runner."""
+"""What every routine stands on: the plan and result types, the run's context, the guard, records, gates, the registry and the runner."""

@@ -23,6 +23,7 @@ import numpy as np
 
 from cellcal.config.cells import Cell
 from cellcal.config.reader import Section
+from cellcal.config.robot_files import load_robot
 from cellcal.drivers.interfaces import DeviceError, Operator, Robot, Tracker, TriggerInput
 from cellcal.solvers.geometry import se3
 from cellcal.solvers.tool_frames.verdict import Verdict
@@ -151,6 +152,8 @@ class Result:
     determines: frozenset[str] = frozenset()
     dataset: str | None = None
     cycle_time_s: float | None = None
+    # the controller's tool frame before the run (m, rad), from the run's context; None: not known
+    tool_frame_before: np.ndarray | None = None
     sim_truth: dict | None = None
     drawing: Drawing | None = None
     # a check (tcp-check): ok (nothing to write), corrected (write tool_frame), alarm or drift
@@ -199,6 +202,8 @@ class Result:
         if self.change is not None:
             out["change"] = self.change
         out.update(self.extra)
+        if self.tool_frame_before is not None:
+            out["tool_frame_before"] = [float(v) for v in np.ravel(self.tool_frame_before)]
         if self.sim_truth is not None:
             out["sim_truth"] = self.sim_truth
         return out
@@ -261,12 +266,13 @@ Progress = Callable[[str], None]
 
 
 @contextlib.contextmanager
-def drawn_tool(robot, tool_pose):
+def drawn_tool(robot, tool_pose, before=None):
     """The controller on the tool as drawn while a routine measures (its moves and contacts
     are planned for that tool); the tool frame from before (yielded) given back afterwards,
     also after a fault, as far as the robot still takes it (the service gives it back once
-    the robot is ready again)."""
-    before = np.asarray(robot.tool_frame(), dtype=float)
+    the robot is ready again). `before`: that frame when the run knows it (its context), else
+    it is read here."""
+    before = np.asarray(robot.tool_frame() if before is None else before, dtype=float)
     robot.set_tcp(tool_pose)
     try:
         yield before
@@ -315,6 +321,23 @@ class Routine(abc.ABC):
     def __init__(self, cell: Cell, options):
         self.cell = cell
         self.options = options
+        self.context = None  # the run's (:class:`~.context.RunContext`, given by the runner), None for one built alone
+        self._model = None
+
+    @property
+    def robot_model(self):
+        """Robot a's kinematic model: the run's, loaded once at its start (else loaded here, once)."""
+        if self.context is not None:
+            return self.context.robot_model
+        if self._model is None:
+            self._model = load_robot(self.cell.robot)
+        return self._model
+
+    @property
+    def tool_frame_before(self) -> np.ndarray | None:
+        """The controller's tool frame before the run, as the run read it at its start; None
+        where the routine was built without a run's context that knows it."""
+        return None if self.context is None else self.context.tool_frame_before
 
     @classmethod
     @abc.abstractmethod
@@ -347,12 +370,12 @@ class Routine(abc.ABC):
         return False
 
     @classmethod
-    def with_history(cls, cell: Cell, last_result) -> tuple[Cell, str | None]:
-        """The cell as the service runs this routine, given what earlier runs found
-        (`last_result(routine)`: (run id, result JSON) of the newest run of that routine that
-        passed every gate, or None), and a note saying what was taken from them; the cell
-        unchanged and None for a routine that needs nothing of the past."""
-        return cell, None
+    def with_history(cls, cell: Cell, options, last_result) -> tuple[object, str | None]:
+        """The routine's options (read from its section) as the service runs it, given what
+        earlier runs found (`last_result(routine)`: (run id, result JSON) of the newest run of
+        that routine that passed every gate, or None), and a note saying what was taken from
+        them; the options unchanged and None for a routine that needs nothing of the past."""
+        return options, None
 
 
 class StepRoutine(Routine):

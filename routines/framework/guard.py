@@ -282,21 +282,27 @@ class GuardedRobot:
     """The robot as a routine sees it: every motion command checked by the guard first.
 
     Also records every command that reached the robot (``sent``), so tests can show no
-    command outside the limits ever got through.
+    command outside the limits ever got through. Given the controller's tool frame when the
+    run starts (`tool_frame`), it keeps it, and every frame set through it, instead of asking the
+    controller before each move (the run is the only one that sets it meanwhile).
     """
 
-    def __init__(self, robot: Robot, guard: MotionGuard, abort=None, name: str = "a"):
+    def __init__(self, robot: Robot, guard: MotionGuard, abort=None, name: str = "a", tool_frame=None):
         self.robot, self.guard = robot, guard
         self.abort = abort  # a threading.Event: once set, every further command is refused
         self.name = name  # which robot of the cell
         self.peers: dict[str, GuardedRobot] = {}  # the cell's other robots, guarded alike
         self.sent: list[Move] = []
+        self._tool_frame = None if tool_frame is None else np.asarray(tool_frame, dtype=float)
 
     @classmethod
-    def of_cell(cls, robots: dict, guard: MotionGuard, abort=None) -> dict[str, "GuardedRobot"]:
+    def of_cell(cls, robots: dict, guard: MotionGuard, abort=None, tool_frames: dict | None = None
+                ) -> dict[str, "GuardedRobot"]:
         """Every robot of a cell (name -> driver) guarded, each checked against where the
-        others are when it moves."""
-        guarded = {name: cls(robot, guard, abort, name) for name, robot in robots.items()}
+        others are when it moves; `tool_frames`: the controller's frame of those whose frame the
+        run knows at its start (name -> frame)."""
+        frames = tool_frames or {}
+        guarded = {name: cls(robot, guard, abort, name, frames.get(name)) for name, robot in robots.items()}
         for name, g in guarded.items():
             g.peers = {n: other for n, other in guarded.items() if n != name}
         return guarded
@@ -308,7 +314,8 @@ class GuardedRobot:
         return self.peers[name]
 
     def _state(self) -> ArmState:
-        return ArmState(np.asarray(self.robot.actual_q(), dtype=float), np.asarray(self.robot.tool_frame(), dtype=float))
+        frame = self.robot.tool_frame() if self._tool_frame is None else self._tool_frame
+        return ArmState(np.asarray(self.robot.actual_q(), dtype=float), np.asarray(frame, dtype=float))
 
     def run(self, move: Move) -> ContactResult | None:
         """Check `move` from where the arm is now (the other robots where they are), then send it."""
@@ -328,7 +335,10 @@ class GuardedRobot:
         return None
 
     def set_tcp(self, tool_pose) -> None:
+        tracked, self._tool_frame = self._tool_frame is not None, None  # unknown should the write fail
         self.robot.set_tcp(tool_pose)
+        if tracked:
+            self._tool_frame = np.asarray(tool_pose, dtype=float)
 
     def tool_frame(self) -> np.ndarray:
         return self.robot.tool_frame()

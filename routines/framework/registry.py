@@ -141,14 +141,22 @@ def unavailable(name: str, cell: Cell) -> str | None:
     """Why `cell` cannot run the routine `name` at all (a device kind it needs is not among the
     cell's drivers, or its section cannot be read for this cell, e.g. the handshake on a
     one-robot cell), or None when it can."""
-    cls = routine_class(name)
-    missing = [k for k in cls.needs if k not in cell.drivers]
-    if missing:
-        return f"{cell.path}: routine {name} needs a {' and a '.join(missing)} in [drivers]"
+    why_not = missing_devices(name, cell)
+    if why_not is not None:
+        return why_not
     try:
         read_options(name, cell)
     except CellFileError as exc:
         return str(exc)
+    return None
+
+
+def missing_devices(name: str, cell: Cell) -> str | None:
+    """Why `cell` cannot run the routine `name`: a device kind it needs is not among the cell's
+    drivers; None when it has them all."""
+    missing = [k for k in routine_class(name).needs if k not in cell.drivers]
+    if missing:
+        return f"{cell.path}: routine {name} needs a {' and a '.join(missing)} in [drivers]"
     return None
 
 

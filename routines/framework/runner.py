@@ -7,7 +7,7 @@ measured, marked incomplete); the dataset is on disk before solving.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -16,11 +16,13 @@ import numpy as np
 from cellcal.config.cells import Cell
 from cellcal.config.robot_files import load_robot
 from cellcal.drivers.interfaces import DeviceError
+from cellcal.config.reader import ConfigError
 from cellcal.routines.framework.base import (Devices, Move, NotForThisCell, Progress, Result, Routine, RoutineError,
                                    frame_text)
+from cellcal.routines.framework.context import RunContext
 from cellcal.routines.framework.guard import ArmState, GuardedRobot, MotionGuard
 from cellcal.routines.framework.records import Dataset, read_dataset, repeated_rows_note
-from cellcal.routines.framework.registry import read_options, routine_class, unavailable
+from cellcal.routines.framework.registry import missing_devices, read_options, routine_class
 
 
 @dataclass
@@ -29,6 +31,29 @@ class Prepared:
     plan: list[Move]
     guard: MotionGuard
 
+    @property
+    def context(self) -> RunContext:
+        return self.routine.context
+
+
+def routine_options(name: str, cell: Cell):
+    """The routine's options, its section read once; NotForThisCell when the cell cannot run it
+    at all (a device kind it needs is missing, or its section cannot be read for this cell)."""
+    why_not = missing_devices(name, cell)
+    if why_not is not None:
+        raise NotForThisCell(why_not)
+    try:
+        return read_options(name, cell)
+    except ConfigError as exc:
+        raise NotForThisCell(str(exc)) from None
+
+
+def offline_context(name: str, cell: Cell, tool_frame_before=None) -> RunContext:
+    """A run's context from the cell file alone (``cellcal run``, a re-solve): the section read,
+    the robot model loaded, the controller's frame as given (None: read when the run moves)."""
+    before = None if tool_frame_before is None else np.asarray(tool_frame_before, dtype=float)
+    return RunContext(name, cell, routine_options(name, cell), load_robot(cell.robot), tool_frame_before=before)
+
 
 def planning_tool(cell: Cell) -> np.ndarray:
     """The TCP the routines plan with and set before they move: the tool as drawn."""
@@ -36,22 +61,26 @@ def planning_tool(cell: Cell) -> np.ndarray:
 
 
 def prepare(name: str, cell: Cell, resume: str | Path | None = None) -> Prepared:
+    """:func:`prepare_run` from the cell file alone (:func:`offline_context`)."""
+    return prepare_run(offline_context(name, cell), resume)
+
+
+def prepare_run(context: RunContext, resume: str | Path | None = None) -> Prepared:
     """The routine, its plan, and the plan checked from the cell's home (raises PlanRefused).
 
     `resume`: an incomplete dataset of this routine; a routine that can continue one
     (``resume(dataset)``) plans only what it still lacks."""
+    name, cell = context.routine, context.cell
     cls = routine_class(name)
-    why_not = unavailable(name, cell)
-    if why_not is not None:
-        raise NotForThisCell(why_not)
-    routine = cls(cell, read_options(name, cell))
+    routine = cls(cell, context.options)
+    routine.context = context
     if resume is not None:
         if not hasattr(routine, "resume"):
             raise RoutineError(f"routine {name} cannot resume a dataset; run it anew")
         routine.resume(read_dataset(resume, name, getattr(cls, "text_columns", ()),
                                     getattr(cls, "nan_columns", ())))
     plan = routine.plan()
-    guard = MotionGuard(cell, load_robot(cell.robot))
+    guard = MotionGuard(cell, context.robot_model)
     guard.check_plan(plan, ArmState(np.asarray(cell.home_q_rad, dtype=float), planning_tool(cell)))
     return Prepared(routine, plan, guard)
 
@@ -68,11 +97,14 @@ def measure(prepared: Prepared, drivers, out_dir: str | Path, progress: Progress
     someone at the cell (:meth:`Routine.asks_operator`)."""
     routine = prepared.routine
     robots = {**(getattr(drivers, "robots", None) or {}), "a": drivers.robot}  # drivers.robot is robot a
-    robot = GuardedRobot.of_cell(robots, prepared.guard, abort)["a"]
     if operator is None and routine.asks_operator():
         raise RoutineError(f"{routine.name} waits for the operator between its steps, and nobody was given to ask")
+    if routine.context.tool_frame_before is None:  # a run from the cell file alone: read as it starts
+        routine.context = replace(routine.context,
+                                  tool_frame_before=np.asarray(drivers.robot.tool_frame(), dtype=float))
+    previous = routine.context.tool_frame_before
+    robot = GuardedRobot.of_cell(robots, prepared.guard, abort, {"a": previous})["a"]
     devices = Devices(robot=drivers.robot, trigger=drivers.trigger, tracker=drivers.tracker, operator=operator)
-    previous = np.asarray(drivers.robot.tool_frame(), dtype=float)
     try:
         dataset = routine.measure(devices, robot, prepared.plan, progress)
     except BaseException as exc:
@@ -135,11 +167,15 @@ def _keep_partial(routine: Routine, previous, out_dir, progress) -> str:
 
 
 def solve(name: str, cell: Cell, dataset: Dataset) -> Result:
-    cls = routine_class(name)
-    result = cls.solve(dataset, cell, read_options(name, cell))
+    """:func:`solve_run` from the cell file alone, the controller's frame before as the dataset recorded it."""
+    return solve_run(offline_context(name, cell, dataset.meta.get("tool_frame_before")), dataset)
+
+
+def solve_run(context: RunContext, dataset: Dataset) -> Result:
+    cls = routine_class(context.routine)
+    result = cls.solve(dataset, context.cell, context.options)
     result.dataset = dataset.path
-    if "tool_frame_before" in dataset.meta:
-        result.extra.setdefault("tool_frame_before", list(dataset.meta["tool_frame_before"]))
+    result.tool_frame_before = context.tool_frame_before
     if result.cycle_time_s is None and "cycle_time_s" in dataset.meta:
         result.cycle_time_s = float(dataset.meta["cycle_time_s"])
     return result

@@ -12,7 +12,8 @@ import threading
 import numpy as np
 import pytest
 
-from cellcal.daemon import service as service_module
+from cellcal.daemon import outcome as outcome_registers
+from cellcal.daemon import tool_custody
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
@@ -167,7 +168,7 @@ class LostRobot:
 def test_a_reconnection_runs_off_the_main_loop_and_a_start_meanwhile_is_not_ready(cell, tmp_path, monkeypatch):
     """The reconnection blocks (a controller that does not answer the connect): the panel is
     still served, a start is refused NOT_READY, and the swap comes when the connect does."""
-    monkeypatch.setattr(service_module, "RECONNECT_AFTER_S", 0.0)
+    monkeypatch.setattr(tool_custody, "RECONNECT_AFTER_S", 0.0)
     with open_drivers(cell) as drivers:
         real = drivers.robot
         drivers.robot = LostRobot(real)
@@ -284,4 +285,4 @@ def test_a_start_for_a_tool_that_is_not_mounted_is_refused_and_nothing_moves(tmp
         drivers.panel.select_tool(1)
         outcome = press(service, drivers.panel, "tcp-npoint")
         assert outcome.code == ResultCode.OK, outcome.reason
-        assert service_module.outcome.decoded(drivers.panel.outcome)["tool_id"] == 1
+        assert outcome_registers.decoded(drivers.panel.outcome)["tool_id"] == 1

@@ -22,7 +22,7 @@ from support.daemon_harness import RUN_TIMEOUT_S, SELECT, Net, press_start, unti
 
 pytestmark = pytest.mark.slow
 
-FRAME_ATOL = 1e-12  # the controller reports the doubles it was given (daemon/write_back.py TOLERANCE is 1e-9)
+FRAME_ATOL = 1e-12  # the controller reports the doubles it was given (daemon/frame_writer.py TOLERANCE is 1e-9)
 
 
 def frame_on_controller(net: Net) -> np.ndarray:

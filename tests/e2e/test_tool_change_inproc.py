@@ -12,7 +12,7 @@ from cellcal.daemon import outcome
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
-from cellcal.daemon.write_back import tool_slot
+from cellcal.daemon.frame_writer import tool_slot
 
 # tcp-laser on the in-process cell finds the tip to about 0.01-0.02 mm (docs/routines.md); 0.1 mm is far above
 # that on any machine and far below the 20 mm between the two tools' tips
@@ -51,7 +51,7 @@ def test_each_start_is_for_the_tool_the_tool_changer_reports(tmp_path):
         world.mount_tool(2)
         run = press(service, panel, "tcp-check")
         assert run.code == ResultCode.OK and run.result.verdict == "ok", run.reason
-        np.testing.assert_array_equal(run.result.extra["tool_frame_before"], written[2])
+        np.testing.assert_array_equal(run.result.tool_frame_before, written[2])
         assert [r.tool_id for r in service.store.runs()][::-1] == [2, 1, 2]
 
         world.mount_tool(0)  # the flange bare: the inputs carry 0

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellcal.daemon.write_back import no_block_note, read_frames, write_back
+from cellcal.daemon.frame_writer import no_block_note, read_frames, write_tool_frame
 from cellcal.drivers.interfaces import DeviceError, StoredToolFrame
 from cellcal.drivers.ur.registers import FORMAT_TAG, ToolFrameRegisters, block_count, block_first, register_names
 
@@ -52,8 +52,8 @@ def test_two_tools_frames_in_two_blocks_read_back_exactly_and_each_program_appli
 
 def test_write_back_to_tool_2s_block_leaves_tool_1s_alone(fake, connect):
     robot = connect(UrRtdeRobot, fake.host)
-    assert write_back(robot, FRAME_1, generation=3, slot=0)[2] is None
-    before, written, failure = write_back(robot, FRAME_2, generation=4, slot=1)
+    assert write_tool_frame(robot, FRAME_1, generation=3, slot=0)[2] is None
+    before, written, failure = write_tool_frame(robot, FRAME_2, generation=4, slot=1)
     assert failure is None and before.stored.generation == 0 and written.stored_json()["slot"] == 1
     assert StoredToolFrame(FRAME_2, 4).same_as(read_frames(robot, 1).stored)
     assert StoredToolFrame(FRAME_1, 3).same_as(read_frames(robot, 0).stored)
@@ -63,7 +63,7 @@ def test_write_back_to_tool_2s_block_leaves_tool_1s_alone(fake, connect):
 def test_a_tool_beyond_the_blocks_gets_the_running_frame_only(fake, connect):
     robot = connect(UrRtdeRobot, fake.host, tool_frame_register=42)  # room for one block: 42..47
     assert robot.tool_frame_slots() == 1
-    before, written, failure = write_back(robot, FRAME_2, generation=5, slot=1)
+    before, written, failure = write_tool_frame(robot, FRAME_2, generation=5, slot=1)
     assert failure is None and written.stored is None
     np.testing.assert_array_equal(robot.tool_frame(), FRAME_2)
     assert robot.stored_tool_frame(0).generation == 0  # block 0 not written

@@ -14,7 +14,7 @@ import pytest
 from cellcal.cli import tool as tool_cmd
 from cellcal.daemon.cells import CellDrivers
 from cellcal.daemon.store import Store
-from cellcal.daemon.write_back import read_frames, write_back
+from cellcal.daemon.frame_writer import read_frames, write_tool_frame
 from cellcal.drivers.interfaces import DeviceError, StoredToolFrame
 from cellcal.drivers.ur.registers import FORMAT_TAG, ToolFrameRegisters, register_names
 from cellcal.sims.inproc.devices import SimRobot
@@ -50,14 +50,14 @@ def test_the_stored_frame_goes_in_one_package_reads_back_exactly_and_applies_at_
 
 def test_write_back_through_the_fake_and_a_mismatch_restores_both_old_frames(ur):
     robot, fake = ur
-    before, written, failure = write_back(robot, FRAME_A, generation=3)
+    before, written, failure = write_tool_frame(robot, FRAME_A, generation=3)
     assert failure is None and before.stored.generation == 0
     now = read_frames(robot)
     np.testing.assert_array_equal(now.running, FRAME_A)
     assert StoredToolFrame(FRAME_A, 3).same_as(now.stored) and written.stored.same_as(now.stored)
 
     fake.fault("ignore_input", name="input_double_register_27")  # the controller does not keep rx
-    _, _, failure = write_back(robot, FRAME_B, generation=4)
+    _, _, failure = write_tool_frame(robot, FRAME_B, generation=4)
     assert failure is not None and "stored tool frame reads back" in failure and "old frame restored" in failure
     now = read_frames(robot)
     np.testing.assert_array_equal(now.running, FRAME_A)
@@ -88,7 +88,7 @@ def test_rollback_restores_the_running_and_the_stored_frame_from_before_the_writ
     robot.store_tool_frame(StoredToolFrame(FRAME_A, 2))
     store = Store.open(tmp_path)
     run_id = store.begin_run("tcp-laser", "test cell")
-    before, written, failure = write_back(robot, FRAME_B, generation=run_id)
+    before, written, failure = write_tool_frame(robot, FRAME_B, generation=run_id)
     assert failure is None
     store.record_tool_frame(run_id, "write", before.running, written.running, before.stored_json(),
                             written.stored_json())

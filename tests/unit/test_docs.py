@@ -70,20 +70,18 @@ def _backticked(text: str) -> list[str]:
     return re.findall(r"`([^`]+)`", text)
 
 
-# -- the panel: docs/panel.md against drivers.modbus.panel and daemon.service ------------------------------
+# -- the panel: docs/panel.md against drivers.modbus.panel, daemon.panel and daemon.result_codes --------------
 
 
 def _selector_map() -> dict[int, str]:
     """The routine selector values as the daemon uses them."""
-    service = importlib.import_module("cellcal.daemon.service")
-    if hasattr(service, "panel_routines"):
-        return {int(k): v for k, v in service.panel_routines().items()}
-    return {int(k): v for k, v in service.PANEL_ROUTINES.items()}
+    panel = importlib.import_module("cellcal.daemon.panel")
+    return {int(k): v for k, v in panel.panel_routines().items()}
 
 
 def panel_mismatches(text: str) -> list[str]:
     """Every difference between the tables of a panel page and the code's constants."""
-    from cellcal.daemon.service import RESULT_MEANINGS, ResultCode
+    from cellcal.daemon.result_codes import RESULT_MEANINGS, ResultCode
     from cellcal.drivers.modbus.panel import ModbusPanel, PanelMap
 
     out = []

@@ -138,7 +138,7 @@ def test_no_weekly_rate_from_less_than_a_day_of_history(store):
 def test_the_drift_alarm_compares_what_was_determined_with_the_last_full_calibration(store, bands, determines, dx,
                                                                                      tilt, words):
     rows = history(store, [(0, "calibration", 9.0, 0.0, False, BOTH), (1, "calibration", 0.0, 0.0, True, BOTH)])
-    why = drift.drift_alarm(frame(dx, tilt), determines, rows, bands)
+    why = _drift_why(frame(dx, tilt), determines, rows, bands)
     if words is None:
         assert why is None
     else:
@@ -147,7 +147,16 @@ def test_the_drift_alarm_compares_what_was_determined_with_the_last_full_calibra
 
 def test_no_full_calibration_means_no_drift_alarm(store):
     rows = history(store, [(0, "check", 0.0, 0.0, False, BOTH)])
-    assert drift.drift_alarm(frame(3.0), BOTH, rows, Bands(drift_mm=0.1)) is None
+    assert _drift_why(frame(3.0), BOTH, rows, Bands(drift_mm=0.1)) is None
+
+
+def _drift_why(measured, determines, rows, bands) -> str | None:
+    """Why a corrected check that measured `measured` ends in the drift alarm, as the service judges it."""
+    check = Result("tcp-check", [], np.zeros(0), 0.0, 1.0, [], tool_frame=np.array(measured),
+                   determines=frozenset(determines), verdict="corrected")
+    judgement = drift.judge(check, drift.measured_frame(check), rows, bands, bool(drift.full_calibrations(rows)))
+    assert (judgement.verdict == "drift") == (judgement.why is not None)
+    return judgement.why
 
 
 def test_an_ok_checks_measured_frame_is_the_compared_frame_moved_by_the_change():
@@ -191,27 +200,27 @@ def _ok_check(dx_mm: float) -> Result:
 def test_the_drift_judgement_is_a_value_and_leaves_the_checks_result_as_the_routine_gave_it(store):
     rows = history(store, [(0, "calibration", 0.0, 0.0, True, BOTH)])
     result = _ok_check(0.3)
-    judgement = drift.judge(result, rows, Bands(drift_mm=0.2), calibrated=True)
+    judgement = drift.judge(result, drift.measured_frame(result), rows, Bands(drift_mm=0.2), calibrated=True)
     assert judgement.verdict == "drift" and "tip 0.300 mm" in judgement.why
     judged = judgement.applied_to(result)
     assert judged.verdict == "drift" and judged.notes[0].startswith("drift alarm: tip 0.300 mm")
     assert judged.notes[1:] == ["ok: within"] and judged.as_json()["verdict"] == "drift"
     assert (result.verdict, result.notes, result.extra) == ("ok", ["ok: within"], {"tip_shift_mm": 0.3})
-    within = drift.judge(_ok_check(0.1), rows, Bands(drift_mm=0.2), calibrated=True)
+    within = drift.judge(_ok_check(0.1), drift.measured_frame(_ok_check(0.1)), rows, Bands(drift_mm=0.2), calibrated=True)
     assert (within.verdict, within.why, within.notes) == ("ok", None, ())
     assert within.applied_to(result) is result  # nothing to add: the result as it was
 
 
 def test_a_check_of_a_tool_never_calibrated_keeps_its_verdict_and_says_so(store):
     result = _ok_check(3.0)
-    judgement = drift.judge(result, [], Bands(drift_mm=0.2), calibrated=False)
+    judgement = drift.judge(result, drift.measured_frame(result), [], Bands(drift_mm=0.2), calibrated=False)
     assert judgement.never_calibrated and judgement.verdict == "ok" and judgement.why is None
     judged = judgement.applied_to(result)
     assert judged.notes == [drift.NEVER_CALIBRATED, "ok: within"] and judged.as_json()["never_calibrated"] is True
     assert "never_calibrated" not in result.extra and result.notes == ["ok: within"]
     calibration = Result("tcp-npoint", [], np.zeros(0), 0.0, 1.0, [], tool_frame=np.array(frame()),
                          determines=frozenset({"tip"}))
-    assert drift.judge(calibration, [], Bands(drift_mm=0.2), calibrated=False) == drift.DriftJudgement(None)
+    assert drift.judge(calibration, drift.measured_frame(calibration), [], Bands(drift_mm=0.2), calibrated=False) == drift.DriftJudgement(None)
 
 
 def test_the_drift_verdict_has_its_own_register_value():

@@ -14,7 +14,7 @@ import pytest
 
 from support.cell_edits import edited_cell
 from cellcal.config.cells import CellFileError
-from cellcal.daemon.cells import load_cell
+from cellcal.daemon.cells import CellDrivers, load_cell
 from cellcal.daemon.service import Service, panel_routines
 from cellcal.drivers.interfaces import RobotState
 from cellcal.routines.framework import registry
@@ -65,9 +65,10 @@ def probe_cell_file(tmp_path):
 def _selected_by_panel(cell, selector: int) -> list[str]:
     """What the service starts when the panel's start is pressed with `selector` set."""
     panel = SimpleNamespace(start_requested=lambda: True, abort_requested=lambda: False, tool_selector=lambda: 0,
-                            routine_selector=lambda: selector, set_lamps=lambda **kw: None)
+                            routine_selector=lambda: selector, set_lamps=lambda **kw: None,
+                            confirm_requested=lambda: False)
     robot = SimpleNamespace(state=lambda: RobotState.READY)
-    service = Service(cell, SimpleNamespace(panel=panel, robot=robot), store=None, out_dir="unused")
+    service = Service(cell, CellDrivers(panel=panel, robot=robot), store=None, out_dir="unused")
     started = []
     service.start = lambda routine, tool=0: started.append(routine)
     service.poll_panel()
@@ -80,7 +81,7 @@ def test_the_panel_selector_numbers_are_those_the_panel_has_always_sent():
     # kinematic-fixture has no selector (registry: None where the panel cannot select a routine)
     assert {registry.routine_class(name).selector: name for name in registry.available()
             if registry.routine_class(name).selector is not None} == PANEL
-    assert Service(None, None, None, out_dir="unused").routines == PANEL
+    assert Service(load_cell("sim"), CellDrivers(), None, out_dir="unused").routines == PANEL
 
 
 def test_a_routine_declared_once_is_seen_by_the_registry_the_panel_the_cell_file_and_run(probe, probe_cell_file):

@@ -19,8 +19,8 @@ from cellcal.config.cells import tool_blocks
 from cellcal.daemon.cells import CellDrivers, load_cell, open_drivers
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
-from cellcal.daemon.write_back import (no_block_note, read_frames, stored_json, tool_slot, tools_without_block,
-                                       write_back)
+from cellcal.daemon.frame_writer import (no_block_note, read_frames, stored_json, tool_slot, tools_without_block,
+                                       write_tool_frame)
 from cellcal.drivers.interfaces import DeviceError, StoredToolFrame
 from cellcal.sims.inproc.devices import SimRobot
 from support.cell_edits import DELETE, edited_cell  # tests/support/cell_edits.py
@@ -67,7 +67,7 @@ def test_two_tools_frames_go_to_two_blocks_and_each_reads_back_exactly(tmp_path)
     robot = SimRobot()
     assert robot.tool_frame_slots() == 4
     for tool_id, frame, run_id in ((1, FRAME_1, 11), (2, FRAME_2, 12)):
-        before, written, failure = write_back(robot, frame, generation=run_id, slot=tool_slot(cell, tool_id))
+        before, written, failure = write_tool_frame(robot, frame, generation=run_id, slot=tool_slot(cell, tool_id))
         assert failure is None and before.stored.same_as(NONE_STORED)
         assert written.slot == tool_slot(cell, tool_id) and written.stored_json()["slot"] == written.slot
     assert StoredToolFrame(FRAME_1, 11).same_as(read_frames(robot, 0).stored)  # exactly: doubles in, doubles out
@@ -79,8 +79,8 @@ def test_two_tools_frames_go_to_two_blocks_and_each_reads_back_exactly(tmp_path)
 def test_a_write_for_tool_2_leaves_tool_1s_block_alone_and_a_failed_one_restores_only_its_own(tmp_path):
     cell = load_cell(table(tmp_path, [PIN, TORCH]))
     robot = SimRobot()
-    write_back(robot, FRAME_1, generation=3, slot=tool_slot(cell, 1))
-    _, _, failure = write_back(robot, FRAME_2, generation=4, slot=tool_slot(cell, 2))
+    write_tool_frame(robot, FRAME_1, generation=3, slot=tool_slot(cell, 1))
+    _, _, failure = write_tool_frame(robot, FRAME_2, generation=4, slot=tool_slot(cell, 2))
     assert failure is None
     assert StoredToolFrame(FRAME_1, 3).same_as(robot.stored_tool_frame(0))
 
@@ -91,7 +91,7 @@ def test_a_write_for_tool_2_leaves_tool_1s_block_alone_and_a_failed_one_restores
         frame[5] = 0.5 if slot == 1 and stored.generation == 5 else frame[5]
         original(StoredToolFrame(frame, stored.generation), slot)
     robot.store_tool_frame = drops_rz
-    _, _, failure = write_back(robot, FRAME_3, generation=5, slot=tool_slot(cell, 2))
+    _, _, failure = write_tool_frame(robot, FRAME_3, generation=5, slot=tool_slot(cell, 2))
     assert failure is not None and "(block 1)" in failure and "old frame restored" in failure
     assert StoredToolFrame(FRAME_2, 4).same_as(robot.stored_tool_frame(1))  # its own old frame back
     assert StoredToolFrame(FRAME_1, 3).same_as(robot.stored_tool_frame(0))  # tool 1's never touched
@@ -104,7 +104,7 @@ def test_a_tool_beyond_the_robots_blocks_gets_the_running_frame_only_and_a_note(
     cell = load_cell(table(tmp_path, [PIN, TORCH, {**GRIPPER, "frame_block": 4}]))  # the sim keeps blocks 0..3
     robot = SimRobot()
     slot = tool_slot(cell, 7)
-    before, written, failure = write_back(robot, FRAME_3, generation=9, slot=slot)
+    before, written, failure = write_tool_frame(robot, FRAME_3, generation=9, slot=slot)
     assert failure is None and before.stored is None and written.stored is None and written.stored_json() is None
     np.testing.assert_array_equal(robot.tool_frame(), FRAME_3)  # the running program has it
     assert all(b.same_as(NONE_STORED) for b in blocks(robot))  # no block written, tool 1's and 2's untouched
@@ -122,7 +122,7 @@ def test_a_robot_that_keeps_no_stored_frame_gets_the_running_frame_and_no_note_p
             return 0
 
     robot, cell = NoRegisters(), load_cell(table(tmp_path, [PIN, TORCH]))
-    before, written, failure = write_back(robot, FRAME_2, generation=2, slot=tool_slot(cell, 2))
+    before, written, failure = write_tool_frame(robot, FRAME_2, generation=2, slot=tool_slot(cell, 2))
     assert failure is None and written.stored is None and before.stored is None
     np.testing.assert_array_equal(robot.tool_frame(), FRAME_2)
     assert no_block_note(robot, 2, 1) is None and tools_without_block(cell, robot) == []
@@ -196,7 +196,7 @@ def _two_writes_of_tool_2(tmp_path, cell, robot) -> int:
     try:
         for tool_id, frame in ((1, FRAME_1), (2, FRAME_2), (2, FRAME_3)):
             run_id = store.begin_run("tcp-npoint", cell.path, tool_id)
-            before, written, failure = write_back(robot, frame, generation=run_id, slot=tool_slot(cell, tool_id))
+            before, written, failure = write_tool_frame(robot, frame, generation=run_id, slot=tool_slot(cell, tool_id))
             assert failure is None
             store.record_tool_frame(run_id, "write", before.running, written.running, before.stored_json(),
                                     written.stored_json(), tool_id)
@@ -257,7 +257,7 @@ def test_rollback_of_a_tool_not_mounted_whose_write_kept_no_block_changes_nothin
     robot = SimRobot()
     store = Store.open(tmp_path / "state")
     run_id = store.begin_run("tcp-npoint", cell.path, 2)
-    before, written, _ = write_back(robot, FRAME_2, generation=run_id, slot=tool_slot(cell, 2))
+    before, written, _ = write_tool_frame(robot, FRAME_2, generation=run_id, slot=tool_slot(cell, 2))
     store.record_tool_frame(run_id, "write", before.running, written.running, before.stored_json(),
                             written.stored_json(), 2)
     store.close()

@@ -2,7 +2,7 @@
 
 The frame goes to two places of the controller (:class:`~cellcal.drivers.interfaces.Robot`):
 
-* the running program's tool frame (``set_tcp``), which the controller reports back (``tcp``);
+* the running program's tool frame (``set_tcp``), which the controller reports back (``tool_frame``);
 * the frame the robot program applies at its next start (``store_tool_frame``), on robots that
   keep one (a UR: RTDE input registers, docs/integrator.md "Persistent tool frame"). Its generation is
   the run whose result it is. A cell with a tool table keeps one per tool, each in its own
@@ -59,7 +59,7 @@ def tool_slot(cell, tool_id: int) -> int | None:
     """The block of the robot's stored tool frames that is tool `tool_id`'s: its ``frame_block``
     in the cell's tool table, else its place there (file order; a file's one ``tool``: 0). A
     cell that describes no tool has the one frame, block 0; None: the table has no such tool."""
-    tools = getattr(cell, "tools", None) or {}
+    tools = cell.tools
     if not tools:
         return 0
     return tool_blocks(tools).get(int(tool_id))
@@ -86,14 +86,16 @@ def no_block_note(robot: Robot, tool_id: int, slot: int | None) -> str | None:
 def tools_without_block(cell, robot: Robot) -> list[str]:
     """:func:`no_block_note` for every tool of the cell's table that has none (the daemon says
     them once at its start)."""
-    tools = getattr(cell, "tools", None) or {}
+    tools = cell.tools
     return [note for tool_id in tools if (note := no_block_note(robot, tool_id, tool_slot(cell, tool_id)))]
 
 
-def read_frames(robot: Robot, slot: int | None = 0) -> ControllerFrames:
-    """The running frame, and the stored one of block `slot` where the robot keeps that block."""
+def read_frames(robot: Robot, slot: int | None = 0, running=None) -> ControllerFrames:
+    """The running frame, and the stored one of block `slot` where the robot keeps that block.
+    `running`: the running frame when it is known already (a run read it at its start), not read again."""
     kept = keeps_block(robot, slot)
-    return ControllerFrames(np.asarray(robot.tool_frame(), dtype=float), robot.stored_tool_frame(slot) if kept else None,
+    running = robot.tool_frame() if running is None else running
+    return ControllerFrames(np.asarray(running, dtype=float), robot.stored_tool_frame(slot) if kept else None,
                             slot if kept else None)
 
 
@@ -117,12 +119,14 @@ def _write_checked(robot: Robot, target: ControllerFrames) -> str | None:
     return None
 
 
-def replace_frames(robot: Robot, target: ControllerFrames) -> tuple[ControllerFrames | None, str | None]:
+def replace_frames(robot: Robot, target: ControllerFrames, running_before=None
+                   ) -> tuple[ControllerFrames | None, str | None]:
     """(the frames before, None) when ``target`` is written and read back; (before, why) when
     it was not, with the frames before restored (the message says if that failed too). A
-    target without a running frame leaves the running program's alone."""
+    target without a running frame leaves the running program's alone. `running_before`: the
+    running frame before, when known (:func:`read_frames`)."""
     try:
-        before = read_frames(robot, target.slot)
+        before = read_frames(robot, target.slot, running_before)
     except DeviceError as exc:
         return None, f"the tool frame could not be read before writing, nothing written: {exc}"
     if before.stored is None and target.stored is not None:
@@ -141,16 +145,16 @@ def replace_frames(robot: Robot, target: ControllerFrames) -> tuple[ControllerFr
     return before, f"{failure}; {restored}"
 
 
-def write_back(robot: Robot, tool_frame, generation: int, slot: int | None = 0
-               ) -> tuple[ControllerFrames | None, ControllerFrames, str | None]:
+def write_tool_frame(robot: Robot, tool_frame, generation: int, slot: int | None = 0, running_before=None
+                     ) -> tuple[ControllerFrames | None, ControllerFrames, str | None]:
     """A run's tool frame to both places, the stored one in block `slot` (None, or a block the
     robot does not keep: the running frame only): (before, written, None) or (before, target,
-    why not)."""
+    why not). `running_before`: the controller's running frame before, when the run knows it."""
     frame = np.asarray(tool_frame, dtype=float)
     target = ControllerFrames(frame, StoredToolFrame(frame, int(generation)), slot)
     if not keeps_block(robot, slot):
         target = ControllerFrames(frame, None, None)
-    before, failure = replace_frames(robot, target)
+    before, failure = replace_frames(robot, target, running_before)
     if before is not None and before.stored is None:
         target = ControllerFrames(frame, None, None)
     return before, target, failure
@@ -173,7 +177,7 @@ class NothingToRestore(ValueError):
 
 
 def rollback(robot: Robot, entry: dict, mounted: bool) -> tuple[Restored | None, str | None]:
-    """Put back the frames from before the write-back `entry` (a row of the store's tool frames):
+    """Put back the frames from before the write `entry` (a row of the store's tool frames):
     its block as it was (the slot it was written to; a row from before tool tables: block 0),
     and the running frame only when its tool is `mounted` (else the running program's frame is
     the mounted tool's). (what changed, None), or (None, why it failed: the frames before are
