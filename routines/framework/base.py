@@ -1,10 +1,11 @@
 """What every routine is: plan -> check the whole plan -> move and record -> dataset on
 disk -> solve (a pure function in ``solvers``) -> gates -> result.
 
-A routine is one module with one :class:`Routine` subclass, the one place that declares
-its name, its panel selector number and the section of the cell file it owns (Klipper
-style: it reads and bounds its own options in :meth:`Routine.read_options`, at cell load);
-:mod:`.registry` finds it, and everything else asks the registry. It gets its devices
+A routine is one module with one :class:`Routine` subclass and one row of the routine
+table (:mod:`.table`: its name, its panel selector number and the section of the cell file
+it owns, which the class declares alike); it reads and bounds its own options in
+:meth:`Routine.read_options`, at cell load (Klipper style). :mod:`.registry` reads the table,
+and everything else asks the registry. It gets its devices
 through the driver interfaces only (the cell file picks the backends) and moves the arm
 only through :class:`~.guard.GuardedRobot`, so every command passes the cell's limits.
 Results of every routine have the same shape (:class:`Result`), and so have the designs
