@@ -56,9 +56,9 @@ from cellcal.config.robot_files import load_robot
 from cellcal.solvers.tool_frames import handshake as hs
 from cellcal.solvers.geometry import se3
 from cellcal.solvers.geometry.inverse import inverse, tcp_frames
-from cellcal.routines.framework.base import PlanPromise, Devices, Move, PlanRefused, Result, RoutineError, StepRoutine, drawn_tool
+from cellcal.routines.framework.base import PlanPromise, Devices, Move, PlanRefused, Result, RoutineError
+from cellcal.routines.framework.steps import StepRoutine
 from cellcal.routines.handshake_result import handshake_result
-from cellcal.routines.framework.records import Dataset
 from cellcal.routines.tcp_npoint import axis_sigma_mm
 
 JOINT_SPEED_RAD_S = 1.0
@@ -283,29 +283,27 @@ class Handshake(StepRoutine):
 
     # -- measure ---------------------------------------------------------------------
 
-    def measure(self, devices: Devices, robot, plan: list[Move], progress) -> Dataset:
-        steps = self.steps_of(plan)
+    def announce(self, design: PlanPromise) -> str:
         o = self.options
-        design = self.check_design()
         points = hs.point_set([m.point_m * 1e3 for m in self.meetings()])
-        progress(f"handshake: {o.points} meetings over {np.round(2 * o.half_extent_m * 1e3).tolist()} mm round "
-                 f"{np.round(o.centre_m, 3).tolist()} m, points' conditioning {points.condition:.3g}; expected "
-                 f"base error {design.expected_error:.4f} mm, {design.details['rotation_deg']:.5f} deg (1 sigma) at "
-                 f"{o.repeatability_mm:g} mm repeatability, condition {design.condition:.3g}")
-        robot_b = robot.peer("b")
-        with drawn_tool(robot, self.cell.robots["a"].tool.tcp_pose), \
-                drawn_tool(robot_b, self.cell.robots["b"].tool.tcp_pose) as before_b:
-            rows, cycle_s = self._meet(robot, robot_b, steps, progress)
-        meta = {"planned_tip_a_m": self.cell.robots["a"].tool.tcp_m.tolist(),
+        return (f"handshake: {o.points} meetings over {np.round(2 * o.half_extent_m * 1e3).tolist()} mm round "
+                f"{np.round(o.centre_m, 3).tolist()} m, points' conditioning {points.condition:.3g}; expected "
+                f"base error {design.expected_error:.4f} mm, {design.details['rotation_deg']:.5f} deg (1 sigma) at "
+                f"{o.repeatability_mm:g} mm repeatability, condition {design.condition:.3g}")
+
+    def drawn_tools(self) -> dict[str, np.ndarray]:
+        return {name: self.cell.robots[name].tool.tcp_pose for name in self.robots}
+
+    def dataset_meta(self, design: PlanPromise, before: dict) -> dict:
+        return {"planned_tip_a_m": self.cell.robots["a"].tool.tcp_m.tolist(),
                 "planned_tip_b_m": self.cell.robots["b"].tool.tcp_m.tolist(),
                 "base_b_as_installed": self.cell.robots["b"].base_pose.tolist(),
-                "repeatability_mm": o.repeatability_mm, "cycle_time_s": cycle_s,
-                "tool_frame_before_b": before_b.tolist()}
-        return Dataset.of_rows(self.name, rows, meta)
+                "repeatability_mm": self.options.repeatability_mm, "tool_frame_before_b": before["b"].tolist()}
 
-    def _meet(self, robot, robot_b, steps, progress) -> tuple[list[dict], float]:
+    def run_steps(self, devices: Devices, robot, plan: list[Move], steps, progress) -> tuple[list[dict], float]:
         """Run the steps; robot b's moves of each meeting re-aimed by what the meetings so far
         showed (its base as installed is off by that much)."""
+        robot_b = robot.peer("b")
         o = self.options
         motion_s = 0.0  # each move on its own robot's clock: the two robots move in turn
         speed, accel = self.cell.limits["tcp_speed_m_s"], self.cell.limits["tcp_accel_m_s2"]

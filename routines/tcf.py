@@ -47,10 +47,10 @@ from cellcal.solvers.geometry import se3
 from cellcal.solvers.geometry.inverse import inverse
 from cellcal.solvers.tool_frames.tcp_laser import axis_pair
 from cellcal.routines.framework import gates, tool_frame
-from cellcal.routines.framework.base import (PlanPromise, Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError,
-                                   StepRoutine, drawn_tool)
+from cellcal.routines.framework.base import (PlanPromise, Devices, Gate, Move, Parameter, PlanRefused, Result,
+                                             RoutineError)
 from cellcal.routines.framework.drawing import axis_crossings
-from cellcal.routines.framework.records import Dataset
+from cellcal.routines.framework.steps import StepRoutine
 from cellcal.routines.tcp_npoint import JOINT_SPEED_RAD_S, LIFT_MM, axis_sigma_mm, down_orientation, flange_frames
 
 SIDES = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # base frame
@@ -73,7 +73,7 @@ class TcfOptions:
 class Tcf(StepRoutine):
     name = "tcf"
     section = "tcf"
-    selector = 6  # the panel's selector map: docs/panel.md
+    selector = 6
     needs = ("robot",)
 
     @classmethod
@@ -193,14 +193,13 @@ class Tcf(StepRoutine):
 
     # -- measure ---------------------------------------------------------------------
 
-    def measure(self, devices: Devices, robot, plan: list[Move], progress) -> Dataset:
-        steps = self.steps_of(plan)
+    def announce(self, design: PlanPromise) -> str:
         o = self.options
-        design = self.check_design()
-        progress(f"tcf: {o.turns} turns of the tool, the shank touched at {o.near_mm:g} and {o.far_mm:g} mm behind "
-                 f"the tip from four sides: condition {design.condition:.3g}, expected axis error "
-                 f"{design.expected_error:.4f} deg (1 sigma) at {o.repeatability_mm:g} mm repeatability")
+        return (f"tcf: {o.turns} turns of the tool, the shank touched at {o.near_mm:g} and {o.far_mm:g} mm behind "
+                f"the tip from four sides: condition {design.condition:.3g}, expected axis error "
+                f"{design.expected_error:.4f} deg (1 sigma) at {o.repeatability_mm:g} mm repeatability")
 
+    def run_steps(self, devices: Devices, robot, plan: list[Move], steps, progress) -> tuple[list[dict], float]:
         def missed(move):
             return (f"the contact search went {move.travel_m * 1e3:g} mm without touching the stylus: is [stylus] "
                     f"centre_m {np.round(self.cell.stylus['centre_m'], 4).tolist()} m right, and the tool as [tool] "
@@ -213,13 +212,13 @@ class Tcf(StepRoutine):
                 progress(f"tcf: turn {touch['turn']}, touches at {touch['height_mm']:g} mm done")
             return {**touch, **{f"q{j + 1}_rad": v for j, v in enumerate(q)}}
 
-        with drawn_tool(robot, self.cell.tool.tcp_pose):
-            rows, cycle_s = self.contact_rows(robot, plan, steps, missed, record)
-        meta = {"tool_radius_m": self.cell.tool.radius_m, "stylus_radius_m": float(self.cell.stylus["radius_m"]),
+        return self.contact_rows(robot, plan, steps, missed, record)
+
+    def dataset_meta(self, design: PlanPromise, before: dict) -> dict:
+        o = self.options
+        return {"tool_radius_m": self.cell.tool.radius_m, "stylus_radius_m": float(self.cell.stylus["radius_m"]),
                 "planned_tool": self.cell.tool.tcp_pose.tolist(), "clearance_mm": o.clearance_mm,
-                "search_speed_mm_s": o.search_speed_mm_s, "repeatability_mm": o.repeatability_mm,
-                "cycle_time_s": cycle_s}
-        return Dataset.of_rows(self.name, rows, meta)
+                "search_speed_mm_s": o.search_speed_mm_s, "repeatability_mm": o.repeatability_mm}
 
     # -- solve -----------------------------------------------------------------------
 

@@ -53,10 +53,10 @@ from cellcal.solvers.geometry import se3
 from cellcal.solvers.geometry.inverse import inverse, tcp_frames
 from cellcal.solvers.geometry.robot_model import KinematicModel
 from cellcal.routines.framework import gates, tool_frame
-from cellcal.routines.framework.base import (PlanPromise, Devices, Gate, Move, Parameter, PlanRefused, Result, RoutineError,
-                                   StepRoutine, drawn_tool)
+from cellcal.routines.framework.base import (PlanPromise, Devices, Gate, Move, Parameter, PlanRefused, Result,
+                                             RoutineError)
 from cellcal.routines.framework.drawing import seats_about_pivot
-from cellcal.routines.framework.records import Dataset
+from cellcal.routines.framework.steps import StepRoutine
 
 LIFT_MM = 40.0  # above the first and after the last approach point, clear of the fixture
 JOINT_SPEED_RAD_S = 1.0
@@ -215,22 +215,14 @@ class TcpNpoint(StepRoutine):
 
     # -- measure ---------------------------------------------------------------------
 
-    def measure(self, devices: Devices, robot, plan: list[Move], progress) -> Dataset:
-        steps = self.steps_of(plan)
+    def announce(self, design: PlanPromise) -> str:
         o = self.options
-        design = self.check_design()
-        progress(f"tcp-npoint: {o.orientations} orientations tilted {o.spread_deg:g} and {o.spread_deg / 2:g} deg "
-                 f"about the pivot, turned +-{o.turn_deg:g} deg about the tool axis: condition {design.condition:.3g}, expected TCP "
-                 f"error {design.expected_error:.4f} mm (1 sigma) at {o.repeatability_mm:g} mm repeatability")
-        with drawn_tool(robot, self.cell.tool.tcp_pose):
-            rows, cycle_s = self._seats(robot, plan, steps, progress)
-        meta = {"tool_radius_m": self.cell.tool.radius_m, "planned_tool": self.cell.tool.tcp_pose.tolist(),
-                "pivot_point_m": np.asarray(self.cell.pivot_m).tolist(), "spread_deg": o.spread_deg,
-                "turn_deg": o.turn_deg, "approach_mm": o.approach_mm, "search_speed_mm_s": o.search_speed_mm_s,
-                "repeatability_mm": o.repeatability_mm, "cycle_time_s": cycle_s}
-        return Dataset.of_rows(self.name, rows, meta)
+        return (f"tcp-npoint: {o.orientations} orientations tilted {o.spread_deg:g} and {o.spread_deg / 2:g} deg "
+                f"about the pivot, turned +-{o.turn_deg:g} deg about the tool axis: condition {design.condition:.3g}, "
+                f"expected TCP error {design.expected_error:.4f} mm (1 sigma) at {o.repeatability_mm:g} mm "
+                "repeatability")
 
-    def _seats(self, robot, plan, steps, progress) -> tuple[list[dict], float]:
+    def run_steps(self, devices: Devices, robot, plan: list[Move], steps, progress) -> tuple[list[dict], float]:
         o = self.options
 
         def missed(move):
@@ -244,6 +236,13 @@ class TcpNpoint(StepRoutine):
                     **dict(zip(("x_m", "y_m", "z_m", "rx", "ry", "rz"), robot.actual_tcp_pose()))}
 
         return self.contact_rows(robot, plan, steps, missed, record)
+
+    def dataset_meta(self, design: PlanPromise, before: dict) -> dict:
+        o = self.options
+        return {"tool_radius_m": self.cell.tool.radius_m, "planned_tool": self.cell.tool.tcp_pose.tolist(),
+                "pivot_point_m": np.asarray(self.cell.pivot_m).tolist(), "spread_deg": o.spread_deg,
+                "turn_deg": o.turn_deg, "approach_mm": o.approach_mm, "search_speed_mm_s": o.search_speed_mm_s,
+                "repeatability_mm": o.repeatability_mm}
 
     # -- solve -----------------------------------------------------------------------
 

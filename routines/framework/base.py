@@ -1,10 +1,11 @@
 """What every routine is: plan -> check the whole plan -> move and record -> dataset on
 disk -> solve (a pure function in ``solvers``) -> gates -> result.
 
-A routine is one module with one :class:`Routine` subclass, the one place that declares
-its name, its panel selector number and the section of the cell file it owns (Klipper
-style: it reads and bounds its own options in :meth:`Routine.read_options`, at cell load);
-:mod:`.registry` finds it, and everything else asks the registry. It gets its devices
+A routine is one module with one :class:`Routine` subclass and one row of the routine
+table (:mod:`.table`: its name, its panel selector number and the section of the cell file
+it owns, which the class declares alike); it reads and bounds its own options in
+:meth:`Routine.read_options`, at cell load (Klipper style). :mod:`.registry` reads the table,
+and everything else asks the registry. It gets its devices
 through the driver interfaces only (the cell file picks the backends) and moves the arm
 only through :class:`~.guard.GuardedRobot`, so every command passes the cell's limits.
 Results of every routine have the same shape (:class:`Result`), and so have the designs
@@ -377,50 +378,3 @@ class Routine(abc.ABC):
         them; the options unchanged and None for a routine that needs nothing of the past."""
         return options, None
 
-
-class StepRoutine(Routine):
-    """A routine whose plan is a list of steps, each a move and what that move records
-    (``None`` for a move that only gets the tool there), behind a design that is checked
-    (and may refuse the plan) before anything moves. Subclasses implement ``steps`` and
-    ``check_design``."""
-
-    @abc.abstractmethod
-    def steps(self) -> list[tuple[Move, object]]:
-        """Every move with what it records, from the cell file alone."""
-
-    @abc.abstractmethod
-    def design(self) -> PlanPromise:
-        """What the planned steps can give at the stated repeatability."""
-
-    @abc.abstractmethod
-    def check_design(self) -> PlanPromise:
-        """The design the plan gives (:meth:`design`); raises PlanRefused if it cannot meet
-        the routine's targets."""
-
-    def plan(self) -> list[Move]:
-        self.check_design()
-        return [move for move, _ in self.steps()]
-
-    def contact_rows(self, robot, plan: list[Move], steps, missed: Callable[[Move], str],
-                     record: Callable[[object, np.ndarray], dict]) -> tuple[list[dict], float]:
-        """Run the plan. At each step that records, its contact search must have touched (else
-        RoutineError: ``missed(move)`` says what it did not find, and nothing moves after) and
-        ``record(what the step records, joints there)`` gives its row. Returns the rows and
-        the motion time (s, robot clock)."""
-        t0 = robot.samples()[-1].t_s
-        rows = []
-        for move, (_, what) in zip(plan, steps):
-            found = robot.run(move)
-            if what is None:
-                continue
-            if not found.contact:
-                raise RoutineError(f"{move.label}: {missed(move)} (nothing moved after)")
-            rows.append(record(what, np.asarray(robot.actual_q(), dtype=float)))
-        return rows, float(robot.samples()[-1].t_s - t0)
-
-    def steps_of(self, plan: list[Move]) -> list[tuple[Move, object]]:
-        """This routine's steps, once `plan` is found to be its plan for this cell file."""
-        steps = self.steps()
-        if [m.label for m in plan] != [m.label for m, _ in steps]:
-            raise RoutineError("the plan given is not this routine's plan for this cell file")
-        return steps

@@ -74,9 +74,11 @@ class Dataset:
     repeated_rows: list[tuple[int, int]] = field(default_factory=list)  # (line, line it repeats), when read
 
     @classmethod
-    def of_rows(cls, routine: str, rows: list[dict], meta: dict) -> "Dataset":
-        """A dataset of numeric rows, each a dict of column -> value (the first row names the columns)."""
-        return cls(routine, {k: np.array([row[k] for row in rows], dtype=float) for k in rows[0]}, meta)
+    def of_rows(cls, routine: str, rows: list[dict], meta: dict, text_columns=()) -> "Dataset":
+        """A dataset of rows, each a dict of column -> value (the first row names the columns):
+        numbers, text in `text_columns`."""
+        return cls(routine, {k: np.array([row[k] for row in rows], dtype=str if k in text_columns else float)
+                             for k in rows[0]}, meta)
 
     def __len__(self) -> int:
         return len(next(iter(self.columns.values()))) if self.columns else 0

@@ -1,99 +1,117 @@
 """The routines by name, as ``cellcal run ROUTINE`` and the operator panel select them.
 
-Each routine class declares itself (:class:`~.base.Routine`): its ``name`` (``tcp-laser``),
-the ``section`` of the cell file it owns (``tcp_laser``) and its panel ``selector`` number
-(None when the panel cannot select it). The registry finds the classes in the modules of
-this package (:func:`routine_modules`: a new routine is a new module here and nothing
-else), imported the first time it is asked (so importing the registry, and ``cellcal
---help``, imports no routine), and refuses two that claim one name, section or selector. Everything else asks it: the cell file's routine sections (:func:`sections`,
-read at cell load by :func:`check_sections`), the panel's selector values
+The routines cellcal ships are the rows of :mod:`.table` (name -> module and class, the
+section of the cell file it owns, its panel selector number or None); a plug-in or a test
+adds one with :func:`register`. A routine's module is imported the first time that routine
+is asked for (:func:`routine_class`), so importing the registry, listing the routines and
+the panel's selector map (and ``cellcal --help``) import none; its class must declare the
+name, section and selector of its row. Two routines that claim one name, section or selector
+are refused. Everything else asks the registry: the cell file's routine sections
+(:func:`sections`, read at cell load by :func:`check_sections`), the panel's selector values
 (:func:`panel_selectors`), ``cellcal run``'s list (:func:`available`).
 """
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import inspect
-import pkgutil
 import threading
+from dataclasses import dataclass
+from typing import Iterable
 
 from cellcal.config.cells import CELL_SECTIONS, Cell, CellFileError
+from cellcal.routines.framework import table
 from cellcal.routines.framework.base import Routine
 
-ROUTINES_PACKAGE = __package__.rpartition(".")[0]  # the routines live one level above the framework
 SELECTOR_RANGE = (1, 65535)  # a holding register; 0 selects nothing
 
-_found: dict[str, type[Routine]] | None = None  # name -> class, in the order found
+_listed: dict[str, "_Claim"] | None = None  # the table's rows whose module is installed, checked once
+_imported: dict[str, type[Routine]] = {}  # the listed routines asked for so far
+_added: dict[str, type[Routine]] = {}  # by register()
 _lock = threading.RLock()
 
 
 class RoutineDeclarationError(ValueError):
-    """A routine class that declares no name or section, a selector the panel cannot send,
-    or a name, section or selector another routine has already."""
+    """A routine that declares no name or section, a selector the panel cannot send, a name,
+    section or selector another routine has already, or a class that differs from its row
+    of the routine table."""
 
 
-def _described(cls: type) -> str:
-    return f"{cls.__module__}.{cls.__qualname__}"
+@dataclass(frozen=True)
+class _Claim:
+    """What one routine claims, and where it is (module.Class)."""
+
+    name: str
+    section: str
+    selector: int | None
+    where: str
 
 
-def _check(cls: type[Routine], known: dict[str, type[Routine]]) -> None:
-    """Refuse `cls` when its declaration is incomplete or clashes with one of `known`."""
-    where = _described(cls)
-    if not isinstance(cls.name, str) or not cls.name:
+def _declared(cls: type[Routine]) -> _Claim:
+    return _Claim(cls.name, cls.section, cls.selector, f"{cls.__module__}.{cls.__qualname__}")
+
+
+def _check(claim: _Claim, known: Iterable[_Claim]) -> None:
+    """Refuse `claim` when it is incomplete or clashes with one of `known`."""
+    where = claim.where
+    if not isinstance(claim.name, str) or not claim.name:
         raise RoutineDeclarationError(f"routine class {where} declares no name")
-    if not isinstance(cls.section, str) or not cls.section.isidentifier():
-        raise RoutineDeclarationError(f"routine {cls.name!r} ({where}) declares no cell file section "
-                                      f"(section = {cls.section!r})")
-    if cls.section in CELL_SECTIONS:
-        raise RoutineDeclarationError(f"routine {cls.name!r} ({where}) claims section [{cls.section}], one of the "
-                                      "cell file's own")
+    if not isinstance(claim.section, str) or not claim.section.isidentifier():
+        raise RoutineDeclarationError(f"routine {claim.name!r} ({where}) declares no cell file section "
+                                      f"(section = {claim.section!r})")
+    if claim.section in CELL_SECTIONS:
+        raise RoutineDeclarationError(f"routine {claim.name!r} ({where}) claims section [{claim.section}], one of "
+                                      "the cell file's own")
     low, high = SELECTOR_RANGE
-    if cls.selector is not None and (isinstance(cls.selector, bool) or not isinstance(cls.selector, int)
-                                     or not low <= cls.selector <= high):
-        raise RoutineDeclarationError(f"routine {cls.name!r} ({where}) declares panel selector {cls.selector!r}: "
-                                      f"a number in {low}..{high}, or None")
-    for other in known.values():
-        if other is cls:
+    if claim.selector is not None and (isinstance(claim.selector, bool) or not isinstance(claim.selector, int)
+                                       or not low <= claim.selector <= high):
+        raise RoutineDeclarationError(f"routine {claim.name!r} ({where}) declares panel selector "
+                                      f"{claim.selector!r}: a number in {low}..{high}, or None")
+    for other in known:
+        if other == claim:  # the same routine, known already
             continue
-        for what, mine, theirs in (("name", cls.name, other.name), ("section", cls.section, other.section),
-                                   ("panel selector", cls.selector, other.selector)):
+        for what, mine, theirs in (("name", claim.name, other.name), ("section", claim.section, other.section),
+                                   ("panel selector", claim.selector, other.selector)):
             if mine is not None and mine == theirs:
                 raise RoutineDeclarationError(
-                    f"routine {cls.name!r} ({where}) claims {what} {mine!r}, which routine {other.name!r} "
-                    f"({_described(other)}) has already")
+                    f"routine {claim.name!r} ({where}) claims {what} {mine!r}, which routine {other.name!r} "
+                    f"({other.where}) has already")
 
 
-def _in_module(module) -> list[type[Routine]]:
-    """The concrete Routine subclasses a module defines (not those it imports)."""
-    return [obj for obj in vars(module).values()
-            if isinstance(obj, type) and issubclass(obj, Routine) and obj.__module__ == module.__name__
-            and not inspect.isabstract(obj)]
-
-
-def routine_modules() -> tuple[str, ...]:
-    """Every module of the routines package (the framework is a sub-package of its own)."""
-    package = importlib.import_module(ROUTINES_PACKAGE)
-    return tuple(f"{ROUTINES_PACKAGE}.{m.name}" for m in sorted(pkgutil.iter_modules(package.__path__), key=lambda m: m.name)
-                 if not m.ispkg)
-
-
-def _routines() -> dict[str, type[Routine]]:
-    """Every routine by name, in panel selector order (those without one last, by name); the
-    package's modules are imported on the first call."""
-    global _found
+def _claims() -> dict[str, _Claim]:
+    """Every routine's claim by name, in panel selector order (those without one last, by
+    name); the table's rows are checked on the first call, and a row whose module is not
+    installed is left out."""
+    global _listed
     with _lock:
-        if _found is None:
-            found: dict[str, type[Routine]] = {}
-            for module_name in routine_modules():
-                try:
-                    module = importlib.import_module(module_name)
-                except ModuleNotFoundError:  # a routine that is not installed
+        if _listed is None:
+            listed: dict[str, _Claim] = {}
+            for name, row in table.ROUTINES.items():
+                if importlib.util.find_spec(row.module) is None:  # a routine that is not installed
                     continue
-                for cls in _in_module(module):
-                    _check(cls, found)
-                    found[cls.name] = cls
-            order = sorted(found.values(), key=lambda c: (c.selector is None, c.selector or 0, c.name))
-            _found = {cls.name: cls for cls in order}
-        return _found
+                claim = _Claim(name, row.section, row.selector, row.where)
+                _check(claim, listed.values())
+                listed[name] = claim
+            _listed = listed
+        claims = {**_listed, **{name: _declared(cls) for name, cls in _added.items()}}
+        return dict(sorted(claims.items(), key=lambda item: (item[1].selector is None, item[1].selector or 0,
+                                                             item[0])))
+
+
+def _import(name: str) -> type[Routine]:
+    """The class of the listed routine `name`, its module imported; RoutineDeclarationError
+    when it is not a concrete Routine or declares other than its row."""
+    row = table.ROUTINES[name]
+    cls = getattr(importlib.import_module(row.module), row.class_name, None)
+    if not (isinstance(cls, type) and issubclass(cls, Routine)) or inspect.isabstract(cls):
+        raise RoutineDeclarationError(f"the routine table lists {row.where} for {name!r}: no concrete Routine "
+                                      "class of that name there")
+    for what, declared, listed in (("name", cls.name, name), ("section", cls.section, row.section),
+                                   ("panel selector", cls.selector, row.selector)):
+        if declared != listed:
+            raise RoutineDeclarationError(f"routine class {row.where} declares {what} {declared!r}; the routine "
+                                          f"table ({table.__name__}) lists {listed!r} for {name!r}")
+    return cls
 
 
 def register(cls: type[Routine]) -> type[Routine]:
@@ -102,39 +120,44 @@ def register(cls: type[Routine]) -> type[Routine]:
     if not (isinstance(cls, type) and issubclass(cls, Routine)) or inspect.isabstract(cls):
         raise RoutineDeclarationError(f"{cls!r} is not a concrete Routine subclass")
     with _lock:
-        known = _routines()
-        _check(cls, known)
-        known[cls.name] = cls
+        _check(_declared(cls), _claims().values())
+        _added[cls.name] = cls
     return cls
 
 
 def unregister(name: str) -> None:
     """Forget a routine added with :func:`register` (KeyError when none is of that name)."""
     with _lock:
-        del _routines()[name]
+        del _added[name]
 
 
 def available() -> list[str]:
     """The routines' names, in panel selector order."""
-    return list(_routines())
+    return list(_claims())
 
 
 def routine_class(name: str) -> type[Routine]:
-    routines = _routines()
-    if name not in routines:
-        raise KeyError(f"no routine named {name!r} (routines: {', '.join(routines)})")
-    return routines[name]
+    """The routine's class (a listed routine's module imported on the first ask); KeyError
+    for a name no routine has."""
+    with _lock:
+        claims = _claims()
+        if name not in claims:
+            raise KeyError(f"no routine named {name!r} (routines: {', '.join(claims)})")
+        if name in _added:
+            return _added[name]
+        if name not in _imported:
+            _imported[name] = _import(name)
+        return _imported[name]
 
 
 def sections() -> tuple[str, ...]:
     """The cell file sections the routines own, for :func:`cellcal.config.cells.read_cell`."""
-    return tuple(cls.section for cls in _routines().values())
+    return tuple(claim.section for claim in _claims().values())
 
 
 def panel_selectors() -> dict[int, str]:
     """The operator panel's routine selector values -> routine names, in selector order."""
-    return {cls.selector: name for name, cls in sorted(_routines().items(), key=lambda item: item[1].selector or 0)
-            if cls.selector is not None}
+    return {claim.selector: name for name, claim in _claims().items() if claim.selector is not None}
 
 
 def unavailable(name: str, cell: Cell) -> str | None:
@@ -173,7 +196,7 @@ def read_options(name: str, cell: Cell):
 
 def check_sections(cell: Cell) -> None:
     """Read every routine section the cell file has, so a bad option fails at load."""
-    by_section = {cls.section: name for name, cls in _routines().items()}
+    by_section = {claim.section: name for name, claim in _claims().items()}
     for section in cell.routines:
         if section not in by_section:
             raise CellFileError("a routine section of no known routine", source=cell.path, section=section)

@@ -1,9 +1,11 @@
-"""The routine class is the one place that declares a routine: its name, its panel selector
-number and its cell file section. The registry finds it there, and the panel's selector
-map, the cell file's routine sections and ``cellcal run``'s list all come from it."""
+"""The routine table is the one place that lists a routine: its name, its module, its panel
+selector number and its cell file section; its class declares the same, or is refused. The
+panel's selector map, the cell file's routine sections and ``cellcal run``'s list all come
+from the registry that reads it."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import subprocess
 import sys
@@ -17,7 +19,7 @@ from cellcal.config.cells import CellFileError
 from cellcal.daemon.cells import CellDrivers, load_cell
 from cellcal.daemon.service import Service, panel_routines
 from cellcal.drivers.interfaces import RobotState
-from cellcal.routines.framework import registry
+from cellcal.routines.framework import registry, table
 from cellcal.routines.framework.base import PlanPromise, Routine, RoutineError
 from cellcal.routines.framework.registry import RoutineDeclarationError
 
@@ -168,6 +170,24 @@ def test_the_registry_imports_no_routine_until_it_is_asked():
     assert loaded_before == []
     assert len(homes) == 8 and set(names) >= {"tcp-laser", "tcp-stylus", "tcp-npoint", "tcf", "tracker", "handshake",
                                               "tcp-check", "kinematic-fixture"}
+
+
+def test_listing_the_routines_and_the_panel_selectors_imports_no_routine():
+    code = ("import sys, json\nfrom cellcal.routines.framework import registry, table\n"
+            "lists = [registry.available(), registry.panel_selectors(), registry.sections()]\n"
+            "print(json.dumps(sorted(set(sys.modules) & {row.module for row in table.ROUTINES.values()})))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    assert json.loads(proc.stdout) == []
+
+
+def test_a_class_that_differs_from_its_row_of_the_routine_table_is_refused(monkeypatch):
+    monkeypatch.setitem(table.ROUTINES, "tcf", dataclasses.replace(table.ROUTINES["tcf"], selector=9))
+    monkeypatch.setattr(registry, "_listed", None)
+    monkeypatch.setattr(registry, "_imported", {})
+    assert registry.panel_selectors()[9] == "tcf"  # the table answers without importing
+    with pytest.raises(RoutineDeclarationError, match=r"cellcal\.routines\.tcf\.Tcf declares panel selector 6; "
+                                                      r"the routine table .* lists 9 for 'tcf'"):
+        registry.routine_class("tcf")
 
 
 def _camel(name: str) -> str:
