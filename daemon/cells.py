@@ -1,4 +1,4 @@
-"""A cell, loaded and opened: the cell file (:mod:`cellcal.config.cells`) checked against
+"""A cell, loaded and opened: the cell file (:mod:`cellcal.config.cell_files`) checked against
 the driver registry, and every device it names built through the registry.
 
 The file's structure is checked where it is read; here each device's driver name and

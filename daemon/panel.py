@@ -22,8 +22,8 @@ log = logging.getLogger("cellcal.daemon")
 
 
 def panel_routines() -> dict[int, str]:
-    """The routine selector register's values (docs/panel.md) -> routine names: each routine
-    class declares its own ``selector`` (:func:`cellcal.routines.framework.registry.panel_selectors`)."""
+    """The routine selector register's values (docs/panel.md) -> routine names, as the routine
+    table lists them (:mod:`cellcal.routines.framework.table`, read through the registry)."""
     return registry.panel_selectors()
 
 

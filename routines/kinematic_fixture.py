@@ -11,7 +11,7 @@ joints of that rest are recorded), and back. The orientations are chosen for ide
 by a D-optimal seat design, on both wrist branches (``wrist_flip``), and the moves keep clear
 of the plate: routines/fixture_seats.py. ``design()`` judges the plan before anything moves:
 the condition of what the seats determine and the 1-sigma error they should leave over random
-poses (fixture_identify.predict_seats). The whole plan is checked against the cell's limits
+poses (fixture_predict.predict_seats). The whole plan is checked against the cell's limits
 before anything moves.
 
 The dataset is the measurement CSV's point form (docs/measurements.md, "Point form": the
@@ -151,7 +151,7 @@ class KinematicFixture(StepRoutine):
     def design(self) -> PlanPromise:
         """The planned seats judged before anything moves: the condition of what they determine and
         the 1-sigma error they should leave on the arm's target over random joint configurations,
-        at the stated repeatability and the fixture's distances (solvers.fixtures.fixture_identify.predict_seats)."""
+        at the stated repeatability and the fixture's distances (solvers.fixtures.fixture_predict.predict_seats)."""
         o = self.options
         model = load_robot(self.cell.robot)
         chosen = self.planner.seat_plan

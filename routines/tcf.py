@@ -17,7 +17,7 @@ its tilt from anything fixed in the base frame). The routine determines the axis
 the tool frame it writes keeps the TCP position of the controller's frame from before
 the run, and that frame's orientation turned by the smallest rotation that takes its z
 onto the axis found, so its turn about the axis (a round tool has no x of its own) is kept
-too (:mod:`.tool_frame`). Only where no controller frame is known are they the drawing's,
+too (:mod:`.framework.tool_frame`). Only where no controller frame is known are they the drawing's,
 the TCP `tcp_mm` where given. The tilts are reported as tcp-laser's: how far the axis
 leans from the drawn axis toward the flange's x and y.
 

@@ -35,7 +35,7 @@ the numbers alone by :func:`cellcal.solvers.tool_frames.verdict.check_verdict`:
 * ``ok``: every determined change within the inner band; nothing is written;
 * ``corrected``: a determined change beyond the inner band, none beyond the outer band,
   every gate passed: the measured frame is written back (what was determined; the rest kept
-  from the stored frame, :mod:`.tool_frame`);
+  from the stored frame, :mod:`.framework.tool_frame`);
 * ``alarm``: a change beyond the outer band (also of what was not determined well enough,
   when even its 3-sigma lower bound is beyond it), a failed gate (the data do not say what
   changed), or a sweep that did not see the beams where it should (:class:`CheckAlarm`:

@@ -16,7 +16,7 @@ finds the tip and the axis in the flange frame, where the beams really are, thei
 widths, and the trigger latency: each sweep's return crosses the same place the other way,
 so the latency is measured, not assumed. The tool frame written has the tip and the axis
 found; its turn about the axis (not measured: a round tool has none) is kept from the
-controller's frame before the run (:mod:`.tool_frame`). Tilting the tool is what separates the height of
+controller's frame before the run (:mod:`.framework.tool_frame`). Tilting the tool is what separates the height of
 the beams from the length of the tool; turning it, the tool's offset from where the beams
 are. The arm's repeatability, drawn afresh for every motion, is what limits the result,
 so the plan spends its time on many short motions.

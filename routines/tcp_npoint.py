@@ -19,7 +19,7 @@ The pivot fixes the centre of the tip's rounding, not the tip: the fit
 with seats that did not sit right rejected one at a time and named) finds that centre
 in the flange frame, and the TCP is that centre plus the tool radius along the tool
 axis. The routine determines the tip only: the tool frame it writes keeps the whole
-orientation of the controller's frame from before the run (:mod:`.tool_frame`), and the
+orientation of the controller's frame from before the run (:mod:`.framework.tool_frame`), and the
 axis the radius is added along is that frame's z, so the TCP is the tip of the frame
 written (measure the axis first, with ``tcf`` or ``tcp-laser``). Only where no controller
 frame is known is it the drawn axis, or `tool_axis`. Before anything moves the

@@ -16,7 +16,7 @@ by at most ``touch_speed_m_s`` x 2 ms (4 um at 2 mm/s; the solver takes off the 
 Solving is one least-squares fit (:func:`cellcal.solvers.tool_frames.stylus.fit`) of the axis line (4),
 the stylus (3), the contact radius (1) and the end's place along the axis (1). The routine
 determines the tip and the axis; the turn of the tool frame about its axis is kept from the
-controller's frame before the run (:mod:`.tool_frame`), as is the TCP's place along the
+controller's frame before the run (:mod:`.framework.tool_frame`), as is the TCP's place along the
 axis when no end-face touch fixes it. On a
 simulated cell ``sim_truth.position_error_mm`` is therefore the TCP's full 3-D error (its
 place along the axis measured by the end-face touches; with ``face_touches: 0`` it would

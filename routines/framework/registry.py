@@ -151,7 +151,7 @@ def routine_class(name: str) -> type[Routine]:
 
 
 def sections() -> tuple[str, ...]:
-    """The cell file sections the routines own, for :func:`cellcal.config.cells.read_cell`."""
+    """The cell file sections the routines own, for :func:`cellcal.config.cell_files.read_cell`."""
     return tuple(claim.section for claim in _claims().values())
 
 
