@@ -15,18 +15,9 @@ from cellcal.config import robot_files
 from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
-from cellcal.routines.framework.registry import panel_selectors, routine_class
+from cellcal.routines.framework.registry import routine_class
 from support.cell_edits import edited_cell
-
-SELECT = {name: number for number, name in panel_selectors().items()}
-
-
-def press(service: Service, panel, routine: str):
-    panel.select_routine(SELECT[routine])
-    panel.press_start()
-    service.poll_panel()
-    return service.wait(120)
-
+from support.service_panel import press
 
 def test_a_check_from_the_panel_reads_the_frame_twice_the_model_and_its_section_once(tmp_path, monkeypatch):
     cell = load_cell(edited_cell(tmp_path, "sim", {"sim_truth": {"seed": 5, "fixture_error_mm": 0.0}}))
