@@ -10,7 +10,7 @@ from cellcal.drivers.tracker_socket import TrackerSocket, TrackerStatusError, wi
 from cellcal.sims.physics.kinematic_arm import TrackerNoise
 from cellcal.sims.net.tracker_server import TrackerServer
 
-MARGIN_S = 0.5  # scheduling slack on top of a deadline
+MARGIN_S = 2.0  # scheduling slack on top of a deadline: a 2-core machine with both cores busy wakes a waiter late
 SMR1_M = np.array([1.2, -2.0, 0.4])
 
 
@@ -112,11 +112,11 @@ def test_connection_lost_mid_measurement_is_named_and_reopened(server, tracker):
 
 
 def test_no_reply_times_out_within_the_deadline_and_late_reply_is_skipped(server, tracker):
-    server.reply_delay_s = 0.4
+    server.reply_delay_s, timeout_s = 0.4, 0.15
     started = time.monotonic()
     with pytest.raises(DeviceTimeout) as err:
-        tracker.measure("smr1", timeout_s=0.15)
-    assert 0.15 <= time.monotonic() - started < 0.15 + MARGIN_S
+        tracker.measure("smr1", timeout_s=timeout_s)
+    assert timeout_s <= time.monotonic() - started < timeout_s + MARGIN_S  # at its deadline, never before
     assert "no reply to MEAS smr1 1 within 0.15 s" in str(err.value)
     server.reply_delay_s = 0.0
     # the reply to request 1 arrives late, ahead of the one to request 2, and is skipped
@@ -147,8 +147,10 @@ def test_reply_to_another_request_is_a_protocol_error(server, tracker):
 
 def test_endless_reply_line_is_refused_without_hanging(server, tracker):
     server.inject_reply(b"OK " + b"9" * 2000)
+    timeout_s = 4 * MARGIN_S
     started = time.monotonic()
     with pytest.raises(ProtocolError, match="reply longer than 512 bytes without terminator"):
-        tracker.measure("smr1", timeout_s=2.0)
-    assert time.monotonic() - started < 1.0
+        tracker.measure("smr1", timeout_s=timeout_s)
+    # refused on its length, not at the timeout: half of it leaves a loaded machine room and tells the two apart
+    assert time.monotonic() - started < timeout_s / 2
     assert np.allclose(tracker.measure("smr1").position_m, SMR1_M, atol=1e-3)  # reconnected
