@@ -16,7 +16,7 @@ import signal
 import sys
 import threading
 
-from cellcal.sims.fake_ur.process import time_scale_arg
+from cellcal.cli.common import number
 from cellcal.sims.net.cell import SimCell, SimCellError, mount_tool_on_running
 from cellcal.sims.physics.clock import MAX_TIME_SCALE
 from cellcal.daemon.cells import CellFileError, load_cell
@@ -95,7 +95,7 @@ def add_parser(sub) -> None:
     which.add_argument("--mount-tool", type=_tool_id, metavar="ID",
                        help="do not start: change the tool of the sim-cell running for this cell file to ID "
                             "(0: none), as at the tool changer, and exit")
-    p.add_argument("--time-scale", type=time_scale_arg, default=1.0, metavar="K",
+    p.add_argument("--time-scale", type=number(0.0, MAX_TIME_SCALE, above=True), default=1.0, metavar="K",
                    help=f"run the simulated clock K times faster than the wall: the arm moves K times as fast, "
                         f"every timestamp stays simulated time (0 < K <= {MAX_TIME_SCALE:g}; default 1, real time)")
     p.set_defaults(func=cmd_sim_cell)
