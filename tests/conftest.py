@@ -42,20 +42,27 @@ def loopback_host(loopback) -> str:
     return loopback()
 
 
+@pytest.fixture(scope="session")
+def sim_time_scale() -> float:
+    """The simulated cells' clock, in simulated seconds per wall second (tests/e2e runs faster)."""
+    return 1.0
+
+
 @pytest.fixture
-def start_sim_net(loopback):
-    """``cell, sim = start_sim_net(cell)``: the fakes of a networked cell (a loaded cell or a
-    shipped cell's name; default sim-net) on a loopback address of their own, in process
+def start_sim_net(loopback, sim_time_scale):
+    """``cell, sim = start_sim_net(cell, time_scale=None)``: the fakes of a networked cell (a loaded
+    cell or a shipped cell's name; default sim-net) on a loopback address of their own, in process
     (SimCell: the fake UR controller in its own process, the Modbus IO module and the
-    tracker server in threads); the cell returned points there. Stopped when the test ends."""
+    tracker server in threads), on a clock `time_scale` times the wall's (default
+    ``sim_time_scale``); the cell returned points there. Stopped when the test ends."""
     from cellcal.daemon.cells import load_cell
     from cellcal.sims.net.cell import SimCell
 
     running = []
 
-    def start(cell="sim-net"):
+    def start(cell="sim-net", time_scale=None):
         cell = (load_cell(cell) if isinstance(cell, str) else cell).on_host(loopback())
-        running.append(SimCell(cell).start())
+        running.append(SimCell(cell, time_scale=sim_time_scale if time_scale is None else time_scale).start())
         return cell, running[-1]
 
     yield start
@@ -64,7 +71,7 @@ def start_sim_net(loopback):
 
 
 @pytest.fixture(scope="module")
-def sim_net():
+def sim_net(sim_time_scale):
     """The shipped sim-net cell's fakes on a loopback address of their own, running for the
     whole test module: ``cell, sim = sim_net`` (the cell pointing at them)."""
     from cellcal.daemon.cells import load_cell
@@ -72,5 +79,5 @@ def sim_net():
 
     with _loopback.held() as host:
         cell = load_cell("sim-net").on_host(host)
-        with SimCell(cell) as sim:
+        with SimCell(cell, time_scale=sim_time_scale) as sim:
             yield cell, sim

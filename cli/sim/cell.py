@@ -4,7 +4,8 @@ What is started and how it is wired is :mod:`cellcal.sims.net.cell`'s; this is t
 command. One line on stdout says everything is listening; SIGTERM or SIGINT shuts down
 cleanly. ``--tool ID`` starts it with that tool of the cell's table mounted;
 ``--mount-tool ID``, from another shell, changes the tool of the sim-cell running for that
-cell file (a tool change at the tool changer) and exits. Exit 2 for a bad cell file or a
+cell file (a tool change at the tool changer) and exits. ``--time-scale K`` runs the cell's
+simulated clock K times faster than the wall (default 1: real time). Exit 2 for a bad cell file or a
 tool the cell lacks, 1 when a fake cannot start (a port in use) or the running sim-cell
 does not answer or refuses the change (the arm moving).
 """
@@ -15,7 +16,9 @@ import signal
 import sys
 import threading
 
+from cellcal.cli.common import number
 from cellcal.sims.net.cell import SimCell, SimCellError, mount_tool_on_running
+from cellcal.sims.physics.clock import MAX_TIME_SCALE
 from cellcal.daemon.cells import CellFileError, load_cell
 
 
@@ -26,7 +29,7 @@ def cmd_sim_cell(args) -> int:
             return _mount_tool(cell, args.mount_tool)
         if args.tool is not None:
             cell = cell.with_tool(args.tool)  # CellFileError for a tool the table lacks
-        sim = SimCell(cell)
+        sim = SimCell(cell, time_scale=args.time_scale)
     except CellFileError as exc:
         print(f"cellcal sim-cell: error: {exc}", file=sys.stderr)
         return 2
@@ -92,4 +95,7 @@ def add_parser(sub) -> None:
     which.add_argument("--mount-tool", type=_tool_id, metavar="ID",
                        help="do not start: change the tool of the sim-cell running for this cell file to ID "
                             "(0: none), as at the tool changer, and exit")
+    p.add_argument("--time-scale", type=number(0.0, MAX_TIME_SCALE, above=True), default=1.0, metavar="K",
+                   help=f"run the simulated clock K times faster than the wall: the arm moves K times as fast, "
+                        f"every timestamp stays simulated time (0 < K <= {MAX_TIME_SCALE:g}; default 1, real time)")
     p.set_defaults(func=cmd_sim_cell)

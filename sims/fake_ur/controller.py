@@ -41,6 +41,7 @@ import numpy as np
 from cellcal.config.cell_files import read_cell
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.fake_ur import rtde
+from cellcal.sims.physics.clock import SimClock
 from cellcal.sims.physics.arm_motion import ArmKinematics, JointMove, MovingArm, MotionFault, StopMotion
 from cellcal.sims.physics.scene import SwitchingSensors, scene_from_spec
 from cellcal.sims.inproc.world import PIVOT_SLIDE_SPEED_RAD_S, fixture_sockets, pivot_socket
@@ -73,8 +74,10 @@ class FakeUrController(ControlPort):
     def __init__(self, host: str = "127.0.0.1", *, robot: str | None = None, q0=HOME_Q, cell: dict | None = None,
                  cell_file: str | None = None, version=(5, 15, 0, 11908), serial: str = "20235500001",
                  control_port: int = CONTROL_PORT, frequency_hz: float = 500.0, seed: int = 0,
-                 verbose: bool = False, arm: str = "a", tool: int | None = None):
+                 verbose: bool = False, arm: str = "a", tool: int | None = None, time_scale: float = 1.0):
         self.host, self.version, self.serial = host, tuple(version), serial
+        # the controller's time is its cycle count; the wall only paces the cycles, time_scale times faster
+        self.clock = SimClock(time_scale, source=lambda: self.t_s)
         self.control_port, self.frequency_hz, self.verbose = control_port, frequency_hz, verbose
         self.lock = threading.RLock()
         self.cell = scene_from_spec(cell)
@@ -124,8 +127,8 @@ class FakeUrController(ControlPort):
                             actual_main_voltage=48.0, actual_robot_voltage=48.0, actual_robot_current=0.6,
                             actual_joint_voltage=(47.9,) * 6, actual_tool_accelerometer=(0.0, 0.0, 9.81),
                             actual_execution_time=0.35, tool_temperature=33.0, payload=0.0)
-        # recent (cycle, snapshot): 5 s, so a sender starved on a busy machine still sends every cycle
-        self._published: deque = deque([(0, self._snapshot())], maxlen=2500)
+        # recent (cycle, snapshot): 5 s of the wall, so a sender starved on a busy machine still sends every cycle
+        self._published: deque = deque([(0, self._snapshot())], maxlen=int(2500 * self.clock.time_scale))
         self._cycle_cond = threading.Condition()
         self._sockets: set[socket.socket] = set()
         self._listeners: list[socket.socket] = []
@@ -412,7 +415,7 @@ class FakeUrController(ControlPort):
         self.log("dropped every client connection")
 
     def _cycle_loop(self) -> None:
-        period = 1.0 / self.frequency_hz
+        period = self.clock.wall_s(1.0 / self.frequency_hz)
         next_t = time.perf_counter()
         while not self.closing:
             try:

@@ -22,6 +22,7 @@ import time
 
 from cellcal.sims.fake_ur.controller import CONTROL_PORT, HOME_Q, FakeUrController
 from cellcal.sims.fake_ur.control import FAULT_KINDS
+from cellcal.sims.physics.clock import MAX_TIME_SCALE, checked_time_scale
 
 
 class ControlClient:
@@ -64,7 +65,8 @@ class FakeUrProcess:
 
     def __init__(self, host: str, *, robot: str | None = None, q0=None, cell: dict | None = None,
                  cell_file: str | None = None, plugins=(), control_port: int = CONTROL_PORT,
-                 verbose: bool = False, arm: str | None = None, tool: int | None = None):
+                 verbose: bool = False, arm: str | None = None, tool: int | None = None,
+                 time_scale: float = 1.0):
         self.host, self.control_port = host, control_port
         self.args = [sys.executable, "-m", "cellcal.sims.fake_ur.process", "--host", host,
                      "--control-port", str(control_port), "--parent-pid", str(os.getpid())]
@@ -84,6 +86,8 @@ class FakeUrProcess:
             self.args += ["--arm", arm]
         if tool is not None:  # which tool of the cell file's tool table is mounted (default: its `mounted`)
             self.args += ["--tool", str(tool)]
+        if time_scale != 1.0:  # simulated seconds per wall second
+            self.args += ["--time-scale", repr(checked_time_scale(time_scale))]
         self.proc: subprocess.Popen | None = None
         self._stderr = None
 
@@ -165,6 +169,14 @@ def _exit_with_parent(parent_pid: int, controller: FakeUrController) -> None:
     controller.close()
 
 
+def time_scale_arg(text: str) -> float:
+    """An argparse type: a time scale (0 < K <= MAX_TIME_SCALE)."""
+    try:
+        return checked_time_scale(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m cellcal.sims.fake_ur.process",
                                      description="A fake UR e-Series controller on one loopback address.")
@@ -182,6 +194,9 @@ def main(argv=None) -> int:
                         help="which robot of a two-robot cell file this controller is (default a)")
     parser.add_argument("--tool", type=int, help="with --cell-file: the id of the tool of its table that is "
                                                   "mounted (default: the file's `mounted`)")
+    parser.add_argument("--time-scale", type=time_scale_arg, default=1.0, metavar="K",
+                        help=f"run the controller's clock K times faster than the wall (0 < K <= "
+                             f"{MAX_TIME_SCALE:g}; default 1, real time)")
     parser.add_argument("--control-port", type=int, default=CONTROL_PORT)
     parser.add_argument("--verbose", action="store_true", help="log controller messages to stderr")
     parser.add_argument("--parent-pid", type=int, help="exit when this process ends (no orphans after a crash)")
@@ -189,7 +204,7 @@ def main(argv=None) -> int:
     q0 = HOME_Q if args.q0 is None else [float(v) for v in args.q0.split(",")]
     controller = FakeUrController(args.host, robot=args.robot, q0=q0, cell=json.loads(args.cell or "{}"),
                                   cell_file=args.cell_file, control_port=args.control_port, verbose=args.verbose,
-                                  arm=args.arm, tool=args.tool)
+                                  arm=args.arm, tool=args.tool, time_scale=args.time_scale)
     for plugin in args.plugin:
         module, _, attr = plugin.partition(":")
         getattr(importlib.import_module(module), attr)(controller)

@@ -16,12 +16,11 @@ import json
 import socket
 import struct
 import threading
-import time
 
 from cellcal.drivers.ur.process import recv_exact
 from cellcal.sims.fake_ur import rtde
 
-# ur_rtde keeps only the newest of the packages it finds in one read
+# ur_rtde keeps only the newest of the packages it finds in one read (controller time)
 CATCH_UP_SPACING_S = 0.0003
 
 DASHBOARD_REPLIES = {  # commands answered without touching the controller's state
@@ -102,7 +101,7 @@ class RtdeSession:
                     data = b"".join(r.pack(snapshot) for r, k in zip(self.outputs, decimation) if cycle % k == 0)
                     if data:
                         if i:  # catching up: space the packages so a client reads them one by one
-                            time.sleep(CATCH_UP_SPACING_S)
+                            c.clock.sleep(CATCH_UP_SPACING_S)
                         self._send(data)
         except OSError:
             pass

@@ -37,6 +37,13 @@ The operator who moves a kinematic-fixture plate by hand (``move_by: operator``)
 IO module: a confirm press while the waiting lamp asks for placement k first moves the plate to
 where placement k really lies (:meth:`SimCell.place_plate`, the fake controller's ``place_plate``).
 
+Every fake reports the controller's clock (:class:`~cellcal.sims.physics.clock.SimClock`),
+which may run faster than the wall (``time_scale``, ``cellcal sim-cell --time-scale K``): the
+controller cycles K times as often, the tracker stamps its readings with the controller's time,
+the trigger ring gets the controller's switching times, and the relay runs every
+:data:`PARTNER_RELAY_S` of that time. Clients see an arm that moves K times as fast in wall time,
+with the same timestamps a real-time run has.
+
 A cell file that does not describe such a cell is refused with a CellFileError naming
 the section; a fake that cannot start (a port in use) raises SimCellError.
 """
@@ -58,11 +65,12 @@ from cellcal.sims.fake_ur.controller import CONTROL_PORT, DASHBOARD_PORT, RTDE_P
 from cellcal.sims.fake_ur.process import ControlClient, FakeUrProcess
 from cellcal.sims.net.modbus_server import ModbusCellServer
 from cellcal.sims.net.tracker_server import TrackerServer
+from cellcal.sims.physics.clock import SimClock
 from cellcal.sims.physics.truth import CellTruth, truth_of_cell
 
 UR_PORTS = (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT)
 EDGE_WAIT_S = 0.2  # how long one request for new edges waits (the wiring's shutdown time)
-PARTNER_RELAY_S = 0.02  # how often robot a's real tip is passed to robot b's controller
+PARTNER_RELAY_S = 0.02  # how often (simulated time) robot a's real tip is passed to robot b's controller
 
 
 class SimCellError(RuntimeError):
@@ -204,9 +212,12 @@ def mount_tool_on_running(cell: Cell, tool_id: int, timeout_s: float = 5.0) -> d
 class SimCell:
     """The fakes of one networked cell, started and stopped together (a context manager)."""
 
-    def __init__(self, cell: Cell):
+    def __init__(self, cell: Cell, time_scale: float = 1.0):
         self.cell = cell
         self.addresses = NetAddresses.of(cell)
+        # the controller's clock, as the tracker last read it with the tip
+        self.clock = SimClock(time_scale, source=lambda: self._tracker_t_s)
+        self._tracker_t_s = 0.0
         self.fake_ur: FakeUrProcess | None = None
         self.modbus: ModbusCellServer | None = None
         self.tracker: TrackerServer | None = None
@@ -234,7 +245,8 @@ class SimCell:
         try:
             self.fake_ur = FakeUrProcess(a.ur_host, robot=self.cell.robot, q0=self.cell.home_q_rad,
                                          cell_file=self.cell.path,  # the tool the cell has mounted (with_tool)
-                                         tool=self.cell.tool.id if self.cell.tool is not None else None)
+                                         tool=self.cell.tool.id if self.cell.tool is not None else None,
+                                         time_scale=self.clock.time_scale)
             try:
                 self.fake_ur.start()
             except RuntimeError as exc:
@@ -253,7 +265,8 @@ class SimCell:
                 self._wiring.start()
             if a.tracker is not None:
                 self._tracker_client = self.fake_ur.client()
-                self.tracker = TrackerServer(self._tracker_position, host=a.tracker[0], port=a.tracker[1]).start()
+                self.tracker = TrackerServer(self._tracker_position, host=a.tracker[0], port=a.tracker[1],
+                                             clock=self.clock).start()
         except BaseException:
             self.stop()
             raise
@@ -304,7 +317,8 @@ class SimCell:
         """A fake controller for each robot besides a, and the relay of robot a's tip to them."""
         for name, host in self.addresses.other_ur_hosts:
             spec = self.cell.robots[name]
-            fake = FakeUrProcess(host, robot=spec.robot, q0=spec.home_q_rad, cell_file=self.cell.path, arm=name)
+            fake = FakeUrProcess(host, robot=spec.robot, q0=spec.home_q_rad, cell_file=self.cell.path, arm=name,
+                                 time_scale=self.clock.time_scale)
             self.other_urs[name] = fake
             try:
                 fake.start()
@@ -319,7 +333,7 @@ class SimCell:
         """Pass robot a's real needle tip and axis (its base frame) to the other controllers."""
         source, *targets = self._relay_clients
         try:
-            while not self._stopping.wait(PARTNER_RELAY_S):
+            while not self.clock.wait(self._stopping, PARTNER_RELAY_S):
                 tool = source.request(cmd="tool")
                 front, back = (np.asarray(p, dtype=float) for p in tool["tool_body_m"])
                 axis = (front - back) / np.linalg.norm(front - back)
@@ -350,7 +364,9 @@ class SimCell:
         if target not in self.addresses.tracker_targets or self._tracker_client is None:
             return None
         with self._tracker_lock:
-            return np.asarray(self._tracker_client.request(cmd="tool")["tool_tip_m"], dtype=float)
+            reply = self._tracker_client.request(cmd="tool")
+            self._tracker_t_s = float(reply["t_s"])
+            return np.asarray(reply["tool_tip_m"], dtype=float)
 
     def stop(self) -> None:
         """Stop everything that was started, in reverse order; idempotent."""

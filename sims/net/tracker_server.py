@@ -5,6 +5,8 @@ target position comes from a callback, so the simulated cell can plug in the
 simulated arm: ``position_fn(target) -> (3,) m`` in the instrument frame
 (``None`` or ``KeyError`` when the target is not there); each measurement adds
 normal noise with the per-axis sigma of :class:`~cellcal.sims.physics.kinematic_arm.TrackerNoise`.
+Its timestamps and reply delay are on a simulated clock (``clock``: in a networked cell
+the fake controller's, so the instrument's time is the robot's; alone, its own).
 Attributes and methods let tests break the beam, delay or withhold replies,
 corrupt them and cut connections.
 """
@@ -13,7 +15,6 @@ from __future__ import annotations
 import socket
 import socketserver
 import threading
-import time
 from collections import deque
 from typing import Callable
 
@@ -22,6 +23,7 @@ import numpy as np
 from cellcal.drivers.interfaces import ProtocolError
 from cellcal.drivers.tracker_socket import (MAX_LINE_BYTES, TARGET_NAME, strip_checksum,
                                       with_checksum)
+from cellcal.sims.physics.clock import SimClock
 from cellcal.sims.physics.kinematic_arm import TrackerNoise
 
 BEAM_BROKEN, TARGET_NOT_FOUND, BAD_REQUEST = 1, 2, 5
@@ -34,7 +36,7 @@ class TrackerServer:
     def __init__(self, position_fn: Callable[[str], np.ndarray | None], *,
                  orientation_fn: Callable[[str], np.ndarray | None] | None = None,
                  noise: TrackerNoise = TrackerNoise(), rng: np.random.Generator | None = None,
-                 host: str = "127.0.0.1", port: int = 0):
+                 host: str = "127.0.0.1", port: int = 0, clock: SimClock | None = None):
         self.position_fn = position_fn
         self.orientation_fn = orientation_fn
         self.noise = noise
@@ -44,7 +46,7 @@ class TrackerServer:
         # fault injection, read by the connection threads
         self.beam_broken = False
         self.status = "ok"  # the status word of OK replies
-        self.reply_delay_s = 0.0
+        self.reply_delay_s = 0.0  # simulated time
         self.silent = False  # read requests, never answer
         self._injected: deque[bytes] = deque()
         self.requests: list[str] = []  # request bodies as received
@@ -53,7 +55,8 @@ class TrackerServer:
         self._server: socketserver.ThreadingTCPServer | None = None
         self._thread: threading.Thread | None = None
         self._stopping = threading.Event()
-        self._t0 = time.monotonic()
+        self.clock = clock if clock is not None else SimClock()
+        self._measuring = threading.Lock()  # a position and its time from one look at the clock's source
 
     # -- life cycle ------------------------------------------------------------------
 
@@ -114,14 +117,16 @@ class TrackerServer:
 
     def measure(self, target: str) -> tuple[float, np.ndarray, np.ndarray | None, float]:
         """Instrument time, noisy position (m), orientation, per-axis sigma (m)."""
-        true_m = self.position_fn(target)
+        with self._measuring:
+            true_m = self.position_fn(target)
+            t_s = self.clock.now()
         if true_m is None:
             raise KeyError(target)
         true_m = np.asarray(true_m, dtype=float).reshape(3)
         sigma_m = float(self.noise.sigma(true_m[None, :] * 1000.0)[0]) / 1000.0
         measured_m = true_m + self.rng.normal(0.0, sigma_m, 3)
         orientation = None if self.orientation_fn is None else self.orientation_fn(target)
-        return time.monotonic() - self._t0, measured_m, orientation, sigma_m
+        return t_s, measured_m, orientation, sigma_m
 
     def reply_to(self, line: bytes) -> bytes:
         """The reply line for one request line (without terminator)."""
@@ -179,7 +184,7 @@ class TrackerServer:
                 if self._injected:
                     reply = self._injected.popleft()
                 if self.reply_delay_s:
-                    time.sleep(self.reply_delay_s)
+                    self.clock.sleep(self.reply_delay_s)
                 connection.sendall(reply)
         except OSError:
             return  # the client went away, or drop_connections() cut it

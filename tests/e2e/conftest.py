@@ -1,6 +1,14 @@
 """Fixtures of the end-to-end tests (the simulated cells, the daemon as a process)."""
 import pytest
 
+from support.daemon_harness import SUITE_TIME_SCALE
+
+
+@pytest.fixture(scope="session")
+def sim_time_scale() -> float:
+    """The end-to-end cases run the simulated cells' clock faster than the wall (tests/conftest.py)."""
+    return SUITE_TIME_SCALE
+
 
 @pytest.fixture(scope="module")
 def net_cell():
@@ -11,13 +19,13 @@ def net_cell():
 
 
 @pytest.fixture(scope="module")
-def net(net_cell, tmp_path_factory):
+def net(net_cell, sim_time_scale, tmp_path_factory):
     """The networked simulated cell's fakes (daemon_harness.Net) on a loopback address of
-    their own, running for the whole test module, reset once at the start (``cell_net``
+    their own, on the suite's clock, running for the whole test module, reset once at the start (``cell_net``
     resets them again for a test). Stopped when the module ends."""
     from support.daemon_harness import Net
 
-    net = Net(tmp_path_factory.mktemp("sim-net"), net_cell)
+    net = Net(tmp_path_factory.mktemp("sim-net"), net_cell, sim_time_scale)
     try:
         net.reset()
         yield net

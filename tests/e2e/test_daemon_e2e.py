@@ -31,7 +31,7 @@ from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.store import Store
 from cellcal.sims.fake_ur.process import ControlClient
 from support.daemon_harness import (RUN_TIMEOUT_S, SELECT, Net, one_run, press_start, resources,  # tests/support/daemon_harness.py
-                            settled, systemd_stop_timeout_s, until_the_run_ends)
+                            settled, sim_sleep, systemd_stop_timeout_s, until_the_run_ends)
 
 pytestmark = pytest.mark.slow
 
@@ -39,14 +39,14 @@ INJECT_AFTER_MOTION_S = 0.15  # a fault of the controller once the arm has moved
 
 
 def when_moving(net: Net, action, delay_s: float = 0.1) -> threading.Thread:
-    """Run `action` once the fake arm has moved `delay_s` (a fault of a device other than the arm)."""
+    """Run `action` once the fake arm has moved `delay_s` of its time (a fault of a device other than the arm)."""
     def watch():
         control = ControlClient(net.host)
         try:
             deadline = time.monotonic() + RUN_TIMEOUT_S
             while not control.request(cmd="state")["moving"] and time.monotonic() < deadline:
                 time.sleep(0.01)
-            time.sleep(delay_s)
+            sim_sleep(control, delay_s)
             action()
         finally:
             control.close()
@@ -145,7 +145,7 @@ def test_sigterm_mid_routine_stops_the_arm_writes_nothing_and_exits_0_before_sys
     daemon = cellcal_daemon(net)
     try:
         press_start(net, "tcp-laser")
-        time.sleep(0.2)
+        sim_sleep(net.control, 0.2)  # mid-routine
         daemon.proc.send_signal(signal.SIGTERM)
         # systemd's stop must not have to kill it: exit 0 within the unit's TimeoutStopSec
         assert daemon.proc.wait(timeout=systemd_stop_timeout_s()) == 0, daemon.log()
@@ -167,7 +167,7 @@ def test_after_kill_9_mid_run_the_daemon_comes_up_idle_nothing_moves_and_the_run
     net = cell_net
     daemon = cellcal_daemon(net)
     press_start(net, "tcp-laser")
-    time.sleep(0.2)
+    sim_sleep(net.control, 0.2)  # mid-run
     daemon.proc.kill()
     daemon.proc.wait()
     net.at_rest(0.0)  # the controller ends the motion it was given

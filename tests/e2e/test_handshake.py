@@ -29,6 +29,7 @@ from cellcal.solvers.geometry import se3
 from cellcal.solvers.geometry.inverse import tcp_poses
 from support.report_check import assert_report_draws, layer
 from support.cell_edits import edited_cell  # tests/support/cell_edits.py
+from support.daemon_harness import SUITE_TIME_SCALE
 from support.routine_checks import RecordingRobot, within_limits  # tests/support/routine_checks.py
 
 TARGET_MM, TARGET_DEG = 0.1, 0.01  # with 12 points at 0.02 mm repeatability
@@ -237,7 +238,8 @@ def test_handshake_through_sim_net_against_the_truth(tmp_path, capsys, loopback)
     hosts = [loopback(), loopback()]
     path = edited_cell(tmp_path, "sim-dual-net", {"robots": {"b": {"driver": {"host": hosts[1]}}},
                                                   "handshake": {"points": 5}}, name="dual-net.yaml", host=hosts[0])
-    proc = subprocess.Popen([sys.executable, "-m", "cellcal.cli.main", "sim-cell", "--cell", str(path)],
+    proc = subprocess.Popen([sys.executable, "-m", "cellcal.cli.main", "sim-cell", "--cell", str(path),
+                             "--time-scale", str(SUITE_TIME_SCALE)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = proc.stdout.readline()

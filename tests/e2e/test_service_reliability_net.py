@@ -18,7 +18,7 @@ from pymodbus.client import ModbusTcpClient
 from cellcal.daemon import outcome
 from cellcal.daemon.service import ResultCode
 from cellcal.daemon.store import Store
-from support.daemon_harness import RUN_TIMEOUT_S, SELECT, Net, press_start, until_the_run_ends
+from support.daemon_harness import RUN_TIMEOUT_S, SELECT, Net, press_start, sim_sleep, until_the_run_ends
 
 pytestmark = pytest.mark.slow
 
@@ -41,7 +41,7 @@ def test_ctrl_c_on_cellcal_run_gives_back_the_frame_from_before_the_run(cell_net
     while not net.state()["moving"]:
         assert time.monotonic() < deadline and run.poll() is None, run.stderr.read()
         time.sleep(0.01)
-    time.sleep(0.3)  # mid-move: a controller that is moving does not take a new tool frame
+    sim_sleep(net.control, 0.3)  # mid-move: a controller that is moving does not take a new tool frame
     run.send_signal(signal.SIGINT)
     _, err = run.communicate(timeout=30)
     assert run.returncode != 0 and "Traceback" not in err, err

@@ -29,6 +29,7 @@ from cellcal.sims.physics.arm_motion import ArmKinematics
 from cellcal.sims.fake_ur.process import ControlClient
 from cellcal.sims.physics.truth import real_tool_body, real_tool_tip, segment_line_distance, truth_of_cell
 from support.cell_edits import DELETE, edited_cell, replaced  # tests/support/cell_edits.py
+from support.daemon_harness import SUITE_TIME_SCALE
 
 SPEEDS_M_S = (0.02, 0.04, 0.1)
 
@@ -414,7 +415,8 @@ def test_tcp_laser_through_sim_net_against_the_truth(tmp_path, capsys, loopback_
     as good on average but with a wider spread. Its tolerances are the worst seen plus half again."""
     host = loopback_host
     path = net_cell_file(tmp_path, host, transport)
-    proc = subprocess.Popen([sys.executable, "-m", "cellcal.cli.main", "sim-cell", "--cell", str(path)],
+    proc = subprocess.Popen([sys.executable, "-m", "cellcal.cli.main", "sim-cell", "--cell", str(path),
+                             "--time-scale", str(SUITE_TIME_SCALE)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stdout.readline().startswith("cellcal sim-cell: listening"), proc.stderr.read()

@@ -34,9 +34,6 @@ def two_tool_cell(folder, host):
                                                                      tool["tcp_m"][2] + 0.02]}]
         doc["mounted"] = "panel"
         doc["drivers"]["panel"]["timeout_s"] = 0.3
-        # joint moves between the sweeps at twice the shipped speed: the sweeps themselves keep their TCP
-        # speed (what the barrier's timing depends on), only the real-time travel between them is shorter
-        doc["limits"].update(joint_speed_rad_s=3.0, joint_accel_rad_s2=8.0)
     return edited_cell(folder, "sim-net", tools, name="sim-net-two-tools.yaml", host=host)
 
 

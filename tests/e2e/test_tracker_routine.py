@@ -386,23 +386,16 @@ def test_a_tracker_that_cannot_see_the_arm_is_refused_before_anything_moves(tmp_
         runner.prepare("tracker", cell)
 
 
-NET_SECTION = {**SECTION, "poses": 40, "validation_poses": 20}
-
-
 @pytest.mark.slow
 def test_the_campaign_through_the_network_fakes_reaches_the_same_floor(tmp_path, start_sim_net):
     """The same cell behind ur_rtde, the tracker socket and the fake UR controller, which obey
-    the same hidden truth: the same plan as in process, the same identification quality (about
-    a minute: the fake controller moves in real time, here at twice the shipped joint speed, and
-    the campaign is 40 + 20 poses instead of the in-process cell's 60 + 30)."""
+    the same hidden truth: the same plan as in process, the same identification quality, the
+    whole campaign (60 + 30 poses) at the shipped joint speed (the fakes on the suite's clock)."""
     from cellcal.sims.physics.truth import truth_of_cell
 
-    # the plan (its poses) does not depend on the speed limits, the time in real-time motion does: the
-    # joints at twice the shipped cell's speed (the fake controller follows what the cell allows)
-    fast = {"joint_speed_rad_s": 3.0, "joint_accel_rad_s2": 8.0}
-    cell, _ = start_sim_net(load_cell(variant(tmp_path, NET_SECTION, base="sim-net", limits=fast)))  # conftest.py
+    cell, _ = start_sim_net(load_cell(variant(tmp_path, SECTION, base="sim-net")))  # tests/conftest.py
     prepared = runner.prepare("tracker", cell)
-    in_process = runner.prepare("tracker", load_cell(variant(tmp_path, NET_SECTION, name="in-process.yaml")))
+    in_process = runner.prepare("tracker", load_cell(variant(tmp_path, SECTION, name="in-process.yaml")))
     assert prepared.routine.plan_id == in_process.routine.plan_id
     with open_drivers(cell) as drivers:
         dataset = runner.measure(prepared, drivers, tmp_path / "runs", lambda message: None)
@@ -417,8 +410,8 @@ def test_the_campaign_through_the_network_fakes_reaches_the_same_floor(tmp_path,
     after = result.extra["validation_mean_mm"]
     print(f"sim-net validation mean: before {result.extra['validation_before_mean_mm']:.4f} mm, after "
           f"{after:.4f} mm, floor {floor:.4f} mm, ratio {after / floor:.3f}, "
-          f"allowed {floor_bound(1.0, len(result.parameters), NET_SECTION['poses']):.3f}")
-    assert after <= floor_bound(floor, len(result.parameters), NET_SECTION["poses"])
+          f"allowed {floor_bound(1.0, len(result.parameters), SECTION['poses']):.3f}")
+    assert after <= floor_bound(floor, len(result.parameters), SECTION["poses"])
     assert result.extra["validation_before_mean_mm"] >= 5 * after
 
 

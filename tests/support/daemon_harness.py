@@ -34,6 +34,10 @@ from cellcal.sims.net.cell import SimCell
 
 RUN_TIMEOUT_S = 60.0
 READY_TIMEOUT_S = 60.0
+# the end-to-end suite's simulated clock, in simulated seconds per wall second: the largest at which the
+# fake controller's RTDE senders keep every client current on the 2-core machine under load (3 and 4 fall
+# seconds behind and ur_rtde's commands time out); the same results as real time (tests/e2e/test_time_scale.py)
+SUITE_TIME_SCALE = 2.0
 SHORT_SECTIONS = {
     "tcp_laser": replaced({"speed_mm_s": 250, "heights_mm": [12, 40], "spins_deg": [0], "tilts": 1}),
     "tracker": replaced({"target": "smr1", "instrument_m": [-2.5, 0.0, 1.0], "poses": 10, "validation_poses": 0,
@@ -52,13 +56,14 @@ def short_cell(folder: Path, host: str) -> Path:
 class Net:
     """The running fakes (on a loopback address of their own) and what a case needs to reach them."""
 
-    def __init__(self, folder: Path, cell_file=None):
-        """`cell_file(folder, host)`: the cell file to serve (default :func:`short_cell`)."""
+    def __init__(self, folder: Path, cell_file=None, time_scale: float = 1.0):
+        """`cell_file(folder, host)`: the cell file to serve (default :func:`short_cell`); `time_scale`:
+        simulated seconds per wall second (the fakes' clock)."""
         self.host = loopback.allocate()
         try:
             self.path = (cell_file or short_cell)(folder, self.host)
             self.cell = load_cell(self.path)
-            self.sim = SimCell(self.cell).start()
+            self.sim = SimCell(self.cell, time_scale=time_scale).start()
         except BaseException:
             loopback.release(self.host)
             raise
@@ -77,12 +82,12 @@ class Net:
             return reader.readline().strip()
 
     def at_rest(self, hold_s: float = 0.3) -> tuple[dict, dict]:
-        """Two looks at the controller `hold_s` apart, once the arm has come to rest."""
+        """Two looks at the controller `hold_s` apart (its time), once the arm has come to rest."""
         deadline = time.monotonic() + 10.0
         while self.state()["moving"] and time.monotonic() < deadline:
             time.sleep(0.02)
         first = self.state()
-        time.sleep(hold_s)
+        sim_sleep(self.control, hold_s)
         return first, self.state()
 
     def reset(self) -> None:
@@ -103,6 +108,13 @@ class Net:
             self.sim.stop()
         finally:
             loopback.release(self.host)
+
+
+def sim_sleep(control: ControlClient, sim_s: float) -> None:
+    """Wait until the fake controller's clock (`control`: a connection to it) has run `sim_s`."""
+    until = control.request(cmd="state")["t_s"] + sim_s
+    while control.request(cmd="state")["t_s"] < until:
+        time.sleep(0.005)
 
 
 def _stop(proc: subprocess.Popen) -> int:
