@@ -344,6 +344,10 @@ class PivotSocket:
         d = np.asarray(centre_m, dtype=float) - self.apex_m
         rho, h = float(np.hypot(d[0], d[1])), float(d[2])
         depth = self.rim_radius_m / np.tan(self.half_angle_rad)
+        # the section lies within rho <= face radius and 0 <= h <= depth: a centre farther than
+        # the radius from that box touches nothing (exactly the answer below, checked every cycle)
+        if rho > self.face_radius_m + radius_m or h > depth + radius_m or h < -radius_m:
+            return None
         section = (((0.0, 0.0), (self.rim_radius_m, depth)), ((self.rim_radius_m, depth), (self.face_radius_m, depth)))
         if min(_distance_2d((rho, h), a, b) for a, b in section) > radius_m:
             return None

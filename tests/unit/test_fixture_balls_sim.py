@@ -53,3 +53,26 @@ def test_the_fake_controller_stops_a_search_where_the_tip_meets_a_ball_and_does_
         assert controller._touching(controller.arm.tcp_pose[:3]) is touching
     assert controller._pivot_touch[0] == "ball"  # what was met: a ball, which _settle leaves alone
     assert controller._settle(controller._pivot_touch[1]) is None
+
+
+def test_a_socket_answers_a_centre_far_from_it_as_the_full_section_does():
+    """The socket's quick answer for a centre beyond its section's box (every control cycle asks
+    every seat) is the answer of the distance to the whole section, near the box's edges too."""
+    socket = PivotSocket(np.array([0.4, -0.1, 0.05]), tool_radius_m=0.003)
+    rng = np.random.default_rng(7)
+    depth = socket.rim_radius_m / np.tan(socket.half_angle_rad)
+    reach = socket.face_radius_m + 0.01
+    centres = socket.apex_m + rng.uniform([-reach, -reach, -0.01], [reach, reach, depth + 0.01], size=(4000, 3))
+
+    def full_section(centre, radius):  # the section's distance with no shortcut
+        d = centre - socket.apex_m
+        p = np.array([np.hypot(d[0], d[1]), d[2]])
+        ends = (((0.0, 0.0), (socket.rim_radius_m, depth)),
+                ((socket.rim_radius_m, depth), (socket.face_radius_m, depth)))
+        gap = min(np.linalg.norm(a + np.clip((p - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1) * (b - a) - p)
+                  for a, b in (tuple(map(np.array, e)) for e in ends))
+        return None if gap > radius else ("seat" if p[0] < socket.rim_radius_m else "face")
+
+    answers = [socket.touch(c, 0.003) for c in centres]
+    assert answers == [full_section(c, 0.003) for c in centres]
+    assert answers.count(None) > 100 and answers.count("seat") + answers.count("face") > 100  # both sides met
