@@ -91,7 +91,8 @@ class Robot(abc.ABC):
 
     @abc.abstractmethod
     def move_until_contact(self, direction_m_s, timeout_s: float) -> ContactResult:
-        """Move along a TCP velocity until a contact stops the arm, or the time runs out."""
+        """Move along a TCP velocity until a contact stops the arm, or `timeout_s` of the
+        controller's time (its samples' clock, as the motion's) runs out."""
 
     @abc.abstractmethod
     def stop(self) -> None:

@@ -304,11 +304,13 @@ class UrRtdeRobot(Robot):
                 self._blocking_motion, self._moving = None, False
 
     def _contact_result(self, call: int, timeout_s: float) -> ContactResult:
-        deadline = time.monotonic() + timeout_s
+        # the search's time is the controller's, as its motion is: a host slowed by load (or a
+        # simulated clock faster than the wall) never lets it travel farther than planned; a
+        # stream that stops advancing is caught by the safety check below (stale_after_s)
+        deadline_t_s = self._stream.latest().t_s + timeout_s
         while True:
             try:
-                contact = self._ur.result(call, min(POLL_S * 5, max(deadline - time.monotonic(), 0.0)),
-                                          keep_waiting=True)
+                contact = self._ur.result(call, POLL_S * 5, keep_waiting=True)
                 break
             except DeviceTimeout:
                 pass
@@ -321,7 +323,7 @@ class UrRtdeRobot(Robot):
             except DeviceError:
                 self._stop_program(call, "move_until_contact failed")
                 raise
-            if time.monotonic() > deadline:
+            if self._stream.latest().t_s > deadline_t_s:
                 self._stop_program(call, "move_until_contact timed out")
                 sample = self._settled_sample("move_until_contact")
                 return ContactResult(False, sample.tcp_pose, sample.q_rad)
