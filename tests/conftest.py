@@ -1,16 +1,32 @@
 """Fixtures every kind of test shares (tests/unit, tests/protocol, tests/e2e).
 
-The helpers beside this file are plain modules (tests/ is on sys.path through this
+The helpers are plain modules of tests/support/ (tests/ is on sys.path through this
 conftest): hidden_cases (generated data with a hidden effect), report_check (a report's
 drawings), naming_stubs (made-up scores for the naming rule), routine_checks (a robot that
 records its commands, and a check of each against the cell's limits), cell_edits (a cell
 file changed through its YAML), loopback (addresses of a test's own), daemon_harness
-(``cellcal daemon`` on the networked simulated cell). The benches in bench/ use some of them.
+(``cellcal daemon`` on the networked simulated cell), service_panel (the service pressed from
+its panel). The benches in bench/ use some of them.
 """
 import pytest
 from threadpoolctl import threadpool_limits
 
 from support import loopback as _loopback
+
+# The files whose cases wait longest on the simulated arm, longest first: `make test` hands files to
+# its two workers in collection order, so these start first and the many short files fill in beside
+# them, instead of one worker finishing a long file alone at the end.
+LONGEST_FIRST = ("e2e/test_time_scale.py", "e2e/test_tracker_routine.py", "e2e/test_daemon_e2e.py",
+                 "e2e/test_tool_change_panel.py", "e2e/test_tcp_laser.py", "e2e/test_sim_cells.py",
+                 "e2e/test_handshake.py", "e2e/test_tcp_check_panel.py", "e2e/test_tcp_stylus.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    def rank(item) -> int:
+        path = item.nodeid.split("::")[0].removeprefix("tests/")
+        return LONGEST_FIRST.index(path) if path in LONGEST_FIRST else len(LONGEST_FIRST)
+
+    items.sort(key=rank)  # stable: every other file, and the cases within a file, keep their order
 
 
 @pytest.fixture(autouse=True, scope="session")

@@ -27,7 +27,9 @@ SECTIONS = {  # tcp-laser and tcp-check as shipped; a short tracker campaign
     "tcp-laser": {},
     "tcp-check": {},
     "tracker": {"tracker": replaced({"target": "smr1", "instrument_m": [-2.5, 0.0, 1.0], "poses": 10,
-                                     "validation_poses": 3, "candidates": 80, "settle_s": 0, "measure_s": 0})},
+                                     "validation_poses": 3, "candidates": 80, "settle_s": 0, "measure_s": 0}),
+                # twice the shipped joint speed: the real-time run's arm time halved, the plan the same at both K
+                "limits": {"joint_speed_rad_s": 3.0, "joint_accel_rad_s2": 8.0}},
 }
 # the routines' accuracy targets against the hidden truth (tests/e2e/test_sim_cells.py, the Modbus ring)
 TCP_TARGET_MM, AXIS_TARGET_DEG = 0.03, 0.03
