@@ -93,9 +93,6 @@ class Service:
 
     # -- the panel ------------------------------------------------------------------------
 
-    def _panel(self, what: str, *args, **kwargs):
-        return self.panel.call(what, *args, **kwargs)
-
     def poll_panel(self) -> None:
         self.panel.poll()
 

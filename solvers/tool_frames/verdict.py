@@ -62,10 +62,6 @@ class CheckVerdict:
     axis: Part
     gates_passed: bool
 
-    @property
-    def determines_any(self) -> bool:
-        return self.tip.determined or self.axis.determined
-
 
 def determined(std: float, inner: float, k_sigma: float = K_SIGMA) -> bool:
     """Whether a change known to `std` (1 sigma) can be held against an inner band `inner`."""
