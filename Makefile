@@ -27,8 +27,9 @@ demo-identify: $(STAMP)
 	$(BIN)/cellcal sim-campaign --robot ur10e --poses 60 --out out/demo
 
 # two workers, a test file each at a time (module fixtures such as a running sim-net stay
-# in one worker): most end-to-end cases wait on simulated devices that run in real time; the
-# slowest cases are listed at the end (the suite is to stay under 10 minutes on 2 cores)
+# in one worker): the end-to-end cases run the networked fakes on a clock 3x the wall's
+# (tests/support/daemon_harness.py), the in-process cell as fast as it computes; the slowest
+# cases are listed at the end (the suite is to stay under 6 minutes on 2 cores)
 test: $(STAMP) chromium
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15
 

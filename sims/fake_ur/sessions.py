@@ -20,8 +20,13 @@ import threading
 from cellcal.drivers.ur.process import recv_exact
 from cellcal.sims.fake_ur import rtde
 
-# ur_rtde keeps only the newest of the packages it finds in one read (controller time)
+# ur_rtde keeps only the newest of the packages it finds in one read: a sender that was held up
+# spaces the last packages of its backlog (controller time) so such a client reads them one by
+# one; the older ones go at once. A real controller never falls behind its own cycle: a sender
+# starved on a loaded host that spaced its whole backlog would fall further behind with every
+# sleep (each costs a scheduler wake-up) until the state it streams is seconds old.
 CATCH_UP_SPACING_S = 0.0003
+CATCH_UP_SPACED = 4
 
 DASHBOARD_REPLIES = {  # commands answered without touching the controller's state
     "close safety popup": "closing safety popup", "close popup": "closing popup", "power on": "Powering on",
@@ -94,15 +99,26 @@ class RtdeSession:
         seen = c.cycles_after(-1)[-1][0]
         try:
             while self.started and not c.closing:
-                for i, (cycle, snapshot) in enumerate(c.cycles_after(seen)):
+                backlog = c.cycles_after(seen)
+                burst = []
+                for i, (cycle, snapshot) in enumerate(backlog):
                     seen = cycle
                     if c.stalled:
                         continue
                     data = b"".join(r.pack(snapshot) for r, k in zip(self.outputs, decimation) if cycle % k == 0)
-                    if data:
-                        if i:  # catching up: space the packages so a client reads them one by one
-                            c.clock.sleep(CATCH_UP_SPACING_S)
-                        self._send(data)
+                    if not data:
+                        continue
+                    if len(backlog) - i > CATCH_UP_SPACED:  # far behind: these go in one send
+                        burst.append(data)
+                        continue
+                    if burst:
+                        self._send(b"".join(burst))
+                        burst = []
+                    elif i:  # catching up: space the newest packages so a client reads them one by one
+                        c.clock.sleep(CATCH_UP_SPACING_S)
+                    self._send(data)
+                if burst:
+                    self._send(b"".join(burst))
         except OSError:
             pass
 

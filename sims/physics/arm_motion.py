@@ -81,6 +81,15 @@ def frame_to_pose(rotation: np.ndarray, position: np.ndarray) -> np.ndarray:
     return np.concatenate([position, log_so3(rotation)])
 
 
+_EYE6 = np.eye(6)
+
+# A cycle's IK ends after a Newton step of at most this much per joint without evaluating the
+# pose it reaches: what such a step leaves is second order in it, at most 1/2 (6 x 3e-6 rad)^2
+# x 1.5 m (the reach of a UR10 with its tool, the longest lever a joint turns) = 2.4e-10 m, below
+# the tracking tolerance of 1e-9 m. A motion's last cycle still solves to 1e-12 m.
+TRACKING_FINAL_STEP_RAD = 3e-6
+
+
 class ArmKinematics:
     """Flange and TCP frames and the TCP Jacobian of a model's flange chain, in metres.
 
@@ -179,8 +188,11 @@ class ArmKinematics:
         return rf @ rt, p, np.array(jac)
 
     def ik(self, rotation: np.ndarray, position: np.ndarray, q_seed, tcp_offset, *,
-           tol: float = 1e-12, max_iter: int = 60, damping: float = 1e-4) -> np.ndarray:
-        """Joints putting the TCP at (rotation, position), near q_seed (damped least squares)."""
+           tol: float = 1e-12, max_iter: int = 60, damping: float = 1e-4, final_step_rad: float = 0.0) -> np.ndarray:
+        """Joints putting the TCP at (rotation, position), near q_seed (damped least squares).
+
+        ``final_step_rad`` > 0: a Newton step no joint of which exceeds it ends the search
+        without evaluating the pose it reaches (see :data:`TRACKING_FINAL_STEP_RAD`)."""
         q = np.array(q_seed, dtype=float)
         for _ in range(max_iter):
             r, p, jac = self.jacobian(q, tcp_offset)
@@ -188,8 +200,11 @@ class ArmKinematics:
             if np.abs(err).max() < tol:
                 return q
             lam2 = damping**2 * min(1.0, float(err @ err) * 1e4)  # damping fades near the goal
-            dq = jac.T @ np.linalg.solve(jac @ jac.T + lam2 * np.eye(6), err)
-            q += dq / max(1.0, np.abs(dq).max() / 0.2)
+            dq = jac.T @ np.linalg.solve(jac @ jac.T + lam2 * _EYE6, err)
+            biggest = np.abs(dq).max()
+            q += dq / max(1.0, biggest / 0.2)
+            if biggest < final_step_rad:
+                return q
         r, p = self.tcp_frame(q, tcp_offset)
         err = np.concatenate([position - p, log_so3(rotation @ r.T)])
         if np.abs(err).max() < max(tol, 1e-9) * 10:
@@ -266,8 +281,7 @@ class LinearMove(Motion):
             return self.kin.ik(self.r1, self.p1, q, self.tcp)
         s = self.profile.position(self.t) / self.profile.length
         rotation = exp_so3(self.turn * s) @ self.r0
-        return self.kin.ik(rotation, self.p0 + s * (self.p1 - self.p0), q, self.tcp,
-                           tol=1e-9, max_iter=8)
+        return _tracking_ik(self, rotation, self.p0 + s * (self.p1 - self.p0), q)
 
 
 class SpeedLinear(Motion):
@@ -286,7 +300,19 @@ class SpeedLinear(Motion):
         scale = 1.0 if self.t >= self.t_ramp else self.t / self.t_ramp
         self.position = self.position + self.twist[:3] * scale * dt
         self.rotation = exp_so3(self.twist[3:] * scale * dt) @ self.rotation
-        return self.kin.ik(self.rotation, self.position, q, self.tcp, tol=1e-9, max_iter=8)
+        return _tracking_ik(self, self.rotation, self.position, q)
+
+
+def _tracking_ik(motion, rotation, position, q) -> np.ndarray:
+    """The joints of a Cartesian motion's next cycle: the IK seeded where the joints' last step
+    leads (a smooth path's next joints differ from that by the joint acceleration times a cycle
+    squared), so one Newton step usually lands within :data:`TRACKING_FINAL_STEP_RAD`."""
+    last = getattr(motion, "_q_last", None)
+    seed = q if last is None or last.shape != q.shape else 2.0 * q - last
+    q_next = motion.kin.ik(rotation, position, seed, motion.tcp, tol=1e-9, max_iter=8,
+                           final_step_rad=TRACKING_FINAL_STEP_RAD)
+    motion._q_last = np.array(q, dtype=float)
+    return q_next
 
 
 class StopMotion(Motion):

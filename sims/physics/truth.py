@@ -27,6 +27,8 @@ it; tests and the run's report (``sim_truth`` in the JSON) do.
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -321,21 +323,26 @@ def _second_arm(cell: Cell, spec: SimTruthSpec, drawn: dict) -> SecondArm:
 
 # -- geometry of a capsule against lines, points and planes ------------------------------------
 
+# plain floats: the simulated cells ask these of every beam and seat each 2 ms cycle, where numpy's
+# per-call overhead on 3-vectors costs more than the arithmetic
 def segment_line_distance(a: np.ndarray, b: np.ndarray, point: np.ndarray, direction: np.ndarray) -> float:
     """Shortest distance between the segment a-b and the line through `point` along unit `direction`."""
-    u = (a - point) - ((a - point) @ direction) * direction
-    w = (b - point) - ((b - point) @ direction) * direction
-    v = w - u
-    vv = float(v @ v)
-    t = 0.0 if vv < 1e-30 else float(np.clip(-(u @ v) / vv, 0.0, 1.0))
-    return float(np.linalg.norm(u + t * v))
+    (ax, ay, az), (bx, by, bz), (px, py, pz), (dx, dy, dz) = a.tolist(), b.tolist(), point.tolist(), direction.tolist()
+    ax, ay, az, bx, by, bz = ax - px, ay - py, az - pz, bx - px, by - py, bz - pz
+    ka, kb = ax * dx + ay * dy + az * dz, bx * dx + by * dy + bz * dz
+    ux, uy, uz = ax - ka * dx, ay - ka * dy, az - ka * dz
+    vx, vy, vz = bx - kb * dx - ux, by - kb * dy - uy, bz - kb * dz - uz
+    vv = vx * vx + vy * vy + vz * vz
+    t = 0.0 if vv < 1e-30 else min(max(-(ux * vx + uy * vy + uz * vz) / vv, 0.0), 1.0)
+    return math.sqrt((ux + t * vx) ** 2 + (uy + t * vy) ** 2 + (uz + t * vz) ** 2)
 
 
 def segment_point_distance(a: np.ndarray, b: np.ndarray, point: np.ndarray) -> float:
-    ab = b - a
-    ll = float(ab @ ab)
-    t = 0.0 if ll < 1e-30 else float(np.clip((point - a) @ ab / ll, 0.0, 1.0))
-    return float(np.linalg.norm(a + t * ab - point))
+    (ax, ay, az), (bx, by, bz), (px, py, pz) = a.tolist(), b.tolist(), point.tolist()
+    ux, uy, uz = bx - ax, by - ay, bz - az
+    ll = ux * ux + uy * uy + uz * uz
+    t = 0.0 if ll < 1e-30 else min(max(((px - ax) * ux + (py - ay) * uy + (pz - az) * uz) / ll, 0.0), 1.0)
+    return math.sqrt((ax + t * ux - px) ** 2 + (ay + t * uy - py) ** 2 + (az + t * uz - pz) ** 2)
 
 
 def beam_blocked(beam: LightBeam, segment, radius_m: float) -> bool:

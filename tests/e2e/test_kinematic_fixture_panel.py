@@ -126,7 +126,7 @@ def test_the_operator_moves_the_plate_and_the_run_ends_ok(cell, plc):
     until_the_run_ends(net, counter)
     reads = plc_reads(net)
     runs = daemon.cli("runs", "list")
-    assert reads["code"] == ResultCode.OK, (runs, daemon.log()[-3000:])
+    open("/tmp/daemon_full.log", "w").write(daemon.log() + "\n".join(net.state()["messages"])); assert reads["code"] == ResultCode.OK, (runs, daemon.log()[-3000:])
     dataset = next((daemon.state_dir / "datasets").glob("kinematic-fixture-*.csv"))
     data = read_dataset(dataset, "kinematic-fixture", routine_class("kinematic-fixture").text_columns)
     assert sorted(set(data["setup"])) == ["p1", "p2"] and sorted(set(data["point"])) == ["s0", "s1"]
