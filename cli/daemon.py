@@ -65,8 +65,9 @@ def cmd_daemon(args) -> int:
                 log.error("the robot does not answer: %s", exc)
                 return 1
             service = Service(cell, drivers, store, out_dir=folder / "datasets", notifier=notifier,
-                              report=lambda run_id, result, st: write_run_report(
-                                  folder / "reports", run_id, result, tool_id=st.run(run_id).tool_id),
+                              report=lambda run_id, result, st, ending: write_run_report(
+                                  folder / "reports", run_id, result, tool_id=st.run(run_id).tool_id,
+                                  ending=ending),
                               reconnect=lambda: open_drivers(cell),
                               trend=lambda tool_id, trend: write_trend_page(folder / "reports" / f"tool-{tool_id}",
                                                                             trend))

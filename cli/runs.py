@@ -41,7 +41,8 @@ def _run_summary(r, written: set[int]) -> dict:
     the tool of the cell's tool table the run was for (null: the cell describes no tool)."""
     return {"id": r.id, "routine": r.routine, "cell": r.cell, "tool_id": r.tool_id, "started_at": r.started_at,
             "finished_at": r.finished_at, "state": r.state, "result_code": r.result_code, "reason": r.reason,
-            "passed_gates": r.passed_gates, "written_back": r.id in written}
+            "passed_gates": r.passed_gates, "verdict": None if r.verdict is None else str(r.verdict),
+            "written_back": r.id in written}
 
 
 DATASET_CHECK_TEXT = {"matches": "as recorded: its sha256 matches", "changed": "CHANGED since it was recorded: "

@@ -156,8 +156,8 @@ def cmd_tool_rollback(args) -> int:
         if not mounted:
             print_progress(f"{_tool_label(entry['tool_id'], None)} is not mounted: only its block of stored frames "
                            "was written, the running program's frame (the mounted tool's) is left alone")
-        _print_restored(args, entry["run_id"], restored.frame_after, restored.generation)
         tool = _tool_label(entry["tool_id"], None)
+        _print_restored(args, entry["run_id"], restored.frame_after, restored.generation, None if mounted else tool)
         left = [w for w in store.writes_not_undone(entry["tool_id"]) if w["tool_id"] == entry["tool_id"]]
         print_progress(f"the next rollback without RUN undoes run {left[-1]['run_id']}'s write-back ({tool})" if left
                        else f"every recorded write-back of {tool} is now undone: a rollback of it without RUN has "
@@ -245,14 +245,21 @@ def _check_same_robot(run, cell, given: str) -> None:
                      f"on the robot it came from: give --cell {recorded}")
 
 
-def _print_restored(args, run_id: int, frame, generation: int | None) -> None:
+def _print_restored(args, run_id: int, frame, generation: int | None, block_only: str | None = None) -> None:
     """What a rollback put back: one line, or with --json one object ``{"restored": {...}}``:
-    ``run_id`` (the run whose write-back was undone), ``tool_frame`` (the frame now on the
-    controller, as a run's JSON gives it) and ``program_start_generation`` (the robot program's
-    start frame now that generation; null when the controller keeps none)."""
+    ``run_id`` (the run whose write-back was undone), ``tool_frame`` (the frame restored, as a
+    run's JSON gives it), ``running`` (whether the running program's frame is now this one:
+    false for a tool not mounted, `block_only` its label, whose frame went to its block only) and
+    ``program_start_generation`` (the robot program's start frame now that generation; null when
+    the controller keeps none)."""
     if args.json:
         print(json.dumps({"restored": {"run_id": run_id, "tool_frame": tool_frame_json(frame),
-                                       "program_start_generation": generation}}))
+                                       "running": block_only is None, "program_start_generation": generation}}))
+        return
+    if block_only is not None:
+        print(f"restored {block_only}'s frame from before run {run_id} into its block of stored frames only, for "
+              f"its next mounting (the running frame is the mounted tool's): {frame_text(frame)}"
+              + ("" if generation is None else f"; generation {generation}"))
         return
     print(f"restored the tool frame from before run {run_id}: {frame_text(frame)}"
           + ("" if generation is None else f"; the robot program's start frame back to generation {generation}"))

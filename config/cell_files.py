@@ -92,6 +92,24 @@ def _read_status_page(top: Section) -> StatusPageSpec:
     return spec
 
 
+WILDCARD_HOSTS = ("0.0.0.0", "::", "")
+
+
+def _check_status_port(top: Section, page: StatusPageSpec, drivers: dict) -> None:
+    """The status page cannot listen where a device of the cell is served: the same port on the
+    same address (or on every address, while the device is on this machine's loopback)."""
+    if not page.enabled:
+        return
+    for role, spec in drivers.items():
+        host, port = spec.options.get("host"), spec.options.get("port")
+        if not isinstance(host, str) or isinstance(port, bool) or port != page.port:
+            continue
+        if host == page.host or (page.host in WILDCARD_HOSTS and (host.startswith("127.") or host == "localhost")):
+            top.section("status_page").fail("port", f"{page.port} on {page.host} is where drivers.{role} "
+                                                    f"({spec.name}) is served ({host}:{port}): give the status "
+                                                    "page another port")
+
+
 def _unit(section: Section, key: str, default=None, *, required=False) -> np.ndarray:
     v = section.vector(key, 3, default, required=required, nonzero=True)
     return v / np.linalg.norm(v)
@@ -152,12 +170,18 @@ def _read_bands(s: Section) -> Bands:
     d = Bands()
     inner_mm = s.number("inner_mm", d.inner_mm, above=0.0, high=PLAUSIBLE_MM)
     inner_deg = s.number("inner_deg", d.inner_deg, above=0.0, high=PLAUSIBLE_DEG)
-    outer_mm = s.number("outer_mm", max(d.outer_mm, inner_mm), above=0.0, high=PLAUSIBLE_MM)
-    outer_deg = s.number("outer_deg", max(d.outer_deg, inner_deg), above=0.0, high=PLAUSIBLE_DEG)
-    if outer_mm < inner_mm:
-        s.fail("outer_mm", f"{outer_mm:g} is inside the inner band {inner_mm:g} mm: the outer band must be wider")
-    if outer_deg < inner_deg:
-        s.fail("outer_deg", f"{outer_deg:g} is inside the inner band {inner_deg:g} deg: the outer band must be wider")
+    outer_mm = s.number("outer_mm", d.outer_mm, above=0.0, high=PLAUSIBLE_MM)
+    outer_deg = s.number("outer_deg", d.outer_deg, above=0.0, high=PLAUSIBLE_DEG)
+    # between the two bands lies every correction a check may write: none left is refused, not widened
+    for unit, inner, outer in (("mm", inner_mm, outer_mm), ("deg", inner_deg, outer_deg)):
+        if outer > inner:
+            continue
+        if f"outer_{unit}" in s:
+            s.fail(f"outer_{unit}", f"{outer:g} is not wider than the inner band {inner:g} {unit}: the outer band "
+                                    "must be wider (between the two lie the corrections a check may write)")
+        else:
+            s.fail(f"inner_{unit}", f"{inner:g} is not inside the default outer band {outer:g} {unit}: give "
+                                    f"outer_{unit} too, wider than it")
     # the drift alarm: optional, above 0, bounded like the bands (beyond the plausibility limit no
     # frame is ever written, so no drift that large can build up)
     drift_mm = s.number("drift_mm", above=0.0, high=PLAUSIBLE_MM) if "drift_mm" in s else None
@@ -349,6 +373,7 @@ def read_cell(name_or_path: str | Path, routine_sections: Iterable[str] | None =
             routines[section] = top.section(section).mapping
     a = robots["a"]
     status_page = _read_status_page(top)
+    _check_status_port(top, status_page, drivers)
     return Cell(where, name, a.robot, a.home_q_rad, drivers, low, high, limits, tool, beams, stylus,
                 pivot, truth, merged_sections(routines, tool), robots, tools, routines, mounted, status_page)
 

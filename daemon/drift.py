@@ -78,6 +78,9 @@ def change_between(frame, determines, base) -> dict:
 
 
 MIN_RATE_SPAN_WEEKS = 1.0 / 7.0  # a rate per week needs at least a day between its first and last point
+# a rate per 1000 runs needs its first and last point 100 runs apart (run ids count every run of the
+# cell): from fewer it would extrapolate the checks' noise more than tenfold
+MIN_RATE_SPAN_RUNS = 100
 
 
 def _slope(x, y) -> float | None:
@@ -118,12 +121,16 @@ def trend(rows: list[dict], tool_id: int) -> dict:
             values = [p["since_last_calibration"][key] for p in used]
             # a weekly rate from minutes of history extrapolates the checks' noise: none under a day
             per_week = _slope(weeks, values) if len(weeks) > 1 and np.ptp(weeks) >= MIN_RATE_SPAN_WEEKS else None
-            per_run = _slope(runs, values)
+            per_run = _slope(runs, values) if len(runs) > 1 and np.ptp(runs) >= MIN_RATE_SPAN_RUNS else None
             rate[f"{name}_per_week"] = per_week
             rate[f"{name}_per_1000_runs"] = None if per_run is None else per_run * 1000.0
+        missing = []
         if all(rate[k] is None for k in ("tip_mm_per_week", "axis_deg_per_week")):
-            rate["why_none"] = (f"fewer than two points a day or more apart since the last full calibration "
-                                f"(run {last['run_id']})")
+            missing.append("no rate per week: fewer than two points a day or more apart")
+        if all(rate[k] is None for k in ("tip_mm_per_1000_runs", "axis_deg_per_1000_runs")):
+            missing.append(f"no rate per 1000 runs: fewer than two points {MIN_RATE_SPAN_RUNS} runs or more apart")
+        if missing:
+            rate["why_none"] = "; ".join(missing) + f" since the last full calibration (run {last['run_id']})"
     latest = points[-1] if points else None
     return {"tool_id": int(tool_id), "never_calibrated": first is None,
             "first_calibration": None if first is None else {"run_id": first["run_id"], "at": first["at"]},

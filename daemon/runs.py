@@ -41,9 +41,10 @@ from cellcal.daemon.result_codes import ResultCode, device_code
 from cellcal.drivers.interfaces import DeviceError, OperatorTimeout, RobotState
 from cellcal.routines.framework import registry, runner, tool_frame
 from cellcal.routines.framework.base import (CheckAlarm, NotForThisCell, PlanRefused, Result, RoutineAborted,
-                                             RoutineError)
+                                             RoutineError, RunEnding)
 from cellcal.routines.framework.context import RunContext
 from cellcal.routines.framework.gates import frame_change
+from cellcal.solvers.tool_frames.verdict import Verdict
 
 log = logging.getLogger("cellcal.daemon")
 
@@ -96,7 +97,8 @@ class RunMachine:
         except OperatorTimeout as exc:
             return self._end(run_id, "fault", ResultCode.CONFIRM_TIMEOUT, f"{exc.what}; nothing written")
         except CheckAlarm as exc:
-            return self._end(run_id, "fault", ResultCode.CHECK_ALARM, f"tool check alarm: {exc}")
+            return self._end(run_id, "fault", ResultCode.CHECK_ALARM, f"tool check alarm: {exc}",
+                             verdict=Verdict.ALARM)
         except DeviceError as exc:
             if service.abort.is_set():
                 return self._end(run_id, "aborted", ResultCode.ABORTED, f"stopped by abort ({exc.what})")
@@ -109,7 +111,8 @@ class RunMachine:
         try:
             result = runner.solve_run(context, dataset)
         except CheckAlarm as exc:
-            return self._end(run_id, "fault", ResultCode.CHECK_ALARM, f"tool check alarm: {exc}")
+            return self._end(run_id, "fault", ResultCode.CHECK_ALARM, f"tool check alarm: {exc}",
+                             verdict=Verdict.ALARM)
         except (RoutineError, ValueError, np.linalg.LinAlgError) as exc:
             return self._end(run_id, "fault", ResultCode.COMPUTATION_FAILED, str(exc))
         return self._gates(context, result)
@@ -123,14 +126,9 @@ class RunMachine:
         result, drifted = judgement.applied_to(result), judgement.why  # a new Result: the routine's stays as it was
         service.store.record_result(run_id, result)
         self._record_measured(context, result, measured)
-        if service.report is not None:
-            try:
-                service.store.record_report(run_id, str(service.report(run_id, result, service.store)))
-            except OSError as exc:
-                log.warning("run %d: report not written: %s", run_id, exc)
         service.transition(run_id, "gates")
         if result.verdict == "alarm":  # before the gates: an alarm is never corrected, whatever passed
-            saw = result.extra.get("saw") or "; ".join(result.reasons()) or "beyond the tool's outer band"
+            saw = result.extra.get("saw") or "; ".join(result.reasons()) or "the check's verdict is alarm"
             return self._end(run_id, "fault", ResultCode.CHECK_ALARM, f"tool check alarm: {saw}", result)
         if drifted is not None:
             return self._end(run_id, "fault", ResultCode.DRIFT_ALARM, f"tool drift alarm: {drifted}; nothing "
@@ -232,9 +230,11 @@ class RunMachine:
             log.info("run %d: %s", run_id, note)
         return options, note
 
-    def _last_passed(self, routine: str):
-        """The last passed result of `routine` for the tool this run is for."""
-        return self.service.store.last_passed_result(routine, tool_id=self.service.custody.run_tool)
+    def _last_passed(self, routine: str, any_tool: bool = False):
+        """The last passed result of `routine` for the tool this run is for (`any_tool`: for
+        whichever tool, e.g. the beams a tcp-laser found are the cell's)."""
+        return self.service.store.last_passed_result(routine, tool_id=None if any_tool else
+                                                     self.service.custody.run_tool)
 
     # -- the result -------------------------------------------------------------------------
 
@@ -295,22 +295,39 @@ class RunMachine:
     # -- the end ----------------------------------------------------------------------------
 
     def _end(self, run_id: int, state: str, code: ResultCode, reason: str, result: Result | None = None,
-             wrote: bool = False) -> RunEnd:
+             wrote: bool = False, verdict: Verdict | None = None) -> RunEnd:
+        """The run's end, recorded and shown; `verdict`: a check's that ended without a result
+        (a check always ends with one: the PLC, the store and the page read it)."""
         service, custody = self.service, self.service.custody
         if custody.owed_by(run_id):
             custody.recover()
         if self.notes:
             reason = f"{reason} ({'; '.join(self.notes)})"
+        if result is not None:
+            verdict = result.verdict
+            self._report(run_id, result, RunEnding(code.name, reason, wrote))
+        elif verdict is not None:
+            service.store.record_verdict(run_id, verdict)
         service.store.finish_run(run_id, state, int(code), reason)
         service.seen["reason"], service.seen["result_code"] = reason, int(code)
         service.active = False  # the panel shows the end next: a press after it starts the next run
         service.transition(run_id, state, f"{reason} (code {int(code)} {code.name})")
         # the done lamp says a frame went to the controller; a run that wrote none lights neither
         service.panel.show_end(code, done=wrote, fault=state in ("fault", "refused"),
-                               verdict=None if result is None else result.verdict, tool_id=custody.run_tool,
+                               verdict=verdict, tool_id=custody.run_tool,
                                change=_change(result, wrote))
         service.state = "idle"
         return RunEnd(run_id, state, code, reason, result)
+
+    def _report(self, run_id: int, result: Result, ending: RunEnding) -> None:
+        """The run's report, written once its end is known: its headline says what happened."""
+        service = self.service
+        if service.report is None:
+            return
+        try:
+            service.store.record_report(run_id, str(service.report(run_id, result, service.store, ending)))
+        except OSError as exc:
+            log.warning("run %d: report not written: %s", run_id, exc)
 
     def end_broken(self, routine: str, exc: Exception) -> RunEnd:
         """The service's own bookkeeping failed (store, state folder) or a bug: the run still

@@ -39,7 +39,8 @@ log = logging.getLogger("cellcal.daemon")
 
 class Service:
     """The daemon's core: `cell` and its opened `drivers`, the results `store`; `report`:
-    callable(run_id, result, store) -> path of the run's report, or None; `trend`:
+    callable(run_id, result, store, ending) -> path of the run's report (``ending``: how
+    the run ended, its headline), or None; `trend`:
     callable(tool_id, trend dict) -> path of the tool's trend page, or None; `reconnect`:
     callable() -> a fresh set of the cell's drivers, or None."""
 

@@ -67,6 +67,9 @@ class _Handler(BoundedHandler):
     def _api(self, path: str, query: str) -> None:
         owner = self.server.owner
         parts = path.strip("/").split("/")
+        if query and parts != ["runs"]:  # only the run list takes one (limit); docs/api.md
+            return self.send_error(HTTPStatus.BAD_REQUEST, f"/api/v1{path[:100]} takes no query parameters "
+                                   "(only /api/v1/runs takes limit)")
         if path == "/state":
             return self._json(status_api.state(owner.current_status()))
         if parts[0] not in ("runs", "tools") or len(parts) > 3:
@@ -79,8 +82,11 @@ class _Handler(BoundedHandler):
                                            f"{status_api.RUNS_LIMIT[0]} to {status_api.RUNS_LIMIT[1]}")
                 return self._json(status_api.runs(store, limit, owner.state_dir))
             if parts[0] == "runs" and len(parts) == 2:
-                if not parts[1].isdigit() or len(parts[1]) > 18:
+                if not parts[1].isdigit():
                     return self.send_error(HTTPStatus.BAD_REQUEST, "a run id is a whole number (/api/v1/runs/12)")
+                if len(parts[1]) > 18:  # beyond SQLite's integers, and any store's runs
+                    return self.send_error(HTTPStatus.NOT_FOUND, f"no run {parts[1][:30]}: a run id has at most 18 "
+                                           "digits")
                 detail = status_api.run_detail(store, int(parts[1]), owner.state_dir)
                 if detail is None:
                     return self.send_error(HTTPStatus.NOT_FOUND, f"no run {int(parts[1])} in the store")

@@ -209,6 +209,12 @@ class Store:
             db.executemany("INSERT INTO gates VALUES (?, ?, ?, ?, ?, ?)",
                            [(run_id, g.name, int(g.passed), g.value, g.limit, g.why) for g in result.gates])
 
+    def record_verdict(self, run_id: int, verdict) -> None:
+        """A check's verdict when it ended without a result to record (a sweep that missed the
+        beams is an alarm before anything could be solved)."""
+        with self._tx() as db:
+            db.execute("UPDATE runs SET verdict = ? WHERE id = ?", (str(verdict), run_id))
+
     def record_report(self, run_id: int, report_path: str) -> None:
         with self._tx() as db:
             db.execute("UPDATE runs SET report_path = ? WHERE id = ?", (report_path, run_id))

@@ -14,7 +14,7 @@ from cellcal.reports.page import figure_html, plt, write_page
 from cellcal.reports.trend import TREND_IMAGE, TREND_PAGE
 from cellcal.solvers.geometry import se3
 from cellcal.routines.framework import tool_frame
-from cellcal.routines.framework.base import FRAME_KEYS, Result, tool_frame_json
+from cellcal.routines.framework.base import FRAME_KEYS, Result, RunEnding, tool_frame_json
 from cellcal.routines.framework.drawing import Drawing
 
 STYLES = {"measured": dict(ls="none", marker=".", ms=5), "fitted": dict(ls="-", lw=1.2, color="0.25")}
@@ -68,9 +68,36 @@ def _trend_link(folder: Path, result: Result, tool_id: int) -> str:
             + f"<p><a href='{where}{TREND_PAGE}'>the tool's trend page</a></p>")
 
 
-def write_run_report(folder: str | Path, run_id: int, result: Result, tool_id: int | None = 1) -> Path:
+CHECK_WORDS = {"ok": "Tool check OK: the tool is within its inner band",
+               "corrected": "Tool check CORRECTED: the tool is beyond its inner band, within its outer one",
+               "alarm": "Tool check ALARM", "drift": "Tool check DRIFT ALARM"}
+
+
+def headline(result: Result, tool_id: int | None, ending: RunEnding | None) -> list[str]:
+    """The report's first lines: what the run found (a check's verdict, else the gates) and what
+    was written to the controller; without `ending` (a result reported outside the service), the
+    gates only."""
+    if result.verdict is not None:
+        found = CHECK_WORDS.get(str(result.verdict), f"Tool check: {result.verdict}")
+    elif result.passed_gates:
+        found = "Every gate passed"
+    else:
+        found = "A gate failed: " + "; ".join(result.reasons())
+    if ending is None:
+        return [found]
+    if ending.wrote:
+        tool = "" if tool_id is None else f" as tool {tool_id}'s frame"
+        written = f"The tool frame found was written to the controller{tool} and read back."
+    else:
+        written = "Nothing was written to the controller."
+    return [found, written, f"The run ended {ending.code_name}: {ending.reason}"]
+
+
+def write_run_report(folder: str | Path, run_id: int, result: Result, tool_id: int | None = 1,
+                     ending: RunEnding | None = None) -> Path:
     """The run's page into FOLDER/run-RUN_ID/, naming the tool `tool_id` the run was for (None: the
-    cell describes none), with that tool's trend where FOLDER has it."""
+    cell describes none), its `ending` at the top (see :func:`headline`), with that tool's trend
+    where FOLDER has it."""
     out = Path(folder) / f"run-{run_id}"
     out.mkdir(parents=True, exist_ok=True)
     residuals = np.asarray(result.residuals_mm, dtype=float)
@@ -107,13 +134,13 @@ def write_run_report(folder: str | Path, run_id: int, result: Result, tool_id: i
     params = "".join(f"<tr><td>{html.escape(p.name)}</td><td>{p.value:.5g}</td>"
                      f"<td>{'' if p.std is None else f'{p.std:.3g}'}</td><td>{html.escape(p.unit)}</td></tr>"
                      for p in result.parameters)
-    verdict = ("passed every gate: to be written back" if result.passed_gates else
-               "NOT to be written back: " + "; ".join(result.reasons()))
+    lines = headline(result, tool_id, ending)
     return write_page(
         out / "report.html", "cellcal run",
         f"<h1>Run {run_id}: {html.escape(result.routine)}</h1>"
         f"<p>{'no tool (the cell describes none)' if tool_id is None else f'tool {tool_id}'}</p>"
-        f"<p><b>{html.escape(verdict)}</b></p>" + drawing +
+        f"<p><b>{html.escape(lines[0])}</b></p>" + "".join(f"<p>{html.escape(t)}</p>" for t in lines[1:])
+        + drawing +
         "<h2>Tool frame</h2><table border=1 cellpadding=4><tr><th></th><th>x mm</th><th>y mm</th><th>z mm</th>"
         "<th>rx deg</th><th>ry deg</th><th>rz deg</th><th>z leans toward x, deg</th><th>toward y, deg</th></tr>"
         + _frame_row("before", before) + _frame_row("found", result.tool_frame) + base_row + "</table>"

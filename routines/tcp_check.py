@@ -175,11 +175,11 @@ class TcpCheck(Routine):
     @classmethod
     def with_history(cls, cell: Cell, options: TcpCheckOptions, last_result) -> tuple[TcpCheckOptions, str | None]:
         """In the service: the beams where the newest tcp-laser calibration that passed found
-        them (its result's ``beams[].point_mm``), unless the cell file's ``tcp_check`` section
-        gives them (then those)."""
+        them (its result's ``beams[].point_mm``), whichever tool it calibrated (the beams are the
+        cell's), unless the cell file's ``tcp_check`` section gives them (then those)."""
         if options.beams:
             return options, None
-        last = last_result("tcp-laser")
+        last = last_result("tcp-laser", any_tool=True)
         if last is None:
             return options, None
         run_id, found = last
@@ -360,6 +360,8 @@ def _result(name, fit: check.CheckFit, geometry, cell: Cell, options: TcpCheckOp
                        "outer_deg": bands.outer_deg},
              "compared_with": ref.source, "beams_from": beam_source, "n_edges": int(len(fit.residuals_mm)),
              "speed_mm_s": float(meta.get("speed_mm_s", options.speed_mm_s))}
+    if judged.verdict is Verdict.ALARM:  # what was seen, as the run's reason says it (the log, the store, the page)
+        extra["saw"] = notes[0].removeprefix("alarm: ")
     return Result(name, params, fit.residuals_mm, expected, fit.condition, gate_list, tool_frame=frame, notes=notes,
                   extra=extra, determines=determines, verdict=judged.verdict, change=change)
 

@@ -18,7 +18,9 @@ from support import loopback as _loopback
 # them, instead of one worker finishing a long file alone at the end.
 LONGEST_FIRST = ("e2e/test_time_scale.py", "e2e/test_tracker_routine.py", "e2e/test_daemon_e2e.py",
                  "e2e/test_tool_change_panel.py", "e2e/test_tcp_laser.py", "e2e/test_sim_cells.py",
-                 "e2e/test_handshake.py", "e2e/test_tcp_check_panel.py", "e2e/test_tcp_stylus.py")
+                 "e2e/test_handshake.py", "e2e/test_tcp_check_panel.py", "e2e/test_tcp_stylus.py",
+                 # the longest of those `make test-fast` runs
+                 "protocol/test_ur_rtde_fake.py", "unit/test_routine_framework.py")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -210,16 +210,22 @@ class UrRtdeRobot(Robot):
                     safety=False)
         return self._stream.latest()
 
-    def _await(self, done, timeout_s: float, what: str, during: str | None = None, safety: bool = True) -> None:
-        """Poll ``done`` until the deadline; the stream (and, with ``safety``, the safety state) is watched."""
-        deadline = time.monotonic() + timeout_s
+    def _await(self, done, timeout_s: float, what: str, during: str | None = None, safety: bool = True,
+               controller_clock: bool = False) -> None:
+        """Poll ``done`` until the deadline; the stream (and, with ``safety``, the safety state) is watched.
+        With ``controller_clock`` the deadline is on the controller's clock (the stream's timestamps),
+        as a motion's time is: a host slowed by load does not cut a motion short, and a controller
+        that stops advancing is caught by the stream's stale limit."""
+        now = (lambda: self._stream.latest().t_s) if controller_clock else time.monotonic
+        deadline = now() + timeout_s
         while not done():
             if safety:
                 self._check_safety(during or what)
             else:
                 self._check_link(what)
-            if time.monotonic() > deadline:
-                raise DeviceTimeout(self.name, f"{what} did not happen within {timeout_s:.3g} s")
+            if now() > deadline:
+                clock = " of the controller's time" if controller_clock else ""
+                raise DeviceTimeout(self.name, f"{what} did not happen within {timeout_s:.3g} s{clock}")
             time.sleep(POLL_S)
 
     def _deadline_s(self, travel_s: float) -> float:
@@ -240,7 +246,8 @@ class UrRtdeRobot(Robot):
                 return not status.program_running or (
                     status.async_operation_id != op_before and not status.async_operation_running)
 
-            self._await(finished, self._deadline_s(travel_s), f"the end of {what}", during=what)
+            self._await(finished, self._deadline_s(travel_s), f"the end of {what}", during=what,
+                        controller_clock=True)
             if not self._stream.status.program_running:
                 self._explain_program_stop(what)
             try:

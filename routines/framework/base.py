@@ -40,6 +40,17 @@ class NotForThisCell(RoutineError):
     needs is missing): refused before anything moves, exit 2, panel result code 11."""
 
 
+@dataclass(frozen=True)
+class RunEnding:
+    """How the run that produced a result ended: its result code's name, the reason it ended
+    with and whether a tool frame was written to the controller."""
+
+    code_name: str
+    reason: str
+    wrote: bool
+
+
+
 class CheckAlarm(RoutineError):
     """A check saw the tool too far from its stored frame to measure it (a sweep missed a
     beam, or blocked it where it should not): verdict alarm, nothing written (panel code 33)."""
@@ -373,8 +384,9 @@ class Routine(abc.ABC):
     @classmethod
     def with_history(cls, cell: Cell, options, last_result) -> tuple[object, str | None]:
         """The routine's options (read from its section) as the service runs it, given what
-        earlier runs found (`last_result(routine)`: (run id, result JSON) of the newest run of
-        that routine that passed every gate, or None), and a note saying what was taken from
-        them; the options unchanged and None for a routine that needs nothing of the past."""
+        earlier runs found (`last_result(routine, any_tool=False)`: (run id, result JSON) of the
+        newest run of that routine for the tool this run is for, or for any tool, that passed
+        every gate, or None), and a note saying what was taken from them; the options unchanged
+        and None for a routine that needs nothing of the past."""
         return options, None
 

@@ -137,7 +137,8 @@ def service_on(cell, drivers, tmp_path) -> Service:
 def test_a_button_press_writes_back_a_frame_that_matches_the_truth(cell, tmp_path):
     with open_drivers(cell) as drivers:
         service = service_on(cell, drivers, tmp_path)
-        service.report = lambda run_id, result, store: write_run_report(tmp_path / "reports", run_id, result)
+        service.report = lambda run_id, result, store, ending: write_run_report(tmp_path / "reports", run_id,
+                                                                                 result, ending=ending)
         panel = drivers.panel
         panel.select_routine(1)
         panel.press_start()

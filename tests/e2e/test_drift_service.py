@@ -39,7 +39,8 @@ def cell_with_tool_moved(folder, shift_mm: float):
 
 def service_on(cell, drivers, store, folder) -> Service:
     return Service(cell, drivers, store, out_dir=folder / "datasets",
-                   report=lambda run_id, result, st: write_run_report(folder / "reports", run_id, result),
+                   report=lambda run_id, result, st, ending: write_run_report(folder / "reports", run_id, result,
+                                                                              ending=ending),
                    trend=lambda tool_id, t: write_trend_page(folder / "reports" / f"tool-{tool_id}", t))
 
 

@@ -66,11 +66,12 @@ def sweep_tool_across_beams(robot, trigger, cell, speed: float, timeout_s: float
     end = np.concatenate([crossing + [0.02, 0.0, -0.005], home[3:]])
     robot.move_l(start, 0.25, 1.0)
     t_start = robot.samples()[-1].t_s
-    trigger.events()
     robot.move_l(end, speed, 1.0)
-    events, deadline = [], time.monotonic() + timeout_s  # a trigger on its own connection may lag
+    # a trigger on its own connection may lag: edges of the move to the start can still arrive now, so
+    # the sweep's are those stamped after it began (the ring and the robot share the cell's clock)
+    events, deadline = [], time.monotonic() + timeout_s
     while len(events) < 4 and time.monotonic() < deadline:
-        events += trigger.events(timeout_s=0.5)
+        events += [e for e in trigger.events(timeout_s=0.5) if e.t_s >= t_start]
     return sorted(events, key=lambda e: e.t_s), t_start
 
 
@@ -103,6 +104,9 @@ def test_shipped_cells_load():
     # a tool's tolerance bands (tcp-check): negative, inverted, wider than the plausibility gate
     ({"tool": {"bands": {"inner_mm": -0.1}}}, "tool.bands", "inner_mm", "out of range"),
     ({"tool": {"bands": {"inner_mm": 0.5, "outer_mm": 0.2}}}, "tool.bands", "outer_mm", "must be wider"),
+    ({"tool": {"bands": {"inner_mm": 0.5, "outer_mm": 0.5}}}, "tool.bands", "outer_mm", "must be wider"),
+    # an inner band alone at or beyond the default outer band (1 mm) is refused, not the outer band widened
+    ({"tool": {"bands": {"inner_deg": 1.5}}}, "tool.bands", "inner_deg", "give outer_deg too"),
     ({"tool": {"bands": {"outer_deg": 6.0}}}, "tool.bands", "outer_deg", "out of range"),
     ({"tool": {"bands": {"outer_mm": 11.0}}}, "tool.bands", "outer_mm", "out of range"),
     ({"tool": {"bands": {"inner": 0.1}}}, "tool.bands", "inner", "unknown key"),
@@ -118,6 +122,23 @@ def test_load_cell_names_file_section_and_key(tmp_path, changes, section, key, w
         load_cell(path)
     message = str(info.value)
     assert message.startswith(str(path)) and f"[{section}.{key}]" in message and what in message, message
+
+
+@pytest.mark.parametrize("page, refused", [
+    ({"port": 5030}, True),  # where the tracker serves, on the same address
+    ({"port": 5030, "host": "0.0.0.0"}, True),  # on every address, the tracker on this machine's loopback
+    ({"port": 5030, "host": "127.0.0.2"}, False),  # another address: no clash
+    ({"port": 5030, "enabled": False}, False),  # no page, no clash
+])
+def test_the_status_page_is_refused_on_a_devices_address(tmp_path, page, refused):
+    path = edited_cell(tmp_path, "sim-net", {"status_page": page})
+    if not refused:
+        assert load_cell(path).status_page.port == 5030
+        return
+    with pytest.raises(CellFileError) as info:
+        load_cell(path)
+    message = str(info.value)
+    assert "[status_page.port]" in message and "drivers.tracker" in message and "another port" in message, message
 
 
 @pytest.mark.parametrize("tracker, key, what", [

@@ -51,8 +51,8 @@ def cell_run(tmp_path_factory):
     with open_drivers(cell) as drivers:
         store = Store.open(folder)
         service = Service(cell, drivers, store, out_dir=folder / "datasets",
-                          report=lambda run_id, result, st: write_run_report(folder / "reports", run_id, result,
-                                                                             tool_id=st.run(run_id).tool_id),
+                          report=lambda run_id, result, st, ending: write_run_report(
+                              folder / "reports", run_id, result, tool_id=st.run(run_id).tool_id, ending=ending),
                           trend=lambda tool_id, trend: write_trend_page(folder / "reports" / f"tool-{tool_id}", trend))
         outcomes = []
         for routine in ("tcp-npoint", "tcp-check"):
@@ -222,6 +222,10 @@ BAD = [
     ("limit not a number", b"GET /api/v1/runs?limit=ten HTTP/1.1\r\n\r\n", 400),
     ("limit twice", b"GET /api/v1/runs?limit=1&limit=2 HTTP/1.1\r\n\r\n", 400),
     ("an unknown parameter", b"GET /api/v1/runs?sort=id HTTP/1.1\r\n\r\n", 400),
+    ("a parameter on the state", b"GET /api/v1/state?foo=1 HTTP/1.1\r\n\r\n", 400),
+    ("a parameter on the tools", b"GET /api/v1/tools?foo=1 HTTP/1.1\r\n\r\n", 400),
+    ("a parameter on a run", b"GET /api/v1/runs/1?limit=2 HTTP/1.1\r\n\r\n", 400),
+    ("a run id of 26 digits", b"GET /api/v1/runs/12345678901234567890123456 HTTP/1.1\r\n\r\n", 404),
     ("an unknown endpoint", b"GET /api/v1/start HTTP/1.1\r\n\r\n", 404),
     ("another API version", b"GET /api/v2/state HTTP/1.1\r\n\r\n", 404),
     ("a static file not served", b"GET /static/index.html HTTP/1.1\r\n\r\n", 404),

@@ -7,6 +7,10 @@ tool with the frame the controller holds.
 """
 from __future__ import annotations
 
+import html
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
 from cellcal.daemon.service import ResultCode
@@ -36,11 +40,20 @@ def press(net: Net, routine: str) -> dict:
     return plc_reads(net)
 
 
+def headline(daemon, run_id: int) -> str:
+    """The first lines of run `run_id`'s report, as text (what the page says before its plots)."""
+    page = Path(daemon.cli("runs", "show", str(run_id))["report"]).read_text()
+    return " ".join(html.unescape(re.sub(r"<[^>]+>", " ", page.split("<h2>")[0])).split())
+
+
 def test_check_ok_then_corrected_then_alarm_from_the_panel(net, cellcal_daemon):
     daemon = cellcal_daemon(net)
     calibrated = press(net, "tcp-laser")
     assert calibrated["code"] == ResultCode.OK, daemon.log()
     frame = controller_tcp(net)
+    # each report's headline says what happened: the verdict, and whether (and as which) a frame was written
+    assert "Every gate passed" in headline(daemon, 1)
+    assert "written to the controller as tool 1's frame" in headline(daemon, 1)
 
     fine = press(net, "tcp-check")
     assert fine["code"] == ResultCode.OK and fine["verdict"] == "ok", daemon.log()
@@ -49,6 +62,8 @@ def test_check_ok_then_corrected_then_alarm_from_the_panel(net, cellcal_daemon):
     np.testing.assert_array_equal(controller_tcp(net), frame)
     # ok means every determined change is within the inner band (0.1 mm, 0.1 deg)
     assert all(abs(fine[k]) <= 0.1 for k in ("x_mm", "y_mm", "z_mm") if fine[k] is not None), fine
+    said = headline(daemon, 2)
+    assert "Tool check OK" in said and "Nothing was written" in said and "to be written back" not in said, said
 
     drifted = frame + np.array([0.0004, 0.0, 0.0, 0.0, 0.0, 0.0])  # the frame 0.4 mm off the tool along x
     assert net.control.request(cmd="set_tcp", tcp=drifted.tolist())["ok"]
@@ -59,6 +74,8 @@ def test_check_ok_then_corrected_then_alarm_from_the_panel(net, cellcal_daemon):
     # frame written is back near the calibration's (inner band: what a check can tell)
     assert corrected["x_mm"] == pytest.approx(-0.4, abs=0.1), corrected
     assert np.linalg.norm(controller_tcp(net)[:3] - frame[:3]) * 1e3 <= 0.1
+    said = headline(daemon, 3)
+    assert "Tool check CORRECTED" in said and "written to the controller as tool 1's frame" in said, said
 
     bent = controller_tcp(net) + np.array([0.0, 0.002, 0.0, 0.0, 0.0, 0.0])  # 2 mm: beyond the outer band
     assert net.control.request(cmd="set_tcp", tcp=bent.tolist())["ok"]
@@ -67,6 +84,22 @@ def test_check_ok_then_corrected_then_alarm_from_the_panel(net, cellcal_daemon):
     assert alarm["lamps"]["fault"] and not alarm["lamps"]["done"]
     np.testing.assert_array_equal(controller_tcp(net), bent)  # nothing written
     assert "tool check alarm" in daemon.log()
+    said = headline(daemon, 4)
+    assert "Tool check ALARM" in said and "Nothing was written" in said, said
+    # the reason is what the check saw, in the log, the store and runs list alike
+    reason = daemon.cli("runs", "list")["runs"][0]["reason"]
+    assert re.search(r"tip \d+\.\d{3} mm off \(x [+-]\d", reason) and "a bent tool or a collision?" in reason, reason
+    assert "outer band" in reason and reason in daemon.log()
+
+    # a tool 30 mm off its frame (another tool on the flange, or one badly bent): the sweeps miss the
+    # beams before anything can be solved. Still an alarm, in the verdict register, the store and runs list
+    missed = frame + np.array([0.030, 0.0, 0.0, 0.0, 0.0, 0.0])
+    assert net.control.request(cmd="set_tcp", tcp=missed.tolist())["ok"]
+    blind = press(net, "tcp-check")
+    assert blind["code"] == ResultCode.CHECK_ALARM and blind["verdict"] == "alarm", (blind, daemon.log()[-2000:])
+    assert blind["lamps"]["fault"] and not blind["lamps"]["done"]
+    np.testing.assert_array_equal(controller_tcp(net), missed)  # nothing written
+    assert daemon.cli("runs", "list")["runs"][0]["verdict"] == "alarm"
     history = daemon.cli("tool", "history")
     assert [f["run_id"] for f in history["tool_frames"]] == [1, 3]  # the calibration and the correction
     assert daemon.stop() == 0

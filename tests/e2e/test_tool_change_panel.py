@@ -113,6 +113,9 @@ def test_two_tools_calibrated_checked_and_changed_from_the_panel(net, cellcal_da
     np.testing.assert_array_equal(controller_tcp(net), torch)
     assert "tool 1 (torch) mounted: the controller's tool frame set to the last frame written for it (run 1)" \
         in daemon.log()
+    # the beams are the cell's: the check of the torch measures against the beams the newest tcp-laser
+    # found, the spare's (run 3), not the older one of its own tool (run 1)
+    assert "run 5: the beams where tcp-laser run 3 found them" in daemon.log()
 
     net.sim.mount_tool(0)  # the flange bare: the tool changer's register reads 0
     bare = refused(net, "tcp-check")

@@ -43,9 +43,12 @@ def store(tmp_path):
     s.close()
 
 
-def history(store, points, tool_id=1):
-    """`points`: (day, kind, dx_mm, tilt_deg, written, determines), each a run of its own."""
+def history(store, points, tool_id=1, runs_apart=1):
+    """`points`: (day, kind, dx_mm, tilt_deg, written, determines), each a run of its own, `runs_apart`
+    run ids after the one before (the cell's other runs between)."""
     for day, kind, dx, tilt, written, determines in points:
+        for _ in range(runs_apart - 1):
+            store.begin_run("tcp-npoint", "sim")
         run_id = store.begin_run("tcp-check" if kind == "check" else "tcp-laser", "sim")
         store.record_measured_frame(run_id, tool_id, kind, "tcp-check" if kind == "check" else "tcp-laser",
                                     frame(dx, tilt), determines, written=written, at=T0 + day * DAY)
@@ -72,20 +75,34 @@ def test_the_store_keeps_every_measured_frame_per_tool(store):
 
 
 def test_rates_come_back_from_a_history_with_known_slopes(store):
-    """A calibration, then a check a day (run ids 1 apart) drifting 0.01 mm and 0.01 deg a day:
-    0.07 mm and 0.07 deg a week; per run 0.01, so 10 per 1000 runs."""
+    """A calibration, then a check a day (run ids 20 apart) drifting 0.01 mm and 0.01 deg a day:
+    0.07 mm and 0.07 deg a week; per run 0.0005, so 0.5 per 1000 runs."""
     rows = history(store, [(0, "calibration", 0.0, 0.0, True, BOTH)]
-                   + [(d, "check", 0.01 * d, 0.01 * d, False, BOTH) for d in range(1, 8)])
+                   + [(d, "check", 0.01 * d, 0.01 * d, False, BOTH) for d in range(1, 8)], runs_apart=20)
     t = drift.trend(rows, 1)
     assert t["rate"]["points"] == 8 and t["rate"]["why_none"] is None
     assert t["rate"]["tip_mm_per_week"] == pytest.approx(0.07, abs=ROUNDING)
     assert t["rate"]["axis_deg_per_week"] == pytest.approx(0.07, abs=ROUNDING)
-    assert t["rate"]["tip_mm_per_1000_runs"] == pytest.approx(10.0, abs=ROUNDING * 1000)
-    assert t["rate"]["axis_deg_per_1000_runs"] == pytest.approx(10.0, abs=ROUNDING * 1000)
+    assert t["rate"]["tip_mm_per_1000_runs"] == pytest.approx(0.5, abs=ROUNDING * 1000)
+    assert t["rate"]["axis_deg_per_1000_runs"] == pytest.approx(0.5, abs=ROUNDING * 1000)
     assert t["latest"]["since_last_calibration"]["tip_mm"] == pytest.approx(0.07, abs=ROUNDING)
     assert t["latest"]["since_first_calibration"]["axis_deg"] == pytest.approx(0.07, abs=ROUNDING)
     assert not t["never_calibrated"] and t["first_calibration"]["run_id"] == rows[0]["run_id"]
     json.dumps(t)  # one JSON object, as `tool trend --json` prints it
+
+
+def test_minutes_and_a_few_runs_of_history_give_no_rate_and_say_why(store):
+    """Five checks two minutes after a calibration, runs 1 apart: a rate per week or per 1000 runs
+    from them would extrapolate their noise (a straight line through 0.5 mm in five runs is 100
+    mm per 1000 runs)."""
+    rows = history(store, [(0, "calibration", 0.0, 0.0, True, BOTH)]
+                   + [(k * 30 / DAY, "check", 0.1 * k, 0.0, False, BOTH) for k in range(1, 5)])
+    rate = drift.trend(rows, 1)["rate"]
+    assert rate["points"] == 5
+    assert all(rate[k] is None for k in ("tip_mm_per_week", "axis_deg_per_week", "tip_mm_per_1000_runs",
+                                         "axis_deg_per_1000_runs")), rate
+    assert "no rate per week" in rate["why_none"] and "no rate per 1000 runs" in rate["why_none"]
+    assert f"{drift.MIN_RATE_SPAN_RUNS} runs or more apart" in rate["why_none"]
 
 
 def test_a_new_full_calibration_restarts_the_change_since_the_last_but_not_since_the_first(store):

@@ -230,7 +230,10 @@ def test_rollback_of_a_tool_not_mounted_restores_only_its_block(tmp_path, monkey
     assert StoredToolFrame(FRAME_2, last - 1).same_as(robot.stored_tool_frame(1))
     assert StoredToolFrame(FRAME_1, last - 2).same_as(robot.stored_tool_frame(0))
     np.testing.assert_array_equal(robot.tool_frame(), FRAME_1)  # the mounted tool's frame left alone
-    assert "tool 2 is not mounted: only its block" in capsys.readouterr().err
+    said = capsys.readouterr()
+    assert "tool 2 is not mounted: only its block" in said.err
+    # the restored frame is not said to be on the controller: it went to tool 2's block, for its next mounting
+    assert "restored tool 2" in said.out and "into its block of stored frames only, for its next mounting" in said.out
     store = Store.open(tmp_path / "state")
     row = store.tool_frames()[-1]
     store.close()

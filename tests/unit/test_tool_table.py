@@ -121,7 +121,7 @@ BAD = [
     ("id missing", {}, [{k: v for k, v in PIN.items() if k != "id"}], ["[tools[0].id]", "missing"]),
     ("mounted names no tool", {"mounted": 3}, None, ["[mounted]", "no tool 3 in [tools]", "1, 2"]),
     ("bands inverted", {}, [PIN, {**TORCH, "bands": {"inner_mm": 0.5, "outer_mm": 0.2}}],
-     ["[tools[1].bands.outer_mm]", "inside the inner band"]),
+     ["[tools[1].bands.outer_mm]", "not wider than the inner band"]),
     ("band negative", {}, [PIN, {**TORCH, "bands": {"inner_deg": -0.1}}], ["[tools[1].bands.inner_deg]", "above 0"]),
     ("outer band beyond the plausibility gate", {}, [PIN, {**TORCH, "bands": {"outer_mm": 12}}],
      ["[tools[1].bands.outer_mm]", "at most 10"]),
