@@ -34,7 +34,9 @@ RESULT_MEANINGS = {
     ResultCode.OK: "the run passed every gate and its tool frame was written back and read back",
     ResultCode.NOT_READY: "start refused: the robot is not ready (protective or emergency stop, not connected)",
     ResultCode.NO_SUCH_ROUTINE: "start refused: the routine selector names no routine this cell can run",
-    ResultCode.LIMITS: "start refused: the routine's plan would leave the cell's limits; nothing moved",
+    ResultCode.LIMITS: "a move would leave the cell's limits: at the start, the routine's plan (nothing "
+                       "moved); during the run, a move checked from where the arm is (refused before it was "
+                       "sent; the arm stopped)",
     ResultCode.BUSY: "start refused: a routine is already running (the press is ignored)",
     ResultCode.TOOL_NOT_MOUNTED: "start refused: no tool is mounted (or one the cell lacks), or the tool selector "
                                  "names another tool than the mounted one or one the cell does not have; nothing "

@@ -96,6 +96,9 @@ class RunMachine:
             return self._end(run_id, "aborted", ResultCode.ABORTED, str(exc))
         except OperatorTimeout as exc:
             return self._end(run_id, "fault", ResultCode.CONFIRM_TIMEOUT, f"{exc.what}; nothing written")
+        except PlanRefused as exc:  # a move checked from where the arm really is: the limits, not the service
+            return self._end(run_id, "fault", ResultCode.LIMITS, f"a move was refused before it was sent: {exc}; "
+                                                                 "the arm stopped, nothing written")
         except CheckAlarm as exc:
             return self._end(run_id, "fault", ResultCode.CHECK_ALARM, f"tool check alarm: {exc}",
                              verdict=Verdict.ALARM)

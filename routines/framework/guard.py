@@ -294,6 +294,7 @@ class GuardedRobot:
         self.peers: dict[str, GuardedRobot] = {}  # the cell's other robots, guarded alike
         self.sent: list[Move] = []
         self._tool_frame = None if tool_frame is None else np.asarray(tool_frame, dtype=float)
+        self._unwound = False  # the run's first move checks for a wrist left beyond its limits
 
     @classmethod
     def of_cell(cls, robots: dict, guard: MotionGuard, abort=None, tool_frames: dict | None = None
@@ -324,6 +325,11 @@ class GuardedRobot:
         if move.robot != self.name:
             raise PlanRefused(f"move '{move.label}': a move of robot {move.robot}, sent to robot {self.name}")
         others = {name: peer._state() for name, peer in self.peers.items()} if self.peers else None
+        if not self._unwound:
+            self._unwound = True
+            unwind = self.unwinding(move)
+            if unwind is not None:
+                self.run(unwind)
         self.guard.check(move, self._state(), others)
         self.sent.append(move)
         if move.kind == "joint":
@@ -333,6 +339,27 @@ class GuardedRobot:
         else:
             return self.robot.move_until_contact(move.direction * move.speed, move.travel_m / move.speed)
         return None
+
+    def unwinding(self, first: Move) -> Move | None:
+        """The joint move that turns back, by whole turns, every joint the arm holds outside its
+        limits (a run aborted during a wrist's turn may leave it a little beyond one) when the
+        turned value is inside them: the same pose, so the plan's first move starts within the
+        limits. None when every joint is inside its limits, or one cannot be turned back in."""
+        limits = self.guard.joint_limits if self.name == "a" else self.guard.arms[self.name].model.joint_limits
+        if limits is None:
+            return None
+        q = np.asarray(self.robot.actual_q(), dtype=float)
+        low, high = np.asarray(limits, dtype=float).T
+        outside = (q < low) | (q > high)
+        if not np.any(outside):
+            return None
+        turned = np.where(outside, q - 2.0 * np.pi * np.round(q / (2.0 * np.pi)), q)
+        if np.any(turned < low) or np.any(turned > high):
+            return None
+        joints = ", ".join(f"{i + 1} ({np.rad2deg(q[i]):.2f} deg)" for i in np.flatnonzero(outside))
+        limits = self.guard.limits
+        return Move.joint(f"unwind joint {joints} back inside its limits before '{first.label}'", turned,
+                          limits["joint_speed_rad_s"], limits["joint_accel_rad_s2"], robot=self.name)
 
     def set_tcp(self, tool_pose) -> None:
         tracked, self._tool_frame = self._tool_frame is not None, None  # unknown should the write fail

@@ -168,6 +168,29 @@ def test_a_button_press_writes_back_a_frame_that_matches_the_truth(cell, tmp_pat
 
 
 @needs_routine
+def test_a_start_after_a_run_left_the_wrist_beyond_a_turn_unwinds_it_and_runs(cell, tmp_path):
+    """An aborted run can leave joint 6 a little beyond a full turn (its stop ramp past -360 deg):
+    the next start plans from there, turns the wrist back by a turn first, and runs to its end;
+    a move checked from where the arm is is never a service fault."""
+    from cellcal.config.robot_files import load_robot
+
+    low = load_robot(cell.robot).joint_limits[5, 0]
+    with open_drivers(cell) as drivers:
+        q = np.asarray(cell.home_q_rad, dtype=float).copy()
+        q[5] = low - np.deg2rad(0.02)
+        arm = drivers.world.arm  # put there as a stop ramp leaves it (a controller refuses such a target)
+        arm.q = q
+        arm.set_tcp(arm.tcp_offset)
+        service = service_on(cell, drivers, tmp_path)
+        drivers.panel.select_routine(1)  # tcp-laser
+        drivers.panel.press_start()
+        service.poll_panel()
+        outcome = service.wait(60)
+        assert (outcome.state, outcome.code) == ("done", ResultCode.OK), outcome.reason
+        assert low <= drivers.robot.actual_q()[5] <= -low
+
+
+@needs_routine
 def test_a_press_while_running_is_ignored_and_abort_stops_without_write_back(cell, tmp_path):
     with open_drivers(cell) as drivers:
         held = HeldRobot(drivers.robot)

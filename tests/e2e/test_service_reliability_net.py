@@ -64,10 +64,11 @@ def test_a_frame_a_stopped_run_owes_comes_back_after_a_restart_of_the_service(ce
     net.dashboard("unlock protective stop")
     again = cellcal_daemon(net)  # the same state folder
     deadline = time.monotonic() + 20.0
-    while np.abs(frame_on_controller(net) - net.previous).max() > FRAME_ATOL:
+    # the frame goes back, then the service logs it: on a loaded machine the line can follow a moment later
+    while np.abs(frame_on_controller(net) - net.previous).max() > FRAME_ATOL or \
+            "tool frame from before it is back" not in again.log():
         assert time.monotonic() < deadline, again.log()
         time.sleep(0.05)
-    assert "tool frame from before it is back" in again.log()
     assert again.stop() == 0
 
 

@@ -120,11 +120,11 @@ def sim_sleep(control: ControlClient, sim_s: float) -> None:
 
 
 def _stop(proc: subprocess.Popen) -> int:
-    """SIGTERM, then SIGKILL after 10 s; the exit status."""
+    """SIGTERM, then SIGKILL after the unit's TimeoutStopSec, as systemd does; the exit status."""
     if proc.poll() is None:
         proc.send_signal(signal.SIGTERM)
         try:
-            proc.wait(10.0)
+            proc.wait(systemd_stop_timeout_s())
         except subprocess.TimeoutExpired:
             proc.kill()
     return proc.wait()

@@ -100,6 +100,28 @@ def test_every_routine_sends_only_commands_within_the_cell_limits(cell, name, tm
         assert not within_limits(cell, model, command, tool), command
 
 
+def test_a_wrist_left_beyond_its_limits_is_unwound_before_the_plans_first_move(cell, tmp_path):
+    """A run aborted during a wrist's turn can leave joint 6 a little beyond a full turn (-360.02
+    deg against limits of +-360): the next run turns it back by a turn, the same pose, before its
+    plan's first move, instead of refusing that move for a joint outside its limits."""
+    prepared = runner.prepare("tcp-laser", cell)
+    model = load_robot(cell.robot)
+    with open_drivers(cell) as drivers:
+        q = np.asarray(cell.home_q_rad, dtype=float).copy()
+        q[5] = model.joint_limits[5, 0] - np.deg2rad(0.02)  # where the abort left it
+        arm = drivers.world.arm  # put there as a stop ramp leaves it (a controller refuses such a target)
+        arm.q = q
+        arm.set_tcp(arm.tcp_offset)
+        recording = RecordingRobot(drivers.robot)
+        drivers.robot = recording
+        runner.measure(prepared, drivers, tmp_path, lambda message: None)
+    kind, target, _, _ = recording.commands[0]
+    assert kind == "joint"
+    # a whole turn back: joint 6 at -0.02 deg, the other joints where they were (the same pose)
+    np.testing.assert_allclose(target, [*q[:5], q[5] + 2 * np.pi], atol=1e-12)
+    assert all(not within_limits(cell, model, c, cell.tool.tcp_pose) for c in recording.commands)
+
+
 def test_a_dataset_round_trips_with_its_header(tmp_path):
     data = Dataset("tcp-laser", {"t_s": np.array([0.1, 0.2]), "edge": np.array(["blocked", "cleared"])},
                    {"speed_m_s": 0.04, "tool_frame_before": np.zeros(6)}, cell="sim", robot="ur10e")
