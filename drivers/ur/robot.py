@@ -213,18 +213,25 @@ class UrRtdeRobot(Robot):
     def _await(self, done, timeout_s: float, what: str, during: str | None = None, safety: bool = True,
                controller_clock: bool = False) -> None:
         """Poll ``done`` until the deadline; the stream (and, with ``safety``, the safety state) is watched.
-        With ``controller_clock`` the deadline is on the controller's clock (the stream's timestamps),
-        as a motion's time is: a host slowed by load does not cut a motion short, and a controller
-        that stops advancing is caught by the stream's stale limit."""
-        now = (lambda: self._stream.latest().t_s) if controller_clock else time.monotonic
-        deadline = now() + timeout_s
+        With ``controller_clock`` the time is up only once it is up on both clocks, the controller's
+        (the stream's timestamps: a motion's time) and the wall's: a host slowed by load, whose
+        controller model runs behind the wall, does not cut a motion short, nor does a stream that
+        was still catching up when the wait began (its clock then starts early). A controller that
+        stops advancing is caught by the stream's stale limit. On a real arm the two clocks are one."""
+        wall_deadline = time.monotonic() + timeout_s
+        t_deadline = self._stream.latest().t_s + timeout_s
+
+        def up() -> bool:
+            wall_up = time.monotonic() > wall_deadline
+            return wall_up and (not controller_clock or self._stream.latest().t_s > t_deadline)
+
         while not done():
             if safety:
                 self._check_safety(during or what)
             else:
                 self._check_link(what)
-            if now() > deadline:
-                clock = " of the controller's time" if controller_clock else ""
+            if up():
+                clock = " of the controller's time and the wall's" if controller_clock else ""
                 raise DeviceTimeout(self.name, f"{what} did not happen within {timeout_s:.3g} s{clock}")
             time.sleep(POLL_S)
 
