@@ -13,6 +13,7 @@ in the error, instead of showing up as a child that timed out.
 from __future__ import annotations
 
 import itertools
+import logging
 import socket
 import struct
 import subprocess
@@ -22,6 +23,8 @@ import time
 from multiprocessing.connection import Connection
 
 from cellcal.drivers.interfaces import DeviceError, DeviceTimeout
+
+log = logging.getLogger(__name__)
 
 DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT = 29999, 30003, 30004
 PORT_NAMES = {DASHBOARD_PORT: "dashboard server", SCRIPT_PORT: "script port", RTDE_PORT: "RTDE"}
@@ -193,5 +196,8 @@ class UrRtdeProcess:
             self._child.wait(timeout=1.0)
         except subprocess.TimeoutExpired:  # stuck inside ur_rtde: it has nothing to save
             self._child.kill()
-            self._child.wait(timeout=5.0)
+            try:
+                self._child.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:  # killed, not yet reaped on a starved host: the kernel ends it
+                log.warning("ur_rtde's process %d was killed and has not ended within 5 s", self._child.pid)
         self._conn.close()
