@@ -357,9 +357,9 @@ class GuardedRobot:
         if np.any(turned < low) or np.any(turned > high):
             return None
         joints = ", ".join(f"{i + 1} ({np.rad2deg(q[i]):.2f} deg)" for i in np.flatnonzero(outside))
-        limits = self.guard.limits
+        cell = self.guard.limits
         return Move.joint(f"unwind joint {joints} back inside its limits before '{first.label}'", turned,
-                          limits["joint_speed_rad_s"], limits["joint_accel_rad_s2"], robot=self.name)
+                          cell["joint_speed_rad_s"], cell["joint_accel_rad_s2"], robot=self.name)
 
     def set_tcp(self, tool_pose) -> None:
         tracked, self._tool_frame = self._tool_frame is not None, None  # unknown should the write fail

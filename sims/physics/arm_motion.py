@@ -262,7 +262,26 @@ class JointMove(Motion):
         return self.q_from + self.delta * (self.profile.position(self.t) / self.profile.length)
 
 
-class LinearMove(Motion):
+class CartesianMotion(Motion):
+    """A motion whose TCP follows a path in the base frame, one IK a cycle."""
+
+    kin: ArmKinematics
+    tcp: np.ndarray
+    _q_last: np.ndarray | None = None
+
+    def _joints_for(self, rotation, position, q) -> np.ndarray:
+        """The joints of the next cycle: the IK seeded where the joints' last step leads (a smooth
+        path's next joints differ from that by the joint acceleration times a cycle squared), so one
+        Newton step usually lands within :data:`TRACKING_FINAL_STEP_RAD`."""
+        last = self._q_last
+        seed = q if last is None or last.shape != q.shape else 2.0 * q - last
+        q_next = self.kin.ik(rotation, position, seed, self.tcp, tol=1e-9, max_iter=8,
+                             final_step_rad=TRACKING_FINAL_STEP_RAD)
+        self._q_last = np.array(q, dtype=float)
+        return q_next
+
+
+class LinearMove(CartesianMotion):
     def __init__(self, kin: ArmKinematics, q_from, tcp_offset, pose_to, speed, accel):
         self.kin, self.tcp = kin, np.array(tcp_offset, dtype=float)
         self.r0, self.p0 = kin.tcp_frame(q_from, self.tcp)
@@ -281,10 +300,10 @@ class LinearMove(Motion):
             return self.kin.ik(self.r1, self.p1, q, self.tcp)
         s = self.profile.position(self.t) / self.profile.length
         rotation = exp_so3(self.turn * s) @ self.r0
-        return _tracking_ik(self, rotation, self.p0 + s * (self.p1 - self.p0), q)
+        return self._joints_for(rotation, self.p0 + s * (self.p1 - self.p0), q)
 
 
-class SpeedLinear(Motion):
+class SpeedLinear(CartesianMotion):
     """speedl: the TCP twist ramps to ``twist`` [vx, vy, vz, wx, wy, wz] (base frame) and holds."""
 
     def __init__(self, kin: ArmKinematics, q_from, tcp_offset, twist, accel):
@@ -300,19 +319,7 @@ class SpeedLinear(Motion):
         scale = 1.0 if self.t >= self.t_ramp else self.t / self.t_ramp
         self.position = self.position + self.twist[:3] * scale * dt
         self.rotation = exp_so3(self.twist[3:] * scale * dt) @ self.rotation
-        return _tracking_ik(self, self.rotation, self.position, q)
-
-
-def _tracking_ik(motion, rotation, position, q) -> np.ndarray:
-    """The joints of a Cartesian motion's next cycle: the IK seeded where the joints' last step
-    leads (a smooth path's next joints differ from that by the joint acceleration times a cycle
-    squared), so one Newton step usually lands within :data:`TRACKING_FINAL_STEP_RAD`."""
-    last = getattr(motion, "_q_last", None)
-    seed = q if last is None or last.shape != q.shape else 2.0 * q - last
-    q_next = motion.kin.ik(rotation, position, seed, motion.tcp, tol=1e-9, max_iter=8,
-                           final_step_rad=TRACKING_FINAL_STEP_RAD)
-    motion._q_last = np.array(q, dtype=float)
-    return q_next
+        return self._joints_for(self.rotation, self.position, q)
 
 
 class StopMotion(Motion):
