@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from scipy.spatial.transform import Rotation
 
 from cellcal.solvers.compensation.calibrated_model import STRUCTURAL, CalibratedModel, Effect, with_structural
 from cellcal.solvers.analysis.effects import CAUSES
@@ -156,6 +155,7 @@ def _tree_values(doc, values, lu, au) -> None:
         mount = branch.get("mount")
         if mount and not mount.get("fixed", False):
             x, y, z, rz, ry, rx = (values[f"{name}.mount.{p}"] for p in MOUNT_PARAMS)
+            from scipy.spatial.transform import Rotation  # imported here: 0.17 s a process that never needs it
             rot = Rotation.from_euler("ZYX", [rz, ry, rx]).as_matrix()
             branch["mount"] = {"matrix": [[*map(float, rot[i]), float((x, y, z)[i] / lu)] for i in range(3)]}
 

@@ -10,7 +10,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from cellcal.solvers.geometry.chain import Chain, Element
 from cellcal.solvers.geometry.robot_model import KinematicModel, Link
@@ -236,6 +235,7 @@ def tree_from_mapping(doc, source: str = "<memory>") -> KinematicModel:
         elements: list[Element] = []
         if "mount" in branch:
             mount, fixed = _transform(branch.section("mount"), lu)
+            from scipy.spatial.transform import Rotation  # imported here: 0.17 s a process that never needs it
             angles = Rotation.from_matrix(mount[:3, :3]).as_euler("ZYX")
             values = [("x", "tx", mount[0, 3], False), ("y", "ty", mount[1, 3], False),
                       ("z", "tz", mount[2, 3], False), ("rz", "rz", angles[0], True),

@@ -90,6 +90,28 @@ _EYE6 = np.eye(6)
 TRACKING_FINAL_STEP_RAD = 3e-6
 
 
+# the cyclic permutation taking z to each axis (x, y, z): a proper rotation, so a turn about
+# the axis is this times a turn about z times its transpose
+_Z_TO_AXIS = [np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
+              np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]),
+              np.eye(3)]
+
+
+def _rigid(elements, values) -> tuple[np.ndarray, np.ndarray]:
+    """The rigid transform (rotation, translation in m) of chain elements no joint drives."""
+    rotation, position = np.eye(3), np.zeros(3)
+    for el, v in zip(elements, values):
+        if el.is_rotation:
+            j, k = (el.axis + 1) % 3, (el.axis + 2) % 3
+            turn = np.eye(3)
+            turn[j, j] = turn[k, k] = math.cos(v)
+            turn[k, j], turn[j, k] = math.sin(v), -math.sin(v)
+            rotation = rotation @ turn
+        else:
+            position = position + rotation[:, el.axis] * (v / 1000.0)
+    return rotation, position
+
+
 class ArmKinematics:
     """Flange and TCP frames and the TCP Jacobian of a model's flange chain, in metres.
 
@@ -107,16 +129,30 @@ class ArmKinematics:
         self.n_joints = model.n_joints
         elements = self.chain.elements
         params = np.asarray(model.nominal if params is None else params, dtype=float)
-        self._base = np.array([params[el.param] if el.param >= 0 else el.constant for el in elements])
-        self._coupling = np.zeros((len(elements), self.n_joints))
-        for i, el in enumerate(elements):
-            for j, c in el.joints:
-                self._coupling[i, j] += c
-        self._kinds = [(el.is_rotation, el.axis, bool(el.joints)) for el in elements]
-        self._joints = [tuple(el.joints) for el in elements]
+        base = [float(params[el.param]) if el.param >= 0 else float(el.constant) for el in elements]
+        # The elements no joint drives are one rigid transform between two driven ones, and each
+        # driven element acts on the z axis of a frame turned so (a cyclic permutation of the axes,
+        # undone in the next rigid transform): the walk composes 6 rigid transforms and 6 turns
+        # about z instead of the 24 elements, in a dozen plain floats.
+        driven = [i for i, el in enumerate(elements) if el.joints]
+        self._base = np.array([base[i] for i in driven])
+        self._coupling = np.zeros((len(driven), self.n_joints))
+        for row, i in enumerate(driven):
+            for j, c in elements[i].joints:
+                self._coupling[row, j] += c
+        self._driven = [(elements[i].is_rotation, tuple(elements[i].joints)) for i in driven]
+        self._fixed = []  # the rigid transform before each driven element: 9 rotation entries row by row, 3 of translation
+        undo = np.eye(3)  # back from the previous driven element's turned frame
+        for a, i in zip([0, *(d + 1 for d in driven)], driven):
+            rotation, position = _rigid(elements[a:i], base[a:i])
+            turn = _Z_TO_AXIS[elements[i].axis]
+            self._fixed.append((*(undo @ rotation @ turn).ravel().tolist(), *(undo @ position).tolist()))
+            undo = turn.T
+        rotation, position = _rigid(elements[driven[-1] + 1:], base[driven[-1] + 1:])
+        end = self.chain.end
+        self._end = (*(undo @ rotation @ end[:3, :3]).ravel().tolist(),
+                     *(undo @ (position + rotation @ end[:3, 3] / 1000.0)).tolist())
         self._tool_key, self._tool_frame = None, None
-        self._end_rot = self.chain.end[:3, :3].copy()
-        self._end_pos_m = self.chain.end[:3, 3] / 1000.0
         self._check_against_chain(params)
 
     def _check_against_chain(self, params) -> None:
@@ -131,25 +167,33 @@ class ArmKinematics:
         """End rotation, end position (m) and, if wanted, (axis, origin, couplings) of each
         joint-driven element. Plain floats: for one pose they beat numpy's call overhead."""
         values = (self._base + self._coupling @ np.asarray(q, dtype=float)).tolist()
-        cols = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]  # columns of the rotation
+        xx, xy, xz, yx, yy, yz, zx, zy, zz = 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0  # the rotation's columns
         px = py = pz = 0.0
         frames = []
-        for (is_rotation, axis, driven), v, joints in zip(self._kinds, values, self._joints):
-            if want_frames and driven:
-                frames.append((is_rotation, tuple(cols[axis]), (px, py, pz), joints))
-            if is_rotation:
-                j, k = (axis + 1) % 3, (axis + 2) % 3
+        for (is_rotation, joints), v, fixed in zip(self._driven, values, self._fixed):
+            m00, m01, m02, m10, m11, m12, m20, m21, m22, tx, ty, tz = fixed
+            px, py, pz = (px + xx * tx + yx * ty + zx * tz, py + xy * tx + yy * ty + zy * tz,
+                          pz + xz * tx + yz * ty + zz * tz)
+            xx, xy, xz, yx, yy, yz, zx, zy, zz = (
+                xx * m00 + yx * m10 + zx * m20, xy * m00 + yy * m10 + zy * m20, xz * m00 + yz * m10 + zz * m20,
+                xx * m01 + yx * m11 + zx * m21, xy * m01 + yy * m11 + zy * m21, xz * m01 + yz * m11 + zz * m21,
+                xx * m02 + yx * m12 + zx * m22, xy * m02 + yy * m12 + zy * m22, xz * m02 + yz * m12 + zz * m22)
+            if want_frames:
+                frames.append((is_rotation, (zx, zy, zz), (px, py, pz), joints))
+            if is_rotation:  # about z
                 c, s = math.cos(v), math.sin(v)
-                cj, ck = cols[j], cols[k]
-                cols[j] = [c * cj[0] + s * ck[0], c * cj[1] + s * ck[1], c * cj[2] + s * ck[2]]
-                cols[k] = [c * ck[0] - s * cj[0], c * ck[1] - s * cj[1], c * ck[2] - s * cj[2]]
-            else:
-                ca = cols[axis]
+                xx, xy, xz, yx, yy, yz = (c * xx + s * yx, c * xy + s * yy, c * xz + s * yz,
+                                          c * yx - s * xx, c * yy - s * xy, c * yz - s * xz)
+            else:  # along z, in mm
                 v = v / 1000.0
-                px, py, pz = px + v * ca[0], py + v * ca[1], pz + v * ca[2]
-        rot = np.array(cols).T
-        pos = np.array([px, py, pz]) + rot @ self._end_pos_m
-        return rot @ self._end_rot, pos, frames
+                px, py, pz = px + v * zx, py + v * zy, pz + v * zz
+        m00, m01, m02, m10, m11, m12, m20, m21, m22, tx, ty, tz = self._end
+        rot = np.array([[xx * m00 + yx * m10 + zx * m20, xx * m01 + yx * m11 + zx * m21, xx * m02 + yx * m12 + zx * m22],
+                        [xy * m00 + yy * m10 + zy * m20, xy * m01 + yy * m11 + zy * m21, xy * m02 + yy * m12 + zy * m22],
+                        [xz * m00 + yz * m10 + zz * m20, xz * m01 + yz * m11 + zz * m21, xz * m02 + yz * m12 + zz * m22]])
+        pos = np.array([px + xx * tx + yx * ty + zx * tz, py + xy * tx + yy * ty + zy * tz,
+                        pz + xz * tx + yz * ty + zz * tz])
+        return rot, pos, frames
 
     def _tool(self, tcp_offset) -> tuple[np.ndarray, np.ndarray]:
         key = tuple(np.asarray(tcp_offset, dtype=float).tolist())
@@ -180,8 +224,8 @@ class ArmKinematics:
             if is_rotation:
                 dx, dy, dz = x - ox, y - oy, z - oz
                 column = (ay * dz - az * dy, az * dx - ax * dz, ax * dy - ay * dx, ax, ay, az)
-            else:
-                column = (ax, ay, az, 0.0, 0.0, 0.0)
+            else:  # the element's value is in mm, the TCP's position in m
+                column = (ax / 1000.0, ay / 1000.0, az / 1000.0, 0.0, 0.0, 0.0)
             for j, c in joints:
                 for row in range(6):
                     jac[row][j] += c * column[row]
@@ -355,8 +399,19 @@ class MovingArm:
         self.q_history: deque = deque([self.q.copy()], maxlen=self.HISTORY)
         self.contact_history: deque = deque([False], maxlen=self.HISTORY)
         self._update_tcp()
-        self.tcp_speed = np.zeros(6)
+        self._speed = np.zeros(6)
+        self._moved: tuple | None = None  # the last cycle's TCP frames, before and after, until asked for the speed
         self.moving_s = 0.0  # how long the current motion has run
+
+    @property
+    def tcp_speed(self) -> np.ndarray:
+        """The TCP's twist over the last cycle [vx, vy, vz, wx, wy, wz] (base frame), worked out
+        when asked: the fake reports it every cycle, the in-process cell only when it stops."""
+        if self._moved is not None:
+            (r_old, p_old), (r_new, p_new) = self._moved
+            self._speed = np.concatenate([(p_new - p_old) / self.dt, log_so3(r_new @ r_old.T) / self.dt])
+            self._moved = None
+        return self._speed
 
     @property
     def moving(self) -> bool:
@@ -380,10 +435,9 @@ class MovingArm:
             self.moving_s = 0.0
         if not at_rest:  # the TCP only moves when the joints do
             self._update_tcp()
-            r_new, p_new = self.tcp_frame
-            self.tcp_speed = np.concatenate([(p_new - p_old) / self.dt, log_so3(r_new @ r_old.T) / self.dt])
+            self._moved = ((r_old, p_old), self.tcp_frame)
         else:
-            self.tcp_speed = np.zeros(6)
+            self._speed, self._moved = np.zeros(6), None
         self.q_history.append(self.q.copy())
         self.contact_history.append(bool(self.contact(self.tcp_pose[:3])))
 

@@ -223,6 +223,36 @@ def test_aliases_that_share_a_block_are_still_read(tmp_path):
                                "c": [{"v": 0.25, "a": 2.5}] * 2}
 
 
+def _shipped_yaml() -> list[Path]:
+    from cellcal.config.reader import shipped
+
+    return sorted(p for folder in ("cells", "robots") for p in shipped(folder).values())
+
+
+@pytest.mark.parametrize("path", _shipped_yaml(), ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_libyaml_and_pyyamls_own_parser_read_every_shipped_file_alike(path):
+    """read_yaml parses with libyaml where PyYAML has it; its own parser is the fallback, and
+    both give the same data (numbers compared exactly: both convert the same text)."""
+    from cellcal.config.reader import _StrictLoader, _StrictPyLoader
+
+    text = path.read_text()
+    assert _StrictLoader(text).get_single_data() == _StrictPyLoader(text).get_single_data()
+
+
+@pytest.mark.parametrize("loader", ["_StrictLoader", "_StrictPyLoader"])
+def test_both_parsers_read_1e3_as_a_number_and_refuse_a_repeated_key(loader):
+    from cellcal.config import reader
+
+    def read(text: str):
+        strict = getattr(reader, loader)(text)
+        strict.name = "t.yaml"  # as read_yaml names it
+        return strict.get_single_data()
+
+    assert read("a: 1e3\nb: -2.5E-4\n") == {"a": 1000.0, "b": -2.5e-4}
+    with pytest.raises(reader._RepeatedKey, match="t.yaml:2: b: key given twice"):
+        read("b: 1\nb: 2\n")
+
+
 def test_a_device_is_no_cell_file(capsys):
     assert main(["run", "tcp-laser", "--cell", "/dev/zero", "--dry-run"]) == 2
     assert "not a regular file" in capsys.readouterr().err
