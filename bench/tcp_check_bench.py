@@ -13,6 +13,9 @@ direction of the flange frame; or its axis tilted 0.2 or 2 deg about the tip) an
 ``tcp-check`` runs with the default bands (0.1 mm / 0.1 deg inner, 1 mm / 1 deg outer), each
 with its own noise draw.
 
+Before the calibration, each cell's first check as the cell file comes (no beams known): refused
+before anything moves ("first check before any calibration": never an alarm, the arm never moved).
+
 Reported: the check's motion time against the full calibration's (same cell, same run); the
 verdicts per injected case (the confusion table); the false-alarm rate at no shift and the
 detection rate of a 0.1 mm shift, by the verdict (not ``ok``) and by a threshold on the
@@ -36,12 +39,13 @@ if __package__ in (None, ""):  # run as a script: make `bench` importable
 
 from cellcal.daemon.cells import load_cell, open_drivers  # noqa: E402
 from cellcal.routines.framework import runner  # noqa: E402
+from cellcal.routines.framework.base import CalibrateFirst  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SEEDS = (7, 11, 23, 37, 41)
 SHIFTS_MM = (0.0, 0.05, 0.1, 0.2, 0.5, 2.0, 5.0)
 TILTS_DEG = (0.2, 2.0)
-VERDICTS = ("ok", "corrected", "alarm", "alarm (no crossing)")
+VERDICTS = ("ok", "corrected", "alarm", "alarm (no crossing)", "refused, not moved")
 
 
 def log(msg: str) -> None:
@@ -74,6 +78,28 @@ def run(name, cell, noise_seed, out_dir, controller_frame=None):
     return runner.solve(name, cell, dataset), truth
 
 
+def first_check(seed: int, cell, out_dir) -> dict:
+    """The first check before any calibration: the cell file as shipped (no tcp_check.beams, so
+    [beams] as installed, 0.5 mm), the controller on the drawn tool. Refused before anything
+    moves, or, were it not, what it concluded and whether the arm moved."""
+    row = {"seed": seed, "kind": "first check before any calibration", "size": 0.0}
+    with open_drivers(cell) as drivers:
+        start = drivers.robot.actual_q()
+        try:
+            prepared = runner.prepare("tcp-check", cell)
+            dataset = runner.measure(prepared, drivers, out_dir, lambda message: None)
+            verdict = runner.solve("tcp-check", cell, dataset).verdict
+        except CalibrateFirst as exc:
+            verdict, row["message"] = "refused, not moved", str(exc)
+        except runner.RoutineError as exc:
+            verdict, row["message"] = "alarm (no crossing)", str(exc)
+        row["moved"] = bool(np.abs(drivers.robot.actual_q() - start).max() > 0.0)
+    if row["moved"] and verdict == "refused, not moved":
+        raise AssertionError("a refused check moved the arm")
+    row["verdict"] = verdict
+    return row
+
+
 def tilted(axis, deg, rng) -> np.ndarray:
     p = np.cross(axis, _unit(rng))
     p /= np.linalg.norm(p)
@@ -88,6 +114,7 @@ def bench(seeds, reps, reps_detect, out_dir) -> dict:
         base = load_cell("sim").tool
         tip0 = base.tcp_m + _unit(rng) * rng.uniform(0.0, 1.0) / 1e3
         axis0 = tilted(base.axis, rng.uniform(0.0, 0.5), rng)
+        rows.append(first_check(seed, cell_for(seed, tip0, axis0), out_dir))
         full, truth = run("tcp-laser", cell_for(seed, tip0, axis0), seed, out_dir)
         beams = [{"channel": b["channel"], "point_mm": list(b["point_mm"])} for b in full.extra["beams"]]
         calibrated = np.asarray(full.tool_frame)
@@ -130,7 +157,8 @@ def summarise(out: dict) -> dict:
     rows = out["rows"]
     table = {}
     for r in rows:
-        key = f"{r['kind']} {r['size']:g} {'mm' if r['kind'] == 'shift' else 'deg'}"
+        key = r["kind"] if r["kind"].startswith("first") else \
+            f"{r['kind']} {r['size']:g} {'mm' if r['kind'] == 'shift' else 'deg'}"
         table.setdefault(key, dict.fromkeys(VERDICTS, 0))[r["verdict"]] += 1
     zero = np.array([r["tip_change_mm"] for r in rows if r["kind"] == "shift" and r["size"] == 0.0])
     small = np.array([r["tip_change_mm"] for r in rows if r["kind"] == "shift" and r["size"] == 0.1])
@@ -171,9 +199,9 @@ def main(argv=None) -> int:
     m = summary["motion_s"]
     print(f"motion: tcp-check {m['tcp_check_mean']:.2f} s, tcp-laser {m['tcp_laser_mean']:.2f} s "
           f"(ratio {m['ratio']:.2f})")
-    print(f"{'injected':<16}" + "".join(f"{v:>21}" for v in VERDICTS))
+    print(f"{'injected':<36}" + "".join(f"{v:>21}" for v in VERDICTS))
     for key, counts in summary["confusion"].items():
-        print(f"{key:<16}" + "".join(f"{counts[v]:>21}" for v in VERDICTS))
+        print(f"{key:<36}" + "".join(f"{counts[v]:>21}" for v in VERDICTS))
     print(f"no shift: not ok in {summary['false_alarm_at_0_by_verdict']:.1%}; 0.1 mm: not ok in "
           f"{summary['detected_0.1mm_by_verdict']:.1%} (the default inner band is 0.1 mm)")
     print(f"threshold at 1% false alarms: {summary['threshold_mm_at_1pct_false_alarm']:.3f} mm; 0.1 mm detected "

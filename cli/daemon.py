@@ -12,6 +12,7 @@ import signal
 import sys
 import threading
 from contextlib import ExitStack
+from dataclasses import asdict
 
 from cellcal.cli.common import STATE_HELP, number, open_store, service_state_folder
 from cellcal.daemon.claims import held
@@ -71,6 +72,7 @@ def cmd_daemon(args) -> int:
                               reconnect=lambda: open_drivers(cell),
                               trend=lambda tool_id, trend: write_trend_page(folder / "reports" / f"tool-{tool_id}",
                                                                             trend))
+            service.seen["robot"] = state.value  # as read at the start: the status page's first look
             service.panel.call("set_lamps", busy=False)
             service.discard_requests("pending when the service started")
             service.announce_interrupted(interrupted)
@@ -118,7 +120,8 @@ def _serve_status_page(cell, service: Service, folder):
     from cellcal.daemon.status_server import StatusServer
 
     server = StatusServer(status=service.status, state_dir=folder, spec=spec,
-                          tool_names={tool_id: tool.name for tool_id, tool in (cell.tools or {}).items()})
+                          tool_names={tool_id: tool.name for tool_id, tool in (cell.tools or {}).items()},
+                          tool_bands={tool_id: asdict(tool.bands) for tool_id, tool in (cell.tools or {}).items()})
     try:
         server.start()
     except OSError as exc:

@@ -40,8 +40,8 @@ from cellcal.config.robot_files import load_robot
 from cellcal.drivers import registry as drivers_registry
 from cellcal.drivers.interfaces import Operator, OperatorTimeout
 from cellcal.routines.framework import registry, runner
-from cellcal.routines.framework.base import (NotForThisCell, PlanRefused, Result, RoutineError, frame_text, gate_line,
-                                   jsonable)
+from cellcal.routines.framework.base import (CalibrateFirst, NotForThisCell, PlanRefused, Result, RoutineError,
+                                             frame_text, gate_line, jsonable)
 from cellcal.routines.framework.records import read_dataset
 from cellcal.solvers.geometry import se3
 from cellcal.solvers.geometry.inverse import tcp_frames
@@ -221,6 +221,8 @@ def cmd_run(args) -> int:
         raise UsageError(f"{args.cell}: plan refused, nothing moved: {exc}") from None
     except NotForThisCell as exc:  # the cell lacks what the routine needs: input at fault, as a refused plan
         raise UsageError(f"{exc}; nothing moved") from None
+    except CalibrateFirst as exc:  # a check with nothing to judge against yet
+        raise UsageError(f"{args.cell}: {exc}; nothing moved") from None
     _score(result, cell)
     if args.json:
         print(json.dumps({**result.as_json(), "tool_id": _tool_id(cell), "written_back": False}, default=jsonable))

@@ -209,3 +209,45 @@ def judge(result: Result, frame, rows: list[dict], bands, calibrated: bool) -> D
     last, change = found
     verdict = drift_verdict(result.verdict, change["tip_mm"], change["axis_deg"], bands)
     return DriftJudgement(verdict, _drift_words(change, last, bands) if verdict is Verdict.DRIFT else None)
+
+
+TOGETHER_DEG = 30.0  # two tips that moved within this angle of each other moved "the same way"
+
+
+def _tip_move_mm(rows: list[dict]) -> tuple[int, np.ndarray] | None:
+    """(the newest check's run, its tip minus the last full calibration's, mm) of a tool's
+    measured frames, or None: no calibration, no check since it, or a check without the tip."""
+    full = full_calibrations(rows)
+    if not full:
+        return None
+    after = [r for r in rows if r["kind"] == "check" and r["run_id"] > full[-1]["run_id"]
+             and tool_frame.TIP in r["determines"]]
+    if not after:
+        return None
+    return after[-1]["run_id"], (np.asarray(after[-1]["frame"][:3]) - np.asarray(full[-1]["frame"][:3])) * 1e3
+
+
+def drifting_together(tool_id: int, rows_by_tool: dict[int, list[dict]], bands_by_tool: dict) -> str | None:
+    """When tool `tool_id`'s newest check drifted beyond its drift alarm and so did the newest
+    check of every other tool checked since its calibration, the same way (their tips' moves
+    within TOGETHER_DEG and within a factor of two in size): the words saying so. A tool does not
+    bend the way another does; beams that moved make every tool's check show the same move."""
+    moves = {t: _tip_move_mm(rows) for t, rows in rows_by_tool.items()}
+    moves = {t: m for t, m in moves.items() if m is not None}
+    if tool_id not in moves or len(moves) < 2:
+        return None
+    for t, (_, move) in moves.items():
+        limit = getattr(bands_by_tool.get(t), "drift_mm", None)
+        if limit is None or float(np.linalg.norm(move)) <= limit:
+            return None
+    own = moves[tool_id][1]
+    for t, (_, move) in moves.items():
+        cos = float(own @ move) / (np.linalg.norm(own) * np.linalg.norm(move))
+        ratio = float(np.linalg.norm(move) / np.linalg.norm(own))
+        if cos < math.cos(math.radians(TOGETHER_DEG)) or not 0.5 <= ratio <= 2.0:
+            return None
+    said = ", ".join(f"tool {t} {float(np.linalg.norm(m)):.3f} mm (run {run})" for t, (run, m) in sorted(moves.items()))
+    return (f"every tool checked since its calibration drifted the same way ({said}): beams that moved show as "
+            "every tool drifting at once, a bent tool as one. Calibrate with tcp-laser first (it finds the beams "
+            "anew), then check the others")
+

@@ -179,6 +179,7 @@ class PanelOperator(Operator):
         panel.call("set_waiting", int(step))
         service.event("waiting_for_operator", f"run {self.run_id}: {message}")
         deadline = time.monotonic() + timeout_s
+        service.seen["waiting"] = {"message": message, "step": int(step), "until": time.time() + timeout_s}
         try:
             while True:
                 if service.abort.is_set():
@@ -191,6 +192,7 @@ class PanelOperator(Operator):
                     raise OperatorTimeout(self.name, f"no confirm within {timeout_s:g} s (confirm_timeout_s) "
                                                      f"after asking: {message}")
         finally:
+            service.seen["waiting"] = None
             panel.waiting = 0
             panel.confirmed.clear()
             panel.call("set_waiting", 0)

@@ -16,6 +16,7 @@ class ResultCode(enum.IntEnum):
     LIMITS = 12
     BUSY = 13
     TOOL_NOT_MOUNTED = 14
+    CALIBRATE_FIRST = 15
     SENSOR_FAULT = 20
     ROBOT_FAULT = 21
     DEVICE_TIMEOUT = 22
@@ -41,6 +42,8 @@ RESULT_MEANINGS = {
     ResultCode.TOOL_NOT_MOUNTED: "start refused: no tool is mounted (or one the cell lacks), or the tool selector "
                                  "names another tool than the mounted one or one the cell does not have; nothing "
                                  "moved",
+    ResultCode.CALIBRATE_FIRST: "start refused: the check has nothing to judge against yet (no beam calibration "
+                                "for the cell); the reason says what to run first (tcp-laser); nothing moved",
     ResultCode.SENSOR_FAULT: "the trigger or the tracker failed or went silent; motion stopped",
     ResultCode.ROBOT_FAULT: "the robot faulted (connection lost, protective or emergency stop); motion stopped",
     ResultCode.DEVICE_TIMEOUT: "the robot controller did not answer in time (stalled); motion stopped",

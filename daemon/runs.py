@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -40,8 +40,8 @@ from cellcal.daemon.panel import PanelOperator
 from cellcal.daemon.result_codes import ResultCode, device_code
 from cellcal.drivers.interfaces import DeviceError, OperatorTimeout, RobotState
 from cellcal.routines.framework import registry, runner, tool_frame
-from cellcal.routines.framework.base import (CheckAlarm, NotForThisCell, PlanRefused, Result, RoutineAborted,
-                                             RoutineError, RunEnding)
+from cellcal.routines.framework.base import (CalibrateFirst, CheckAlarm, NotForThisCell, PlanRefused, Result,
+                                             RoutineAborted, RoutineError, RunEnding)
 from cellcal.routines.framework.context import RunContext
 from cellcal.routines.framework.gates import frame_change
 from cellcal.solvers.tool_frames.verdict import Verdict
@@ -76,6 +76,7 @@ class RunMachine:
         # the run's row belongs to the tool this run is for (0: none, NULL in the store), so it is
         # decided (mount) before this line; a tool known only later goes in with store.record_run_tool
         run_id = service.run_id = service.store.begin_run(routine, service.cell.path, tool_id=custody.run_tool or None)
+        service.seen["mounted_read_at_run"] = run_id  # the mounted tool as this start read it
         self.notes = []
         service.transition(run_id, "checking", routine)
         if wrong_tool is not None:
@@ -154,6 +155,9 @@ class RunMachine:
         service.custody.written()  # the new frame is the controller's now
         service.store.measured_frame_written(run_id)
         self._write_trend(context.tool_id)
+        if tool_frame.controller_frame(context.tool_frame_before) is None:  # the bare flange: no frame to compare
+            return self._end(run_id, "done", ResultCode.OK, "tool frame written back (the controller held none "
+                                                             "before: all zero, the bare flange)", result, wrote=True)
         mm, deg = frame_change(result.tool_frame, context.tool_frame_before)
         return self._end(run_id, "done", ResultCode.OK, f"tool frame written back ({mm:.3f} mm, {deg:.3f} deg "
                                                          "from the previous one)", result, wrote=True)
@@ -189,7 +193,9 @@ class RunMachine:
             return None, None, (ResultCode.NOT_READY, f"the robot does not answer: {exc}")
         if state is not RobotState.READY:
             return None, None, (ResultCode.NOT_READY, f"the robot is not ready: {state.value}")
-        held = custody.held_frame(custody.run_tool) if changed else None
+        held = (*custody.held_frame(custody.run_tool), None) if changed else None
+        if held is None and before is not None and cell.tool is not None:
+            held = custody.not_the_written_frame(before)
         options, note = self._with_history(run_id, routine, cell, options)
         try:
             context = RunContext(routine, cell, options, load_robot(cell.robot), run_id=run_id,
@@ -198,6 +204,8 @@ class RunMachine:
             prepared = runner.prepare_run(context)
         except PlanRefused as exc:
             return None, None, (ResultCode.LIMITS, f"plan refused, nothing moved: {exc}")
+        except CalibrateFirst as exc:
+            return None, None, (ResultCode.CALIBRATE_FIRST, f"{exc}; nothing moved")
         except (RoutineError, ConfigError) as exc:
             return None, None, (ResultCode.NO_SUCH_ROUTINE, str(exc))
         for kind in type(prepared.routine).needs:
@@ -256,7 +264,22 @@ class RunMachine:
             self.notes.append(drift.NEVER_CALIBRATED)
         if judgement.why is not None:
             log.warning("run %d: %s: drift alarm: %s", context.run_id, context.routine, judgement.why)
+            together = self._drifting_together(context, measured, result.determines)
+            if together is not None:
+                log.warning("run %d: %s", context.run_id, together)
+                judgement = replace(judgement, why=f"{judgement.why}; {together}")
         return judgement
+
+    def _drifting_together(self, context: RunContext, measured, determines) -> str | None:
+        """:func:`.drift.drifting_together` over every tool of the cell, this check's frame counted
+        as its tool's newest (it is recorded after the judgement)."""
+        store, cell = self.service.store, self.service.cell
+        rows = {t: store.measured_frames(t) for t in cell.tools}
+        rows.setdefault(context.tool_id, [])
+        rows[context.tool_id] = [*rows[context.tool_id], {"run_id": context.run_id, "kind": "check",
+                                                          "frame": list(np.asarray(measured, dtype=float)),
+                                                          "determines": sorted(determines), "written": False}]
+        return drift.drifting_together(context.tool_id, rows, {t: tool.bands for t, tool in cell.tools.items()})
 
     def _record_measured(self, context: RunContext, result: Result, measured) -> None:
         """The tool frame the run measured, in the tool's drift history (whatever the verdict;
@@ -312,7 +335,7 @@ class RunMachine:
         elif verdict is not None:
             service.store.record_verdict(run_id, verdict)
         service.store.finish_run(run_id, state, int(code), reason)
-        service.seen["reason"], service.seen["result_code"] = reason, int(code)
+        service.last_run_ended(run_id, service.seen["routine"], state, code, reason, verdict)
         service.active = False  # the panel shows the end next: a press after it starts the next run
         service.transition(run_id, state, f"{reason} (code {int(code)} {code.name})")
         # the done lamp says a frame went to the controller; a run that wrote none lights neither
@@ -346,7 +369,7 @@ class RunMachine:
             except Exception as again:
                 log.error("run %d: the results store cannot record its end either: %s", run_id, again)
         service.state = "fault"
-        service.seen["reason"], service.seen["result_code"] = reason, int(ResultCode.SERVICE_FAULT)
+        service.last_run_ended(run_id, routine, "fault", ResultCode.SERVICE_FAULT, reason, None)
         log.error("run %d (%s): fault: code %d %s: %s", run_id, routine, ResultCode.SERVICE_FAULT,
                   ResultCode.SERVICE_FAULT.name, reason)
         service.active = False

@@ -61,10 +61,39 @@ class Service:
         # what status() reports, each kept current by the thread that knows it (plain attribute
         # writes: a reader never takes a lock the run or the panel loop holds)
         self.seen = {"routine": None, "progress": None, "since": time.time(), "reason": None, "result_code": None,
-                     "robot": None}
+                     "robot": None, "last_run": None, "waiting": None, "mounted_read_at_run": None}
         self.panel = PanelProtocol(self)
         self.custody = ToolCustody(self, reconnect)
         self.runs = RunMachine(self)
+        self._last_run_from_store()
+
+    def _last_run_from_store(self) -> None:
+        """After a restart: the last run the store holds (one the previous process died in is
+        INTERRUPTED by now) is what the panel shows, so the status says it too."""
+        try:
+            rows = self.store.runs(1)
+        except Exception as exc:  # a store that cannot be read is said by the first run's end
+            log.warning("the last run could not be read from the store: %s", exc)
+            return
+        if rows and rows[0].result_code is not None:
+            row = rows[0]
+            self.last_run_ended(row.id, row.routine, row.state, row.result_code, row.reason, row.verdict,
+                                row.finished_at or row.started_at)
+
+    def last_run_ended(self, run_id: int, routine: str, state: str, code: int, reason: str | None,
+                       verdict, at: float | None = None) -> None:
+        """What status() says of the last finished run (kept apart from the one under way)."""
+        try:
+            name = ResultCode(code).name
+        except ValueError:
+            name = str(code)
+        self.seen["reason"], self.seen["result_code"] = reason, int(code)
+        self.seen["last_run"] = {"id": run_id, "routine": routine, "state": state, "result_code": int(code),
+                                 "result": name, "reason": reason,
+                                 "verdict": None if verdict is None else str(verdict),
+                                 "at": time.time() if at is None else at,
+                                 # the panel's fault lamp after it (docs/panel.md): a refusal or a fault
+                                 "fault_lamp": state in ("fault", "refused", "interrupted")}
 
     # -- what the rooms share ---------------------------------------------------------------
 
@@ -185,18 +214,67 @@ class Service:
         lock (safe from any thread, and never slows a run)."""
         seen, drivers, custody = dict(self.seen), self.drivers, self.custody
         tool = self.cell.tools.get(custody.run_tool)
+        last = seen["last_run"]
+        devices = {"robot": "reconnecting" if custody.reconnecting is not None else (seen["robot"] or "unknown"),
+                   "panel": "none" if drivers.panel is None else ("ok" if self.panel.ok else "lost"),
+                   # used during runs only: "open" since the service started, a failure shows
+                   # as the run's fault (result code and reason)
+                   **{kind: "open" for kind, device in (("trigger", drivers.trigger),
+                                                        ("tracker", drivers.tracker)) if device is not None}}
+        source = self.cell.mounted_source
+        mounted = None if tool is None else {
+            "id": tool.id, "name": tool.name, "source": source.describe(),
+            # read from the panel or the tool changer at each start: as of that start's run (None: not
+            # read since the service started); the cell file's `mounted` holds always
+            "read_at_run": None if source.kind == "file" else seen["mounted_read_at_run"]}
+        waiting = seen["waiting"]
+        if waiting is not None:
+            waiting = {**waiting, "time_left_s": max(0.0, waiting["until"] - time.time())}
         return {"state": self.state, "run_id": self.run_id if self.active else None,
-                "last_run_id": self.run_id, "routine": seen["routine"],
+                "last_run_id": None if last is None else last["id"], "routine": seen["routine"],
                 "progress": seen["progress"] if self.active else None, "since": seen["since"],
                 "reason": seen["reason"], "result_code": seen["result_code"],
                 "result": None if seen["result_code"] is None else ResultCode(seen["result_code"]).name,
-                "mounted_tool": None if tool is None else {"id": tool.id, "name": tool.name},
-                "devices": {"robot": "reconnecting" if custody.reconnecting is not None else
-                            (seen["robot"] or "unknown"),
-                            "panel": "none" if drivers.panel is None else ("ok" if self.panel.ok else "lost"),
-                            # used during runs only: "open" since the service started, a failure shows
-                            # as the run's fault (result code and reason)
-                            **{kind: "open" for kind, device in (("trigger", drivers.trigger),
-                                                                 ("tracker", drivers.tracker)) if device is not None}},
+                "last_run": last, "waiting": waiting,
+                "health": health(self.state, self.active, last, devices, waiting, custody.owed.run_of()),
+                "mounted_tool": mounted, "devices": devices,
                 "frame_owed_by_run": custody.owed.run_of(),
                 "cell": {"name": self.cell.name}}
+
+
+ROBOT_FAULTS = ("disconnected", "protective_stop", "emergency_stop")
+
+
+def health(state: str, active: bool, last: dict | None, devices: dict, waiting: dict | None,
+           owed_by: int | None) -> dict:
+    """The headline of the status page: ``level`` (``ok``, ``running``, ``waiting``, ``attention``
+    or ``fault``) and ``says``, the state with what is wrong beside it: a robot that is not ready,
+    a panel lost, the fault lamp of the last run, a frame still owed to the controller."""
+    problems, level = [], "ok"
+    robot = devices.get("robot")
+    if robot in ROBOT_FAULTS:
+        problems.append(f"robot {robot.replace('_', ' ')}")
+        level = "fault"
+    elif robot in ("reconnecting", "unknown"):
+        problems.append(f"robot {robot}")
+        level = "attention"
+    if devices.get("panel") == "lost":
+        problems.append("panel lost")
+        level = "fault" if level == "fault" else "attention"
+    if owed_by is not None:
+        problems.append(f"run {owed_by}'s tool frame not yet given back to the controller")
+        level = "fault" if level == "fault" else "attention"
+    if active:
+        if waiting is not None:
+            head, level = f"waiting for the operator: {waiting['message']}", "waiting"
+        else:
+            head, level = ("running" if state == "running" else f"running: {state}"), "running"
+    else:
+        head = state
+        if last is not None and last["fault_lamp"]:
+            problems.append(f"the last run ({last['id']}, {last['routine']}) ended {last['state']}: "
+                            f"{last['result_code']} {last['result']}")
+            level = "fault"
+    return {"level": level, "says": "; ".join([head, *problems])}
+
+

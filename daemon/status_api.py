@@ -219,14 +219,16 @@ def tools(store: ReadOnlyStore | None, status: dict, names: dict[int, str]) -> d
     return finite({"tools": out})
 
 
-def tool_history(store: ReadOnlyStore | None, tool_id: int, name: str | None = None) -> dict:
+def tool_history(store: ReadOnlyStore | None, tool_id: int, name: str | None = None,
+                 bands: dict | None = None) -> dict:
     """/api/v1/tools/<id>/history: the frames written or restored for the tool (``cellcal tool
-    history --json``'s rows) and its drift trend (``cellcal tool trend --json``'s object, None
-    before any run measured it)."""
+    history --json``'s rows), its drift trend (``cellcal tool trend --json``'s object, None
+    before any run measured it) and its bands from the cell file (``inner_mm``, ``outer_mm``,
+    ``drift_mm`` and the same in deg; None for a tool the cell file no longer has)."""
     frames = [] if store is None else [_frame_entry(f) for f in store.tool_frames(tool_id)]
     measured = [] if store is None else store.measured_frames(tool_id)
     return finite({"tool_id": tool_id, "name": name, "tool_frames": frames,
-                   "trend": trend(measured, tool_id) if measured else None})
+                   "trend": trend(measured, tool_id) if measured else None, "bands": bands})
 
 
 def state(status: dict) -> dict:

@@ -15,6 +15,7 @@ import logging
 import re
 import shutil
 import threading
+from dataclasses import asdict
 from http import HTTPStatus
 from importlib import resources
 from pathlib import Path
@@ -103,7 +104,8 @@ class _Handler(BoundedHandler):
                 if not known:
                     return self.send_error(HTTPStatus.NOT_FOUND, f"no tool {tool_id}: neither the cell file nor "
                                            "the store knows it")
-                return self._json(status_api.tool_history(store, tool_id, names.get(tool_id)))
+                return self._json(status_api.tool_history(store, tool_id, names.get(tool_id),
+                                                          owner.tool_bands().get(tool_id)))
         return self.send_error(HTTPStatus.NOT_FOUND, f"no such endpoint /api/v1{path[:100]} (docs/api.md)")
 
     # -- answers ---------------------------------------------------------------------------------------
@@ -180,12 +182,15 @@ class StatusServer:
     `status`: a callable returning the service's state as a fresh dict (``Service.status()``);
     `state_dir`: the service's state folder (its store and STATE/reports); `spec`: the cell
     file's ``status_page`` (``enabled``, ``host``, ``port``, ``max_connections``, ``rate_per_s``);
-    `tool_names`: id -> name of the cell's tools (else read from the cell file ``status()["cell"]["path"]``
+    `tool_names`: id -> name of the cell's tools, `tool_bands`: id -> the tool's bands (``Bands`` as a
+    dict: what the drift plot draws) (else both read from the cell file ``status()["cell"]["path"]``
     names, when it names one)."""
 
-    def __init__(self, status, state_dir: str | Path, spec, tool_names: dict[int, str] | None = None):
+    def __init__(self, status, state_dir: str | Path, spec, tool_names: dict[int, str] | None = None,
+                 tool_bands: dict[int, dict] | None = None):
         self.status = status
         self._fixed_names = None if tool_names is None else {int(k): str(v) for k, v in tool_names.items()}
+        self._fixed_bands = None if tool_bands is None else {int(k): dict(v) for k, v in tool_bands.items()}
         self.state_dir = Path(state_dir)
         self.enabled = bool(getattr(spec, "enabled", True))
         self.host = str(spec.host)
@@ -196,7 +201,7 @@ class StatusServer:
         self.guard = Guard(max_connections, rate_per_s)
         self._server: BoundedServer | None = None
         self._thread: threading.Thread | None = None
-        self._names: tuple[object, dict[int, str]] = (None, {})
+        self._names: tuple[object, dict[int, str], dict[int, dict]] = (None, {}, {})
         self._page: dict[str, bytes] = {}
 
     # -- life ------------------------------------------------------------------------------------------
@@ -268,22 +273,32 @@ class StatusServer:
         """id -> name of the tools in the running service's cell file (read once per change of it)."""
         if self._fixed_names is not None:
             return self._fixed_names
+        return self._cell_tools()[0]
+
+    def tool_bands(self) -> dict[int, dict]:
+        """id -> the bands (and drift alarm) of the tools in the running service's cell file."""
+        if self._fixed_bands is not None:
+            return self._fixed_bands
+        return self._cell_tools()[1]
+
+    def _cell_tools(self) -> tuple[dict[int, str], dict[int, dict]]:
         cell = (self.current_status(quiet=True).get("cell") or {})
         path = cell.get("path") if isinstance(cell, dict) else None
         if not path:
-            return {}
+            return {}, {}
         try:
             key = (path, Path(path).stat().st_mtime_ns)
         except OSError:
-            return self._names[1]
+            return self._names[1:]
         if self._names[0] != key:
             from cellcal.daemon.cells import load_cell
             try:
                 tools = getattr(load_cell(path), "tools", None) or {}
-                self._names = (key, {int(i): t.name for i, t in tools.items()})
+                self._names = (key, {int(i): t.name for i, t in tools.items()},
+                               {int(i): asdict(t.bands) for i, t in tools.items()})
             except Exception:  # a file edited into something unreadable: keep what was known
-                self._names = (key, self._names[1])
-        return self._names[1]
+                self._names = (key, *self._names[1:])
+        return self._names[1:]
 
     def page_file(self, name: str) -> bytes:
         if name not in self._page:

@@ -103,9 +103,29 @@ class ToolCustody:
             return np.asarray(row["frame_after"], dtype=float), f"the last frame {done} for it (run {row['run_id']})"
         return np.asarray(self.service.cell.tools[tool_id].tcp_pose, dtype=float), "its drawing (never calibrated here)"
 
-    def tool_frame_for_mounted(self, run_id: int, frame: np.ndarray, origin: str):
-        """A tool change: the controller's running tool frame is made the mounted tool's own
-        (`frame`, from `origin`: :meth:`held_frame`) before anything moves, so the run measures
+    def not_the_written_frame(self, controller_frame) -> tuple[np.ndarray, str, str] | None:
+        """At a start with no tool change: when the controller holds another frame than the last one
+        written or restored for the mounted tool in this store (a controller restarted without it, a
+        frame changed on the pendant), (that frame, where it is from, why it is set), else None. A
+        tool never calibrated here has no such frame: whatever the controller holds stays (a check of
+        a controller holding none compares with the tool's drawing)."""
+        tool_id = self.run_tool
+        held = np.asarray(controller_frame, dtype=float)
+        rows = [r for r in self.service.store.tool_frames() if int(r.get("tool_id") or 1) == tool_id]
+        if not rows:
+            return None
+        frame, origin = self.held_frame(tool_id)
+        if held.shape == frame.shape and np.abs(held - frame).max() <= TOLERANCE:
+            return None
+        what = ("holds no tool frame (all zero: a restarted controller without it?)" if not np.any(held) else
+                f"holds {np.round(held, 6).tolist()}, {np.linalg.norm(held[:3] - frame[:3]) * 1e3:.3f} mm from it "
+                "(a restarted controller, or a frame changed on the pendant?)")
+        return frame, origin, f"the controller {what}"
+
+    def tool_frame_for_mounted(self, run_id: int, frame: np.ndarray, origin: str, why: str | None = None):
+        """A tool change, or a controller that holds another frame than the mounted tool's (`why`:
+        :meth:`not_the_written_frame`): the controller's running tool frame is made the mounted tool's
+        own (`frame`, from `origin`: :meth:`held_frame`) before anything moves, so the run measures
         against it. Returns None, or the refusal (code, why)."""
         tool_id = self.run_tool
         robot = self.service.drivers.robot
@@ -118,7 +138,10 @@ class ToolCustody:
             return ResultCode.ROBOT_FAULT, (f"the controller reports {back.tolist()} after tool {tool_id}'s frame "
                                             f"{frame.tolist()} was set")
         self.tcp_tool = tool_id
-        message = f"tool {tool_id} ({self.run_cell.tool.name}) mounted: the controller's tool frame set to {origin}"
+        if why is None:
+            message = f"tool {tool_id} ({self.run_cell.tool.name}) mounted: the controller's tool frame set to {origin}"
+        else:
+            message = f"{why}: tool {tool_id}'s frame set to {origin} before anything moves"
         log.info("run %d: %s", run_id, message)
         self.service.event("tool_frame_for_tool", f"run {run_id}: {message}")
         return None

@@ -17,7 +17,10 @@ MARKERS = {"calibration": dict(marker="s", ms=6), "check": dict(marker=".", ms=7
 
 
 def _when(at: float) -> str:
-    return time.strftime("%Y-%m-%d %H:%M", time.localtime(at))
+    """Local time with its UTC offset (the status page writes times alike)."""
+    local = time.localtime(at)
+    offset = time.strftime("%z", local)  # +0100
+    return time.strftime("%Y-%m-%d %H:%M", local) + f" UTC{offset[:3]}:{offset[3:]}"
 
 
 def _number(value, unit: str) -> str:

@@ -3,8 +3,9 @@ crossed-beam light barrier at the tool's stored frame, then a verdict against th
 tolerance bands (``[tool.bands]`` of the cell file, :class:`cellcal.config.cells.Bands`).
 
 The check moves as :mod:`.tcp_laser` does, with the controller on its *own* tool frame (the
-frame it holds for the tool: the last one written back; the tool as drawn when it holds none)
-and with fewer motions: the tool upright only, an approach along its axis onto the beams'
+frame it holds for the tool: the last one written back; the tool as drawn when it holds none,
+so a change is never reported against the bare flange; the service sets the last frame it
+wrote on a controller that lost it, before the run) and with fewer motions: the tool upright only, an approach along its axis onto the beams'
 crossing and back, and at each of ``heights_mm`` a sweep through both beams and back, at
 each of ``spins_deg`` (turns about the vertical). The fit (:mod:`cellcal.solvers.tool_frames.tcp_check`)
 finds the tip, and the axis where the sweeps cut the tool at two heights, relative to that
@@ -27,7 +28,10 @@ What it determines, and what it cannot:
   the stored frame's, and a tilt of the tool by d shows at the tip as (height x d).
 
 A plan that determines neither (at the stated ``repeatability_mm``) is refused before
-anything moves, saying why.
+anything moves, saying why; so is a check with nothing to judge against yet
+(:class:`CalibrateFirst`, panel code 15): no beam calibration for the cell (no ``beams``
+here, none from a tcp-laser in the store, and no ``beam_std_mm`` saying ``[beams]`` were
+measured in place).
 
 Verdicts (``verdict`` in the JSON; the bands apply only to what was determined), decided from
 the numbers alone by :func:`cellcal.solvers.tool_frames.verdict.check_verdict`:
@@ -66,8 +70,8 @@ from cellcal.config.reader import Section
 from cellcal.solvers.tool_frames import tcp_check as check
 from cellcal.solvers.tool_frames.verdict import Measured, Verdict, check_verdict, determined
 from cellcal.routines.framework import gates, tool_frame
-from cellcal.routines.framework.base import (CheckAlarm, Devices, Gate, Move, Parameter, PlanPromise, PlanRefused,
-                                             Result, Routine, RoutineError)
+from cellcal.routines.framework.base import (CalibrateFirst, CheckAlarm, Devices, Gate, Move, Parameter,
+                                             PlanPromise, PlanRefused, Result, Routine, RoutineError)
 from cellcal.routines.framework.context import BeamPoint
 from cellcal.routines.framework.records import Dataset
 from cellcal.routines.light_barrier import NAN_COLUMNS, TEXT_COLUMNS, BarrierSweeps, SweepPlan, barrier_data
@@ -222,10 +226,17 @@ class TcpCheck(Routine):
         return PlanPromise(float("nan"), tip_std, "mm", {"axis_std_deg": axis_std, "determines": sorted(determines)})
 
     def check_design(self) -> PlanPromise:
+        o = self.options
+        if not o.beams and o.stated_beam_std_mm is None:
+            raise CalibrateFirst(
+                f"no beam calibration for this cell yet: run tcp-laser first (the beams it finds serve every tool's "
+                f"check), or give tcp_check.beams in {self.cell.path} (beam_std_mm, if [beams] were measured in "
+                f"place); with [beams] as installed (known to {INSTALLED_BEAM_STD_MM:g} mm) a check cannot tell a tip "
+                "that moved from beams that did")
         d = self.design()
         if d.details["determines"]:
             return d
-        o, bands = self.options, self.cell.tool.bands
+        bands = self.cell.tool.bands
         source = "tcp_check.beams" if o.beams else "[beams] as installed"
         axis = ("one height in heights_mm does not tell the axis" if len(o.heights_mm) < 2 else
                 f"the axis to {d.details['axis_std_deg']:.3f} deg (1 sigma), more than a third of inner_deg "

@@ -51,6 +51,11 @@ class RunEnding:
 
 
 
+class CalibrateFirst(RoutineError):
+    """A check with nothing to judge against yet (no beam calibration for the cell): refused
+    before anything moves, saying what to run first (exit 2, panel result code 15)."""
+
+
 class CheckAlarm(RoutineError):
     """A check saw the tool too far from its stored frame to measure it (a sweep missed a
     beam, or blocked it where it should not): verdict alarm, nothing written (panel code 33)."""

@@ -36,6 +36,9 @@ from cellcal.routines.framework.base import Move, PlanRefused, RoutineAborted
 
 JOINT_PATH_SAMPLES = 24  # points along a joint move at which the TCP is checked against the box
 STRAIGHT_PATH_SAMPLES = 12  # ... and along a linear move or a search, for the clearance between tools
+# a run whose arm is further than this from home in any joint (1 mm at 1 m) goes home before its
+# plan's first Cartesian move; a movej to home leaves the joints on it to far less
+AT_HOME_RAD = 1e-3
 TIP_ZONE_FACTOR = 2.0  # at a meeting, this many clearances of each tool behind its tip may come close
 
 
@@ -327,9 +330,10 @@ class GuardedRobot:
         others = {name: peer._state() for name, peer in self.peers.items()} if self.peers else None
         if not self._unwound:
             self._unwound = True
-            unwind = self.unwinding(move)
-            if unwind is not None:
-                self.run(unwind)
+            for lead in (self.unwinding, self.to_plan_start):  # the second looks after the first has run
+                before = lead(move)
+                if before is not None:
+                    self.run(before)
         self.guard.check(move, self._state(), others)
         self.sent.append(move)
         if move.kind == "joint":
@@ -359,6 +363,24 @@ class GuardedRobot:
         joints = ", ".join(f"{i + 1} ({np.rad2deg(q[i]):.2f} deg)" for i in np.flatnonzero(outside))
         cell = self.guard.limits
         return Move.joint(f"unwind joint {joints} back inside its limits before '{first.label}'", turned,
+                          cell["joint_speed_rad_s"], cell["joint_accel_rad_s2"], robot=self.name)
+
+    def to_plan_start(self, first: Move) -> Move | None:
+        """The joint move to the joints every plan is checked from (the robot's home) when the arm is
+        elsewhere and the plan's first move is a Cartesian one: a run aborted between two orientations
+        leaves the arm where a straight line to the plan's first pose could wind a wrist past its
+        limits. The joint move's own path is checked as any other. None at home (within
+        AT_HOME_RAD), or when the plan starts with a joint move (checked from wherever the arm is)."""
+        if first.kind == "joint":
+            return None
+        arm = self.guard.arms.get(self.name)
+        if arm is None:
+            return None
+        q = np.asarray(self.robot.actual_q(), dtype=float)
+        if q.shape != arm.home.q_rad.shape or np.abs(q - arm.home.q_rad).max() <= AT_HOME_RAD:
+            return None
+        cell = self.guard.limits
+        return Move.joint(f"back to home, where the plan starts, before '{first.label}'", arm.home.q_rad.copy(),
                           cell["joint_speed_rad_s"], cell["joint_accel_rad_s2"], robot=self.name)
 
     def set_tcp(self, tool_pose) -> None:

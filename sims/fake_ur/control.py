@@ -99,6 +99,8 @@ class ControlPort:
                 return {"ok": True}
             if cmd == "mount_tool":  # a tool change: {tool: ID} of the cell's table, 0 none
                 return self.mount_tool(request.get("tool"))
+            if cmd == "bend_tool":  # the mounted tool's real tip moved: {shift_m: [x, y, z]}, flange frame
+                return self.bend_tool(request.get("shift_m"))
             if cmd == "place_plate":  # the operator moves the kinematic-fixture plate: {step: placement 1, 2, ...}
                 return self.place_plate(request.get("step"))
             if cmd == "set_tcp":  # the controller's tool frame changed behind the service's back (a test's bent tool)
@@ -110,7 +112,7 @@ class ControlPort:
                 self.arm.set_tcp(tcp)
                 return {"ok": True}
         return {"ok": False, "error": f"unknown command {cmd!r} (state, truth, tool, edges, inputs, "
-                                          "program_start, fault, add_model, set_q, set_tcp, mount_tool, place_plate)"}
+                                          "program_start, fault, add_model, set_q, set_tcp, mount_tool, bend_tool, place_plate)"}
 
     def _fire_faults(self) -> None:
         for fault in list(self.faults):

@@ -210,15 +210,35 @@ class FakeUrController(ControlPort):
                 self.truth = self.truth.with_tool(tool_id)
             except ValueError as exc:
                 return {"ok": False, "error": str(exc)}
-            self.pivot, self._pivot_touch = pivot_socket(self.truth), None
-            self.sockets, self._socket = fixture_sockets(self.truth, self.plate_step), None
-            self._body_for = (None, None, None)  # the body cache is the old tool's
-            self._body = self._body_now()
-            self._blocked = {id(b): beam_blocked(b, self._body, self._tool_radius_m) for b in self.truth.beams}
-            self.sensors.reset({b.channel: self._blocked[id(b)] for b in self.truth.beams})  # put there, not moved
-            self.digital_inputs = self._input_bits()
+            self._tool_put_there()
             self.log(f"tool change: tool {tool_id} mounted" if tool_id else "tool change: no tool mounted")
             return {"ok": True, "mounted_tool": tool_id, "digital_inputs": self.digital_inputs}
+
+    def bend_tool(self, shift_m) -> dict:
+        """The mounted tool's real tip moved by `shift_m` (flange frame, m): bent, or knocked on the
+        flange. The controller's tool frame is left as it was. Refused while the arm moves."""
+        with self.lock:
+            if self.arm.moving:
+                return {"ok": False, "error": "the arm is moving: a tool is bent with the arm at rest"}
+            try:
+                self.truth = self.truth.with_tool_bent(shift_m)
+            except (ValueError, TypeError) as exc:
+                return {"ok": False, "error": str(exc)}
+            self._tool_put_there()
+            self.log(f"tool {self.truth.tool_id} bent: its tip moved {np.round(np.asarray(shift_m) * 1e3, 3).tolist()} "
+                     "mm (flange frame)")
+            return {"ok": True, "tool_tcp_m": self.truth.tool.tcp_m.tolist()}
+
+    def _tool_put_there(self) -> None:
+        """Another real tool on the flange: the fixtures it meets, the beams it blocks (put there,
+        not moved: no edges), the tool changer's id on the inputs."""
+        self.pivot, self._pivot_touch = pivot_socket(self.truth), None
+        self.sockets, self._socket = fixture_sockets(self.truth, self.plate_step), None
+        self._body_for = (None, None, None)  # the body cache is the old tool's
+        self._body = self._body_now()
+        self._blocked = {id(b): beam_blocked(b, self._body, self._tool_radius_m) for b in self.truth.beams}
+        self.sensors.reset({b.channel: self._blocked[id(b)] for b in self.truth.beams})  # put there, not moved
+        self.digital_inputs = self._input_bits()
 
     def place_plate(self, step) -> dict:
         """The operator moves the kinematic-fixture plate to placement `step` (1, 2, ...: the cell

@@ -229,6 +229,20 @@ class SimWorld:
         if self.arm.motion is not None:
             raise DeviceError(device, "the arm is moving: a tool is changed with the arm at rest")
         self.truth = self.truth.with_tool(tool_id)
+        self._tool_put_there()
+
+    def bend_tool(self, shift_m, device: str = "sim robot") -> None:
+        """The mounted tool's real tip moved by `shift_m` (flange frame, m): bent, or knocked on the
+        flange. The controller's tool frame is left as it was. Raises DeviceError while the arm moves,
+        ValueError with no tool mounted."""
+        if self.arm.motion is not None:
+            raise DeviceError(device, "the arm is moving: a tool is bent with the arm at rest")
+        self.truth = self.truth.with_tool_bent(shift_m)
+        self._tool_put_there()
+
+    def _tool_put_there(self) -> None:
+        """Another real tool on the flange: the fixtures it meets and the beams it blocks, put there
+        (not moved: no edges)."""
         self.pivot = pivot_socket(self.truth)
         self.sockets = fixture_sockets(self.truth, self.plate_step)
         self._body = self.tool_body()

@@ -146,6 +146,18 @@ class CellTruth:
         drawn.update(self.tools_drawn.get(tool_id, {}))
         return replace(self, tool=self.tools[tool_id] if tool_id else BARE_FLANGE, tool_id=tool_id, drawn=drawn)
 
+    def with_tool_bent(self, shift_m) -> "CellTruth":
+        """The same cell with the mounted tool's real tip moved by `shift_m` (flange frame, m): the
+        tool bent or knocked on the flange, its axis as it was. The tool table's entry moves with it,
+        so it stays bent through tool changes. Raises ValueError with no tool mounted."""
+        shift = np.asarray(shift_m, dtype=float)
+        if shift.shape != (3,) or not np.all(np.isfinite(shift)):
+            raise ValueError("shift_m must be 3 finite numbers (m, flange frame)")
+        if self.tool is None or self.tool_id == 0:
+            raise ValueError("no tool is mounted: the bare flange does not bend")
+        bent = replace(self.tool, tcp_m=self.tool.tcp_m + shift)
+        return replace(self, tool=bent, tools={**self.tools, self.tool_id: bent} if self.tools else self.tools)
+
     def for_second(self) -> "CellTruth":
         """The truth robot b's own world obeys: its arm and tool, no fixtures, the same
         repeatability (its base frame is its own, as its controller's is)."""

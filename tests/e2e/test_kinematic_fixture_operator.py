@@ -79,6 +79,13 @@ def test_confirming_without_moving_the_plate_misses_the_next_placement(tmp_path)
             service.poll_panel()
         assert panel.waiting == 1
         np.testing.assert_allclose(drivers.robot.actual_q(), cell.home_q_rad, atol=1e-9)
+        # the status page's headline says what the operator is to do, and how long is left to confirm
+        status = service.status()
+        assert status["health"]["level"] == "waiting", status["health"]
+        assert status["health"]["says"].startswith("waiting for the operator: ") and \
+            "placement p1" in status["health"]["says"], status["health"]
+        # operator_cell's confirm_timeout_s is 60 s
+        assert status["waiting"]["step"] == 1 and 0.0 < status["waiting"]["time_left_s"] <= 60.0, status
         panel.press_confirm()
         poll_until(service, lambda: panel.waiting == 2, "the routine never asked for placement 2")
         np.testing.assert_allclose(drivers.robot.actual_q(), cell.home_q_rad, atol=1e-9)  # placement 1 done: home

@@ -9,7 +9,6 @@ calibration found, taken from the store). Counted while the check runs:
 """
 from __future__ import annotations
 
-import numpy as np
 
 from cellcal.config import robot_files
 from cellcal.daemon.cells import load_cell, open_drivers
@@ -56,8 +55,7 @@ def test_a_check_from_the_panel_reads_the_frame_twice_the_model_and_its_section_
         service = Service(cell, drivers, Store.open(tmp_path / "state"), out_dir=tmp_path / "state" / "datasets")
         calibration = press(service, panel, "tcp-laser")
         assert calibration.code == ResultCode.OK, calibration.reason
-        moved = np.asarray(real_tool_frame(), dtype=float) + [0.3e-3, 0.0, 0.0, 0.0, 0.0, 0.0]
-        robot.set_tcp(moved)  # the controller's frame 0.3 mm off the tool: the check corrects it
+        drivers.world.bend_tool([0.3e-3, 0.0, 0.0])  # the real tool 0.3 mm off its frame: the check corrects it
 
         counting[0] = True
         checked = press(service, panel, "tcp-check")

@@ -11,6 +11,7 @@ page is kept as an artefact of the test run: ``out/test-artifacts/status-page.pn
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import socket
 import struct
@@ -224,15 +225,19 @@ def test_the_page_shows_what_the_store_holds_in_a_real_browser(net, browser, cel
 
     # the service's state, as the page shows it: idle, the last run's end and code from the store
     state = page.one(id="state")
-    assert state.attrs["data-state"] == "idle" and state.text == "idle", state.text
-    ended = f"last run ended: {check['reason']} (code {check['result_code']})" if check["reason"] else ""
-    assert page.one(id="reason").text == ended
+    assert state.attrs["data-state"] == "idle" and state.attrs["data-level"] == "ok" and state.text == "idle", \
+        state.text
+    ended = page.one(id="reason").text
+    assert ended.startswith(f"last run {check['id']} (tcp-check, ") and \
+        f") ended done: code {check['result_code']} OK, verdict ok" in ended, ended
+    assert re.search(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d UTC[+-]\d\d:\d\d", ended), ended  # with its time zone
     assert page.one(id="cell-name").text == f": {net.cell.name}"
     devices = {row.attrs["data-device"]: row.one("td").text for row in page.one(id="devices").all("tr")}
     assert devices["panel"] == "ok" and devices["robot"] not in ("", "unknown", "reconnecting"), devices
     assert devices["trigger"] == devices["tracker"] == "open", devices  # sim-net has both
     tool_id = check["tool_id"]
     assert page.one(id="mounted-tool").text.startswith(f"tool {tool_id}")
+    assert page.one(id="mounted-tool").text.endswith("as the cell file says")  # sim-net's tool is fixed
 
     # every run of the store in the table, newest first, with its result code and name
     rows = page.one(id="runs").one("tbody").all("tr")
@@ -256,12 +261,18 @@ def test_the_page_shows_what_the_store_holds_in_a_real_browser(net, browser, cel
         assert kind == "image/png" and body.startswith(b"\x89PNG"), (picture, kind)
 
     # the mounted tool's drift: one line per series, the tip's through both measured frames
-    plot = page.one(id="drift-plot-box").one("svg", cls="drift-plot")
-    paths = {p.attrs["data-series"]: p for p in plot.all("path")}
+    # two plots, each in its own unit with the tool's bands from the cell file (no drift alarm set in sim-net)
+    plots = {svg.attrs["aria-label"]: svg for svg in page.one(id="drift-plot-box").all("svg", cls="drift-plot")}
+    assert set(plots) == {"tip change (mm)", "axis change (deg)"}, plots
+    paths = {p.attrs["data-series"]: p for svg in plots.values() for p in svg.all("path")}
     assert set(paths) == {"tip_mm", "axis_deg"}, paths
     tip = paths["tip_mm"].attrs
     assert tip["data-points"] == "2" and tip["d"].startswith("M") and " L" in tip["d"], tip
-    assert len(plot.all("circle", cls="point-tip")) == 2
+    assert len(plots["tip change (mm)"].all("circle", cls="point-tip")) == 2
+    bands = net.cell.tool.bands
+    for label, unit in (("tip change (mm)", "mm"), ("axis change (deg)", "deg")):
+        drawn = {line.attrs["data-band"]: float(line.attrs["data-value"]) for line in plots[label].all("line", cls="band")}
+        assert drawn == {"inner": getattr(bands, f"inner_{unit}"), "outer": getattr(bands, f"outer_{unit}")}, drawn
     history = json.loads(get(urljoin(url, f"/api/v1/tools/{tool_id}/history"))[1])
     assert [p["run_id"] for p in history["trend"]["points"]] == [calibration["id"], check["id"]]
     frames = page.one(id="frames").one("tbody").all("tr")
@@ -270,4 +281,22 @@ def test_the_page_shows_what_the_store_holds_in_a_real_browser(net, browser, cel
     ARTEFACTS.mkdir(parents=True, exist_ok=True)
     browser.screenshot(url, SCREENSHOT)
     assert png_size(SCREENSHOT) == WINDOW
+
+    # the tool bent 2 mm: the check's alarm lights the fault lamp. After a restart of the service the
+    # page says what the panel shows, from the store: not a green "idle"
+    assert net.control.request(cmd="bend_tool", shift_m=[0.0, 0.002, 0.0])["ok"]
+    press(net, "tcp-check")
+    alarm = daemon.cli("runs", "list")["runs"][0]
+    assert alarm["result_code"] == ResultCode.CHECK_ALARM and alarm["verdict"] == "alarm", daemon.log()
+    assert daemon.stop() == 0, daemon.log()
+    daemon = cellcal_daemon(net)
+    served(urljoin(url, "/api/v1/state"), daemon)
+    api = json.loads(get(urljoin(url, "/api/v1/state"))[1])
+    assert api["last_run_id"] == alarm["id"] and api["result_code"] == ResultCode.CHECK_ALARM, api
+    assert api["health"]["level"] == "fault", api["health"]
+    page = browser.dom(url)
+    state = page.one(id="state")
+    assert state.attrs["data-level"] == "fault", state.attrs
+    assert state.text == f"idle; the last run ({alarm['id']}, tcp-check) ended fault: 33 CHECK_ALARM", state.text
+    assert ") ended fault: code 33 CHECK_ALARM, verdict alarm: " in page.one(id="reason").text
     assert daemon.stop() == 0, daemon.log()

@@ -28,6 +28,7 @@ from cellcal.daemon.cells import load_cell, open_drivers
 from cellcal.daemon.service import ResultCode, Service
 from cellcal.daemon.status_server import StatusPageError, StatusServer
 from cellcal.daemon.store import Store
+from support.cell_edits import edited_cell
 from cellcal.reports.run import write_run_report
 from cellcal.reports.trend import write_trend_page
 
@@ -47,7 +48,8 @@ def cell_run(tmp_path_factory):
     inside STATE/reports pointing at it and at the state folder (what no request may reach)."""
     root = tmp_path_factory.mktemp("status")
     folder = root / "state"
-    cell = load_cell("sim")
+    # the check on [beams] as installed, said so (beam_std_mm): no tcp-laser here to find them
+    cell = load_cell(edited_cell(root, "sim", {"tcp_check": {"beam_std_mm": 0.5}}))
     with open_drivers(cell) as drivers:
         store = Store.open(folder)
         service = Service(cell, drivers, store, out_dir=folder / "datasets",

@@ -82,10 +82,26 @@ def test_a_tool_too_far_off_to_cross_the_beams_is_an_alarm_naming_the_motion(tmp
     assert code == 1 and "tcp-check alarm" in err and "bent tool" in err and "Traceback" not in err
 
 
+def test_a_first_check_before_any_beam_calibration_is_refused_before_moving_saying_what_to_run(tmp_path, capsys,
+                                                                                                monkeypatch):
+    """The shipped cell as it comes (no tcp_check.beams, no beam_std_mm): [beams] as installed
+    are known to 0.5 mm, so a check could not tell a tip that moved from beams that did. Refused
+    before the robot is even opened; exit 2."""
+    def no_drivers(cell):
+        raise AssertionError("a check with nothing to judge against opened the cell's devices")
+
+    monkeypatch.setattr(run_cmd, "open_drivers", no_drivers)
+    code, out, err = run_cli(capsys, "run", "tcp-check", "--cell", str(cell_file(tmp_path, check={})),
+                             "--out", str(tmp_path / "runs"))
+    assert code == 2 and out == "" and err.count("\n") == 1 and "Traceback" not in err, err
+    assert "no beam calibration for this cell yet: run tcp-laser first" in err and "nothing moved" in err, err
+    assert not (tmp_path / "runs").exists() or list((tmp_path / "runs").iterdir()) == []
+
+
 def test_with_the_beams_as_installed_the_tip_is_not_determined_and_no_band_applies(tmp_path, capsys):
-    """[beams] known only to 0.5 mm (a fixture's placement): a 0.3 mm shift of the tip cannot be
-    told from a beam that is off; the axis still can (the beams do not enter it)."""
-    code, result, _ = checked(tmp_path, capsys, shift_mm=(0.3, 0.0, 0.0), check={})
+    """[beams] stated to be known to 0.5 mm (beam_std_mm: a fixture's placement): a 0.3 mm shift of
+    the tip cannot be told from a beam that is off; the axis still can (the beams do not enter it)."""
+    code, result, _ = checked(tmp_path, capsys, shift_mm=(0.3, 0.0, 0.0), check={"beam_std_mm": 0.5})
     assert result["determines"] == ["axis"] and result["verdict"] == "ok"
     assert result["change"]["x_mm"] is None and result["change"]["tilt_x_deg"] is not None
     assert any("not determined, so no band applies" in n and "[beams] as installed" in n for n in result["notes"])
@@ -144,7 +160,7 @@ def test_bad_options_are_one_message_naming_the_key_and_nothing_moves(tmp_path, 
 
 def test_a_plan_that_determines_nothing_for_a_band_is_refused_saying_why(tmp_path, capsys):
     """One height (no axis) and the beams as installed (no tip): nothing to judge."""
-    code, _, err = run_cli(capsys, "run", "tcp-check", "--cell", str(cell_file(tmp_path, check={"heights_mm": [12]})),
-                           "--out", str(tmp_path / "runs"))
+    cell = cell_file(tmp_path, check={"heights_mm": [12], "beam_std_mm": 0.5})
+    code, _, err = run_cli(capsys, "run", "tcp-check", "--cell", str(cell), "--out", str(tmp_path / "runs"))
     assert code == 2 and "determines nothing a band can judge" in err and "one height" in err, err
     assert not (tmp_path / "runs").exists() or list((tmp_path / "runs").iterdir()) == []

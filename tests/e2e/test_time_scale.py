@@ -23,9 +23,9 @@ from test_tracker_routine import floor_bound  # tests/e2e/test_tracker_routine.p
 
 pytestmark = pytest.mark.slow
 
-SECTIONS = {  # tcp-laser and tcp-check as shipped; a short tracker campaign
-    "tcp-laser": {},
-    "tcp-check": {},
+SECTIONS = {  # tcp-laser as shipped; tcp-check on [beams] as installed (said so: the tip not determined); a
+    "tcp-laser": {},  # short tracker campaign
+    "tcp-check": {"tcp_check": {"beam_std_mm": 0.5}},
     "tracker": {"tracker": replaced({"target": "smr1", "instrument_m": [-2.5, 0.0, 1.0], "poses": 10,
                                      "validation_poses": 3, "candidates": 80, "settle_s": 0, "measure_s": 0}),
                 # twice the shipped joint speed: the real-time run's arm time halved, the plan the same at both K

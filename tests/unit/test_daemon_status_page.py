@@ -67,7 +67,7 @@ def test_an_address_beyond_this_pc_is_said_in_the_log(cell, tmp_path, caplog, mo
     import cellcal.daemon.status_server as status_server
 
     class Listening:
-        def __init__(self, status, state_dir, spec, tool_names=None):
+        def __init__(self, status, state_dir, spec, tool_names=None, tool_bands=None):
             self.url = f"http://{spec.host}:{spec.port}/"
 
         def start(self):

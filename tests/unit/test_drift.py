@@ -275,3 +275,29 @@ def test_tool_trend_of_a_tool_never_measured_names_those_that_were(store, tmp_pa
     assert main(["tool", "trend", "--tool", "7", "--state-dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "no measured frame of tool 7" in err and "tools measured there: 1" in err and "Traceback" not in err
+
+
+def _moved_rows(first_run: int, move_mm) -> list[dict]:
+    """A tool's measured frames: a full calibration, then a check with its tip moved by `move_mm`."""
+    frame = [0.0, 0.0, 0.15, 0.0, 0.0, 0.0]
+    moved = [frame[0] + move_mm[0] / 1e3, frame[1] + move_mm[1] / 1e3, frame[2] + move_mm[2] / 1e3, 0.0, 0.0, 0.0]
+    return [{"run_id": first_run, "kind": "calibration", "written": True, "frame": frame, "determines": ["axis", "tip"]},
+            {"run_id": first_run + 10, "kind": "check", "written": False, "frame": moved,
+             "determines": ["axis", "tip"]}]
+
+
+def test_every_tool_drifting_the_same_way_is_said_to_be_the_beams():
+    """Beams that moved 0.3 mm along x move every tool's checked tip alike; a bent tool moves alone."""
+    from types import SimpleNamespace
+
+    from cellcal.daemon.drift import drifting_together
+    bands = {1: SimpleNamespace(drift_mm=0.2), 2: SimpleNamespace(drift_mm=0.2)}
+    alike = {1: _moved_rows(1, [0.30, 0.02, 0.0]), 2: _moved_rows(2, [0.28, -0.01, 0.01])}
+    said = drifting_together(1, alike, bands)
+    assert said is not None and "tool 1 0.301 mm (run 11), tool 2 0.280 mm (run 12)" in said and "tcp-laser" in said
+    # one tool bent, the other where it was: no word of the beams
+    assert drifting_together(1, {1: alike[1], 2: _moved_rows(2, [0.02, 0.0, 0.0])}, bands) is None
+    # both beyond the drift alarm but different ways (two tools bent): not the beams either
+    assert drifting_together(1, {1: alike[1], 2: _moved_rows(2, [0.0, 0.3, 0.0])}, bands) is None
+    # one tool only checked since its calibration: nothing to compare with
+    assert drifting_together(1, {1: alike[1], 2: _moved_rows(2, [0.3, 0.0, 0.0])[:1]}, bands) is None

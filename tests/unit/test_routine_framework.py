@@ -5,6 +5,8 @@ receives: none outside the cell's limits may ever reach it.
 """
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 
@@ -88,6 +90,9 @@ def test_a_refused_command_never_reaches_the_robot(cell, guard):
 # the handshake needs a cell of two robots: test_handshake checks both robots' commands alike
 @pytest.mark.parametrize("name", [n for n in registry.available() if n != "handshake"])
 def test_every_routine_sends_only_commands_within_the_cell_limits(cell, name, tmp_path):
+    if name == "tcp-check":  # a check needs the beams known (else refused before moving): as installed, stated
+        cell = copy.deepcopy(cell)
+        cell.routines["tcp_check"] = {"beam_std_mm": 0.5}
     prepared = runner.prepare(name, cell)
     model = load_robot(cell.robot)
     with open_drivers(cell) as drivers:
@@ -119,6 +124,27 @@ def test_a_wrist_left_beyond_its_limits_is_unwound_before_the_plans_first_move(c
     assert kind == "joint"
     # a whole turn back: joint 6 at -0.02 deg, the other joints where they were (the same pose)
     np.testing.assert_allclose(target, [*q[:5], q[5] + 2 * np.pi], atol=1e-12)
+    assert all(not within_limits(cell, model, c, cell.tool.tcp_pose) for c in recording.commands)
+
+
+def test_an_arm_left_away_from_home_goes_home_before_the_plans_first_cartesian_move(cell, tmp_path):
+    """A run aborted between two orientations leaves the wrist half a turn on: a straight line from
+    there to the plan's first pose would wind it past its limit. Every plan is checked from home,
+    so the run goes there first, by a joint move whose path is checked as any other."""
+    prepared = runner.prepare("tcp-laser", cell)
+    model = load_robot(cell.robot)
+    home = np.asarray(cell.home_q_rad, dtype=float)
+    with open_drivers(cell) as drivers:
+        arm = drivers.world.arm
+        arm.q = home + np.radians([5.0, -3.0, 4.0, 10.0, -8.0, -170.0])  # where an abort left it
+        arm.set_tcp(arm.tcp_offset)
+        recording = RecordingRobot(drivers.robot)
+        drivers.robot = recording
+        runner.measure(prepared, drivers, tmp_path, lambda message: None)
+    kind, target, _, _ = recording.commands[0]
+    assert kind == "joint"
+    np.testing.assert_array_equal(target, home)
+    assert recording.commands[1][0] != "joint" or not np.array_equal(recording.commands[1][1], home)
     assert all(not within_limits(cell, model, c, cell.tool.tcp_pose) for c in recording.commands)
 
 
