@@ -105,47 +105,44 @@ def test_every_routine_sends_only_commands_within_the_cell_limits(cell, name, tm
         assert not within_limits(cell, model, command, tool), command
 
 
-def test_a_wrist_left_beyond_its_limits_is_unwound_before_the_plans_first_move(cell, tmp_path):
-    """A run aborted during a wrist's turn can leave joint 6 a little beyond a full turn (-360.02
-    deg against limits of +-360): the next run turns it back by a turn, the same pose, before its
-    plan's first move, instead of refusing that move for a joint outside its limits."""
+def tcp_laser_from(cell, q, tmp_path) -> list:
+    """tcp-laser's commands, run with the arm left at joints `q` (put there as a stop ramp leaves
+    it: a controller would refuse such a target); every one checked against the cell's limits."""
     prepared = runner.prepare("tcp-laser", cell)
     model = load_robot(cell.robot)
     with open_drivers(cell) as drivers:
-        q = np.asarray(cell.home_q_rad, dtype=float).copy()
-        q[5] = model.joint_limits[5, 0] - np.deg2rad(0.02)  # where the abort left it
-        arm = drivers.world.arm  # put there as a stop ramp leaves it (a controller refuses such a target)
-        arm.q = q
+        arm = drivers.world.arm
+        arm.q = np.asarray(q, dtype=float)
         arm.set_tcp(arm.tcp_offset)
         recording = RecordingRobot(drivers.robot)
         drivers.robot = recording
         runner.measure(prepared, drivers, tmp_path, lambda message: None)
-    kind, target, _, _ = recording.commands[0]
+    assert all(not within_limits(cell, model, c, cell.tool.tcp_pose) for c in recording.commands)
+    return recording.commands
+
+
+def test_a_wrist_left_beyond_its_limits_is_unwound_before_the_plans_first_move(cell, tmp_path):
+    """A run aborted during a wrist's turn can leave joint 6 a little beyond a full turn (-360.02
+    deg against limits of +-360): the next run turns it back by a turn, the same pose, before its
+    plan's first move, instead of refusing that move for a joint outside its limits."""
+    q = np.asarray(cell.home_q_rad, dtype=float).copy()
+    q[5] = load_robot(cell.robot).joint_limits[5, 0] - np.deg2rad(0.02)  # where the abort left it
+    kind, target, _, _ = tcp_laser_from(cell, q, tmp_path)[0]
     assert kind == "joint"
     # a whole turn back: joint 6 at -0.02 deg, the other joints where they were (the same pose)
     np.testing.assert_allclose(target, [*q[:5], q[5] + 2 * np.pi], atol=1e-12)
-    assert all(not within_limits(cell, model, c, cell.tool.tcp_pose) for c in recording.commands)
 
 
 def test_an_arm_left_away_from_home_goes_home_before_the_plans_first_cartesian_move(cell, tmp_path):
     """A run aborted between two orientations leaves the wrist half a turn on: a straight line from
     there to the plan's first pose would wind it past its limit. Every plan is checked from home,
     so the run goes there first, by a joint move whose path is checked as any other."""
-    prepared = runner.prepare("tcp-laser", cell)
-    model = load_robot(cell.robot)
     home = np.asarray(cell.home_q_rad, dtype=float)
-    with open_drivers(cell) as drivers:
-        arm = drivers.world.arm
-        arm.q = home + np.radians([5.0, -3.0, 4.0, 10.0, -8.0, -170.0])  # where an abort left it
-        arm.set_tcp(arm.tcp_offset)
-        recording = RecordingRobot(drivers.robot)
-        drivers.robot = recording
-        runner.measure(prepared, drivers, tmp_path, lambda message: None)
-    kind, target, _, _ = recording.commands[0]
+    commands = tcp_laser_from(cell, home + np.radians([5.0, -3.0, 4.0, 10.0, -8.0, -170.0]), tmp_path)
+    kind, target, _, _ = commands[0]
     assert kind == "joint"
     np.testing.assert_array_equal(target, home)
-    assert recording.commands[1][0] != "joint" or not np.array_equal(recording.commands[1][1], home)
-    assert all(not within_limits(cell, model, c, cell.tool.tcp_pose) for c in recording.commands)
+    assert commands[1][0] != "joint" or not np.array_equal(commands[1][1], home)
 
 
 def test_a_dataset_round_trips_with_its_header(tmp_path):
