@@ -73,6 +73,8 @@ def test_confirming_without_moving_the_plate_misses_the_next_placement(tmp_path)
         panel.press_confirm()
         service.poll_panel()
         assert not panel.confirm_requested() and not service.busy()
+        refused = service.run("no-such-routine")  # a run that ended before this one: kept apart from it
+        assert refused.code == ResultCode.NO_SUCH_ROUTINE
         start(service, panel)
         poll_until(service, lambda: panel.waiting == 1, "the routine never asked for placement 1")
         for _ in range(5):  # it keeps waiting, parked at home, until confirmed
@@ -86,6 +88,9 @@ def test_confirming_without_moving_the_plate_misses_the_next_placement(tmp_path)
             "placement p1" in status["health"]["says"], status["health"]
         # operator_cell's confirm_timeout_s is 60 s
         assert status["waiting"]["step"] == 1 and 0.0 < status["waiting"]["time_left_s"] <= 60.0, status
+        # the run under way and the last finished one, apart
+        assert status["run_id"] == refused.run_id + 1 and status["last_run_id"] == refused.run_id, status
+        assert status["result_code"] == ResultCode.NO_SUCH_ROUTINE and status["reason"] == refused.reason, status
         panel.press_confirm()
         poll_until(service, lambda: panel.waiting == 2, "the routine never asked for placement 2")
         np.testing.assert_allclose(drivers.robot.actual_q(), cell.home_q_rad, atol=1e-9)  # placement 1 done: home
