@@ -265,11 +265,15 @@ def _write(path, t, result, unit: str, with_rotation: bool) -> None:
              + ["x_cmd_mm", "y_cmd_mm", "z_cmd_mm"] + (["qw_cmd", "qx_cmd", "qy_cmd", "qz_cmd"] if with_rotation else [])
              + ["correction_deg", "status"])
     quat = Rotation.from_matrix(result.rotation).as_quat()[:, [3, 0, 1, 2]]
+    # the input's own joint columns (the branch each row was given in) are kept, renamed where the
+    # solution's take their names: q1_deg -> q1_branch_deg; any other column the solution names is replaced
+    branch = {f"q{j}_{unit}": f"q{j}_branch_{unit}" for j in range(1, nj + 1)}
+    header = [branch.get(h, h) for h in t["header"]]
+    keep = [k for k, h in enumerate(header) if h not in added]
     try:
         with open(path, "w", newline="", encoding="utf-8") as f:
             w = csv.writer(f, lineterminator="\n")
-            w.writerow([h for h in t["header"] if h not in added] + added)
-            keep = [k for k, h in enumerate(t["header"]) if h not in added]
+            w.writerow([header[k] for k in keep] + added)
             for i, row in enumerate(t["rows"]):
                 values = []
                 if result.status[i] == OK:  # q_nominal is NaN where the nominal model itself misses: left empty
@@ -354,6 +358,9 @@ def run_program(args, calibrated, nominal, tcp_mm) -> int:
     if len(large) > SHOWN_ROWS:
         print_progress(f"... {counted(len(large) - SHOWN_ROWS, 'more target')} with a correction above "
                        f"{args.max_correction_deg:g} deg (joint_deg in the report)")
+    if n == 0:
+        print_progress(f"{args.program}: warning: no movej, movel, movep or movec target in the program: nothing "
+                       "was compensated (is it the right file?)")
     if error:
         print_progress(f"error: {error}")
         return 1

@@ -56,7 +56,7 @@ def run(args) -> int:
         raise UsageError(f"{args.data}: {len(cal)} calibration rows; identification needs at least {n_min}")
     if fixture is not None or any(t is not None and t.is_point.any() for t in (cal, val)):
         return identify_points.run(args, model, cal, val, fixture)  # the point form: fixtures as the instrument
-    options = IdentifyOptions(regularize=args.regularize, loss=args.loss, folds=args.folds,
+    options = IdentifyOptions(regularize=args.regularize or "cv", loss=args.loss, folds=args.folds,
                               fixed=tuple(args.fix or ()), prior_mm=args.prior_mm)
     obs = cal.observations()
     val_obs = None
@@ -89,9 +89,10 @@ def add_parser(sub) -> None:
                         "(a point column instead of x_mm, y_mm, z_mm; docs/measurements.md)")
     p.add_argument("--validate", metavar="VAL.csv",
                    help="measurements to validate on (default: rows of --data marked split=val, if any)")
-    p.add_argument("--regularize", choices=REGULARIZE, default="cv",
+    p.add_argument("--regularize", choices=REGULARIZE,
                    help="cv: L2 prior toward nominal, weight by k-fold cross-validation (default); "
-                        "none: least squares over the identifiable parameters")
+                        "none: least squares over the identifiable parameters (tracker rows only: the point form "
+                        "is fitted by least squares with --prior-mm's prior)")
     p.add_argument("--loss", choices=LOSSES, default="linear",
                    help="robust loss against outliers (default: linear, i.e. least squares)")
     p.add_argument("--folds", type=whole(2, 100), default=5, help="folds of the cross-validation, 2 .. 100 (default 5)")

@@ -107,6 +107,9 @@ def run(args, model, cal: MeasurementTable, val: MeasurementTable | None, fixtur
     if args.loss != "linear":
         raise UsageError(f"--loss {args.loss}: the point form is fitted by least squares (its rows are seatings, "
                          "each a repeatability; leave --loss out)")
+    if getattr(args, "regularize", None) is not None:
+        raise UsageError(f"--regularize {args.regularize}: the point form is fitted by least squares with the prior "
+                         "--prior-mm sets, not by cross-validated ridge; leave --regularize out")
     _check_rows(cal, fixture)
     if val is not None:
         _check_rows(val, fixture, placed=set(_keys(cal)))

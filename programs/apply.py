@@ -127,6 +127,10 @@ def compensate_program(program: Program, nominal, calibrated, *, default_tcp_mm,
             frames[tool_mm] = solver.rigid_frames(nominal, nominal.nominal, np.array(tool_mm))
         if target.kind == JOINTS:
             q = np.array(target.values, dtype=float)
+            outside = _outside_limits(nominal, q)
+            if outside:
+                per_target[k] = TargetCompensation(target, "joint_limits", f"not compensated: {outside}")
+                continue
             rot, p = frames[tool_mm](q[None], None)[:2]
             position, flange = p[0], rot[0]
         else:
@@ -151,6 +155,19 @@ def compensate_program(program: Program, nominal, calibrated, *, default_tcp_mm,
     controller = solver.controller_frame(calibrated, nominal, offset_mm=np.asarray(default_tcp_mm, dtype=float))
     _compensate_rows(program, rows, per_target, nominal, calibrated, controller)
     return ProgramCompensation(tuple(per_target), time.perf_counter() - started)
+
+
+def _outside_limits(model, q: np.ndarray) -> str:
+    """Why joint target `q` (rad) is not one the controller moves to (a joint outside the model's
+    limits: the controller refuses it), or "" when it is."""
+    limits = getattr(model, "joint_limits", None)
+    if limits is None:
+        return ""
+    for i, (value, (low, high)) in enumerate(zip(q, np.asarray(limits, dtype=float))):
+        if not low <= value <= high:
+            return (f"joint {i + 1} at {np.degrees(value):.6g} deg is outside its limits "
+                    f"{np.degrees(low):.1f}..{np.degrees(high):.1f} deg")
+    return ""
 
 
 def _tool(tcp: SetTcp | None, default_tcp_mm) -> tuple[tuple[float, ...], np.ndarray]:

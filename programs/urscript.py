@@ -119,6 +119,9 @@ def read_program(path) -> Program:
             raw = f.read()
     except OSError as exc:
         raise ProgramError(f"{path}: cannot read the program: {exc.strerror or exc}") from None
+    if b"\x00" in raw:  # no text file holds a NUL byte; every binary format does
+        line = raw.count(b"\n", 0, raw.index(b"\x00")) + 1
+        raise ProgramError(f"{path}: not a text program (a NUL byte on line {line}: a binary file?)")
     return parse(raw.decode("utf-8", errors="surrogateescape"), str(path))
 
 
@@ -156,9 +159,14 @@ def tokenize(text: str, name: str = "<program>") -> list[Token]:
 
 
 def parse(text: str, name: str = "<program>") -> Program:
-    """Every motion target and set_tcp of the program, in the order they are written."""
+    """Every motion target and set_tcp of the program, in the order they are written.
+    ProgramError, naming file:line:column, for a literal number no double holds (``1e400``)."""
     tokens = tokenize(text, name)
     lines = _LineIndex(text)
+    for token in tokens:
+        if token.kind == "number" and not math.isfinite(float(token.text)):
+            raise ProgramError(f"{name}:{lines.where(token.start)}: {token.text} is beyond any number the "
+                               "controller holds (a double's largest is about 1.8e308)")
     partner = _partners(tokens)
     targets: list[Target] = []
     tcps: list[SetTcp] = []

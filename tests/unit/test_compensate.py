@@ -115,6 +115,9 @@ def test_cli_writes_corrected_joints_and_cartesian_targets(files, capsys):
     rows = list(csv.DictReader(open(out)))
     assert [r["name"] for r in rows] == [f"t{i}" for i in range(20)]
     assert rows[3]["status"] == "unreachable" and rows[3]["q1_deg"] == ""
+    # the input's branch columns are kept beside the solution's, every row's (an unreachable one's too)
+    given = list(csv.DictReader(open(files / "targets.csv")))
+    assert all(r[f"q{j}_branch_deg"] == g[f"q{j}_deg"] for r, g in zip(rows, given) for j in range(1, 7))
     good = [r for r in rows if r["status"] == "ok"]
     assert len(good) >= 15
     # the corrected Cartesian target differs from the desired one by about what the calibration corrects

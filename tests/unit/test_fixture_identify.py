@@ -204,6 +204,8 @@ CASES = [
      ["none.yaml: no such file"]),
     ("a robust loss on seatings", lambda f, t: identify_with(f / "cal.csv", f / "plate.yaml", "--loss", "huber"), 2,
      ["--loss huber", "least squares"]),
+    ("a ridge weight for seatings", lambda f, t: identify_with(f / "cal.csv", f / "plate.yaml", "--regularize", "none"),
+     2, ["--regularize none", "leave --regularize out"]),
     ("validating on positions after seatings alone", lambda f, t: identify_with(
         f / "cal.csv", f / "plate.yaml", "--validate", tracker_rows(f, t)), 2,
      ["measured.csv:2: column 'x_mm'", "instrument's frame is unknown"]),

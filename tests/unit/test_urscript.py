@@ -325,6 +325,26 @@ def test_targets_out_of_reach_are_listed_and_nothing_is_written_without_allow_pa
     assert written[0] != source[0] and written[2] != source[2]  # compensated
 
 
+def test_a_joint_target_of_1e300_is_outside_the_joint_limits_and_no_numpy_warning_is_shown(robot, tmp_path,
+                                                                                               capsys):
+    folder = robot[3]
+    argv = _cli(folder, tmp_path, "movej([1e300, -1.75, 1.75, -1.57, -1.57, 0.2])\n" + GOOD, "--json")
+    assert main(argv) == 1
+    captured = capsys.readouterr()
+    report = json.loads(captured.out)["report"]
+    assert [(r["line"], r["status"]) for r in report] == [(1, "joint_limits"), (2, "ok")], report
+    assert "joint 1 at 5.72958e+301 deg is outside its limits" in report[0]["reason"], report[0]
+    assert "Warning" not in captured.err and "Traceback" not in captured.err, captured.err
+
+
+def test_a_program_without_a_motion_target_is_said_to_have_nothing_compensated(robot, tmp_path, capsys):
+    argv = _cli(robot[3], tmp_path, "# only a comment\npopup(\"hello\")\n")
+    assert main(argv) == 0
+    out, err = capsys.readouterr()
+    assert "compensated 0 of 0 targets" in out
+    assert "p.script: warning: no movej, movel, movep or movec target in the program" in err, err
+
+
 def _cli(folder, tmp_path, text, *extra):
     prog = tmp_path / "p.script"
     prog.write_text(text)
@@ -337,6 +357,10 @@ BAD_INPUT = [  # (name, program text, extra options, words in the one message)
     ("an unclosed bracket", "movel(p[0.5, 0, 0.4, 0, 3.14, 0]\n", (), ["p.script:1:6: '(' is never closed"]),
     ("an unterminated string", 'popup("movel(p[0,0,0,0,0,0])\n', (), ["p.script:1:7: a string opened here"]),
     ("a pose before any joints", "movel(p[0.5, 0, 0.4, 0, 3.14, 0])\n", (), ["p.script:1:7:", "--seed-deg"]),
+    ("a number no double holds", GOOD + "movel(p[1e400, 0, 0.4, 0, 3.14, 0])\n", (),
+     ["p.script:2:9: 1e400 is beyond any number the controller holds"]),
+    ("a binary file", GOOD + "\x7fELF\x02\x01\x00[(\x00\x00", (), ["p.script: not a text program (a NUL byte on line 2"]),
+    ("the output into a folder that is not there", None, (), ["out/p-cal.script: the folder", "/out does not exist"]),
     ("a seed of 5 joints", GOOD, ("--seed-deg", "0", "-90", "90", "-90", "-90"), ["--seed-deg: give 6"]),
     ("--unit with a program", GOOD, ("--unit", "deg"), ["--unit", "radians"]),
     ("--allow-partial with a CSV", None, (), ["--allow-partial: only with --program"]),
@@ -358,6 +382,9 @@ def test_bad_input_is_one_message_and_nothing_written(robot, tmp_path, capsys, n
     elif name == "the output into /proc":  # checked before anything is read or computed
         argv = _cli(folder, tmp_path, GOOD)
         argv[-1] = "/proc/p-cal.script"
+    elif name == "the output into a folder that is not there":
+        argv = _cli(folder, tmp_path, GOOD)
+        argv[-1] = str(tmp_path / "out" / "p-cal.script")
     elif name == "a program that does not exist":
         argv = _cli(folder, tmp_path, GOOD)
         argv[-3] = str(tmp_path / "missing.script")
