@@ -20,8 +20,9 @@ from scipy.spatial.transform import Rotation
 from cellcal.config.model_files import load_calibrated, source_model
 from cellcal.config.robot_files import load_robot
 from cellcal.measurements.table import MAX_JOINT, MAX_POSITION_MM, MAX_PAYLOAD_KG
-from cellcal.solvers.compensation.compensate import (FRAMES, JOINT_LIMITS, OK, SINGULAR, SINGULAR_MM_PER_RAD, UNREACHABLE,
-                                        compensate, controller_frame, targets_in_model_frame)
+from cellcal.solvers.compensation.compensate import (FRAMES, JOINT_LIMITS, NOMINAL_MISMATCH_MM, OK, SINGULAR,
+                                                     SINGULAR_MM_PER_RAD, UNREACHABLE, compensate, controller_frame,
+                                                     nominal_mismatch_mm, targets_in_model_frame)
 from cellcal.solvers.analysis.effects import Context, approach_directions
 from cellcal.cli.common import UsageError, counted, number, print_progress, writable_file
 
@@ -174,6 +175,7 @@ def run(args) -> int:
             raise UsageError(f"--target {name}: not a target of {args.robot} "
                              f"({', '.join(calibrated.target_names)})")
         offset = calibrated.offsets[calibrated.target_names.index(name)]
+    _same_arm(args, calibrated, nominal, offset)
     if args.program is not None:  # a URScript program in, the same program compensated out
         return run_program(args, calibrated, nominal, offset)
     t = read_targets(args.targets, model.n_joints)
@@ -238,6 +240,21 @@ def run(args) -> int:
               + (f", {len(large)} above {args.max_correction_deg:g} deg (warned)" if len(large) else "")
               + f"; written to {args.out}")
     return 0
+
+
+def _same_arm(args, calibrated, nominal, offset) -> None:
+    """Refuse a nominal model of another arm than the one calibrated: its targets would move by the
+    difference of two arms (hundreds of mm), not by a calibration's correction."""
+    off_mm = nominal_mismatch_mm(calibrated, nominal, offset)
+    if off_mm <= NOMINAL_MISMATCH_MM:
+        return
+    source = source_model(args.robot)
+    started = f"the calibration started from {source}" if source else "the model file does not say which model " \
+                                                                      "the calibration started from"
+    raise UsageError(f"--nominal {args.nominal or nominal.name}: its arm is up to {off_mm:.0f} mm from the calibrated "
+                     f"one over the workspace (after the best base frame; a calibration changes a tool point by a few "
+                     f"mm, at most {NOMINAL_MISMATCH_MM:g}): not the controller this model was calibrated for ({started})"
+                     "; nothing written")
 
 
 def _reason(result, i: int, nominal) -> str:

@@ -187,6 +187,24 @@ def controller_frame(calibrated, nominal: KinematicModel, *, offset_mm=None,
     return fit_controller_frame(nominal, lambda q: calibrated.end_frames(q, offset)[1], nominal_offset)
 
 
+# How far (mm, after the best rigid base frame, over ``joint_sample``) a calibrated arm may be from the
+# nominal model of the controller it was calibrated for: a calibration moves a tool point by a few mm
+# (a UR10e's by 1-3 mm); another arm's nominal model differs by hundreds (a UR5e from a UR10e: ~200 mm).
+NOMINAL_MISMATCH_MM = 20.0
+
+
+def nominal_mismatch_mm(calibrated, nominal: KinematicModel, offset_mm) -> float:
+    """The largest distance, over ``joint_sample``, between the calibrated model's tool point (offset_mm,
+    end frame) and the nominal model's moved by the best rigid transform: how unlike the two arms are,
+    whatever frame convention the calibration chose for its base."""
+    offset = np.asarray(offset_mm, dtype=float)
+    q = joint_sample(nominal)
+    p_nominal = rigid_frames(nominal, nominal.nominal, offset)(q, None)[1]
+    p_model = np.asarray(calibrated.end_frames(q, offset)[1], dtype=float)
+    r, t = se3.rigid_fit(p_nominal, p_model)
+    return float(np.linalg.norm(p_nominal @ r.T + t - p_model, axis=1).max())
+
+
 def targets_in_model_frame(calibrated, nominal: KinematicModel, xyz_mm, rot, frame: str, *, offset_mm=None,
                            nominal_offset_mm=None, controller=None):
     """Targets given in ``frame`` (one of FRAMES) as (xyz_mm (N, 3), rot (N, 3, 3) or None) in the calibrated

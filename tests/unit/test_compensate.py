@@ -141,3 +141,26 @@ def test_cli_refuses_unusable_targets_with_one_message(files, tmp_path, capsys):
                  str(tmp_path / "o.csv"), "--seed-deg", "0", "-90", "90", "0", "90", "0"]) == 2
     assert "bad.csv:2: column 'z_mm'" in capsys.readouterr().err
     assert not (tmp_path / "o.csv").exists()
+
+
+def test_a_nominal_model_of_another_arm_is_refused_and_nothing_written(files, capsys):
+    """A UR10e calibration with --nominal ur5e would move every target by the two arms' difference
+    (hundreds of mm): refused, status 2, one line; its own nominal (or the same arm named) is accepted."""
+    from cellcal.config.model_files import load_calibrated
+    from cellcal.config.robot_files import load_robot
+    from cellcal.solvers.compensation.compensate import NOMINAL_MISMATCH_MM, nominal_mismatch_mm
+
+    out = files / "other.csv"
+    argv = ["compensate", "--robot", str(files / "cal.yaml"), "--targets", str(files / "targets.csv"), "-o", str(out),
+            "--tcp-mm", "0", "0", "100"]
+    assert main(argv + ["--nominal", "ur5e"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--nominal ur5e: its arm is up to" in err and "started from ur10e" in err, err
+    assert not out.exists()
+    calibrated = load_calibrated(files / "cal.yaml")
+    own = nominal_mismatch_mm(calibrated, load_robot("ur10e"), np.array([0.0, 0.0, 100.0]))
+    other = nominal_mismatch_mm(calibrated, load_robot("ur5e"), np.array([0.0, 0.0, 100.0]))
+    print(f"calibrated UR10e against its nominal: {own:.2f} mm, against a UR5e: {other:.0f} mm")
+    assert own < NOMINAL_MISMATCH_MM / 4 and other > 5 * NOMINAL_MISMATCH_MM  # far apart on both sides
+    assert main(argv + ["--nominal", "ur10e"]) == 0  # accepted (the unreachable row 5 is reported by row)
+    assert out.exists()
