@@ -83,8 +83,45 @@ def add_parser(sub):
                         "rows are compensated: a large correction is not a singularity (near one, a small "
                         "Cartesian correction needs large joint moves); singular configurations are judged by the "
                         "Jacobian and reported as near_singularity")
+    p.add_argument("--force", action="store_true",
+                   help="compensate a program or target file that cellcal compensated before (a program's last "
+                        "comment line, a target file's compensated_with column say so): its targets move a second "
+                        "time. Without it such a file is refused, status 2")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=run)
+
+
+MARK = "cellcal compensated:"  # the comment line a compensated program carries
+MARK_COLUMN = "compensated_with"  # the column a compensated target file carries (a CSV reader takes no comments)
+
+
+def mark(args, nominal) -> str:
+    """The marker line of what this run writes: the model (its file's content hash), the nominal model
+    and the date, so that compensating the output again is caught."""
+    import datetime
+    import hashlib
+
+    from cellcal.config.robot_files import resolve_robot
+    path = resolve_robot(args.robot)
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+    when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    return (f"# {MARK} with {path.name} (sha256 {digest}), nominal {nominal.name}, {when}: compensating this "
+            "again would move its targets a second time")
+
+
+def marked(lines) -> str | None:
+    """The first marker line among `lines` (text lines of a program or a target file), without its '#'."""
+    for line in lines:
+        text = line.strip()
+        if text.startswith("#") and text.lstrip("#").strip().startswith(MARK):
+            return text.lstrip("#").strip()
+    return None
+
+
+def refuse_marked(args, path, found: str | None) -> None:
+    if found is not None and not args.force:
+        raise UsageError(f"{path}: already compensated ({found.removeprefix(MARK).strip().split(':')[0]}): compensating "
+                         "it again would move every target a second time; give the original, or --force")
 
 
 def read_targets(path, n_joints: int) -> dict:
@@ -92,8 +129,8 @@ def read_targets(path, n_joints: int) -> dict:
     joint unit, payload or None. One UsageError naming file, line and column for anything unusable."""
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:
-            lines = [(i, row) for i, row in enumerate(csv.reader(f), start=1)
-                     if row and not row[0].startswith("#") and any(c.strip() for c in row)]
+            every = list(enumerate(csv.reader(f), start=1))
+        lines = [(i, row) for i, row in every if row and not row[0].startswith("#") and any(c.strip() for c in row)]
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise UsageError(f"{path}: cannot read the targets: {getattr(exc, 'strerror', None) or exc}") from None
     if len(lines) < 2:
@@ -149,8 +186,9 @@ def read_targets(path, n_joints: int) -> dict:
                                  for n in names])
             q, unit = (np.deg2rad(q) if u == "deg" else q), u
     payload = numbers("payload_kg", MAX_PAYLOAD_KG, " kg", "more than any arm carries") if "payload_kg" in col else None
+    done = sorted({row[col[MARK_COLUMN]].strip() for _, row in rows} - {""}) if MARK_COLUMN in col else []
     return {"header": header, "rows": [r for _, r in rows], "lines": [i for i, _ in rows], "xyz": xyz, "quat": quat,
-            "q": q, "unit": unit, "payload": payload}
+            "q": q, "unit": unit, "payload": payload, "compensated": f"{MARK} {done[0]}" if done else None}
 
 
 def run(args) -> int:
@@ -179,6 +217,7 @@ def run(args) -> int:
     if args.program is not None:  # a URScript program in, the same program compensated out
         return run_program(args, calibrated, nominal, offset)
     t = read_targets(args.targets, model.n_joints)
+    refuse_marked(args, args.targets, t["compensated"])
     n = len(t["xyz"])
     if t["q"] is not None:
         seed = t["q"]
@@ -204,7 +243,7 @@ def run(args) -> int:
                         controller=controller)
     seconds = time.perf_counter() - started
     unit = args.unit or t["unit"] or "deg"
-    _write(args.out, t, result, unit, rot is not None)
+    _write(args.out, t, result, unit, rot is not None, mark(args, nominal))
     bad = np.flatnonzero(result.status != OK)
     reasons = {int(i): _reason(result, i, nominal) for i in bad}
     for i in bad[:SHOWN_ROWS]:
@@ -230,7 +269,11 @@ def run(args) -> int:
                "large_correction": [{"line": int(t["lines"][i]),
                                      "correction_deg": float(np.rad2deg(result.correction_rad[i]))} for i in large],
                "max_correction_deg": args.max_correction_deg,
-               "nominal_model": nominal.name, "out": str(args.out), "seconds": seconds}
+               "nominal_model": nominal.name, "out": str(args.out), "seconds": seconds,
+               "compensated_before": t["compensated"]}
+    if t["compensated"] is not None:
+        print_progress(f"{args.targets}: warning: compensated before ({t['compensated']}); --force compensated it "
+                       "again: every target moved a second time")
     if args.json:
         print(json.dumps(summary))
     else:
@@ -275,12 +318,13 @@ def _reason(result, i: int, nominal) -> str:
     return status
 
 
-def _write(path, t, result, unit: str, with_rotation: bool) -> None:
+def _write(path, t, result, unit: str, with_rotation: bool, marker: str) -> None:
     nj = result.q.shape[1]
     scale = np.rad2deg if unit == "deg" else (lambda v: v)
     added = ([f"q{j}_{unit}" for j in range(1, nj + 1)] + [f"q{j}_nominal_{unit}" for j in range(1, nj + 1)]
              + ["x_cmd_mm", "y_cmd_mm", "z_cmd_mm"] + (["qw_cmd", "qx_cmd", "qy_cmd", "qz_cmd"] if with_rotation else [])
-             + ["correction_deg", "status"])
+             + ["correction_deg", "status", MARK_COLUMN])
+    marker = marker.lstrip("#").strip().removeprefix(MARK).strip()
     quat = Rotation.from_matrix(result.rotation).as_quat()[:, [3, 0, 1, 2]]
     # the input's own joint columns (the branch each row was given in) are kept, renamed where the
     # solution's take their names: q1_deg -> q1_branch_deg; any other column the solution names is replaced
@@ -298,10 +342,10 @@ def _write(path, t, result, unit: str, with_rotation: bool) -> None:
                               *(quat[i] if with_rotation else ())]
                     values = [f"{v:.10g}" if np.isfinite(v) else "" for v in values]
                 else:
-                    values = [""] * (len(added) - 2)
+                    values = [""] * (len(added) - 3)
                 correction = np.rad2deg(result.correction_rad[i])
                 w.writerow([row[k] for k in keep] + values + [f"{correction:.6g}" if np.isfinite(correction) else "",
-                                                              result.status[i]])
+                                                              result.status[i], marker])
     except OSError as exc:
         raise UsageError(f"-o {path}: cannot write: {exc.strerror or exc}") from None
 
@@ -328,6 +372,8 @@ def run_program(args, calibrated, nominal, tcp_mm) -> int:
         seed = np.deg2rad(args.seed_deg)
     try:
         program = read_program(args.program)
+        before = marked(program.text.splitlines())
+        refuse_marked(args, args.program, before)
         result = compensate_program(program, nominal, calibrated, default_tcp_mm=tcp_mm, seed_rad=seed)
     except ProgramError as exc:
         raise UsageError(str(exc)) from None
@@ -335,8 +381,10 @@ def run_program(args, calibrated, nominal, tcp_mm) -> int:
     written = not failed or args.allow_partial
     if written:
         try:
-            with open(args.out, "wb") as f:
-                f.write(encode(rewrite(program.text, result.replacements)))
+            text = rewrite(program.text, result.replacements)
+            ending = "" if not text or text.endswith(("\n", "\r")) else "\n"
+            with open(args.out, "wb") as f:  # the marker last: every line keeps its number
+                f.write(encode(text + ending + mark(args, nominal) + "\n"))
         except OSError as exc:
             raise UsageError(f"-o {args.out}: cannot write: {exc.strerror or exc}") from None
     counts = Counter(o.status for o in result.per_target)
@@ -348,7 +396,7 @@ def run_program(args, calibrated, nominal, tcp_mm) -> int:
                  f"{args.out}: --allow-partial writes the program with them left as written")
     if args.json:
         doc = {"program": str(args.program), "out": str(args.out), "written": written, "targets": n,
-               "compensated": done, "not_compensated": dict(sorted(counts.items())),
+               "compensated": done, "not_compensated": dict(sorted(counts.items())), "compensated_before": before,
                "nominal_model": nominal.name, "seconds": result.seconds,
                "report": [o.as_dict() for o in result.per_target]}
         if error:
@@ -378,6 +426,9 @@ def run_program(args, calibrated, nominal, tcp_mm) -> int:
     if n == 0:
         print_progress(f"{args.program}: warning: no movej, movel, movep or movec target in the program: nothing "
                        "was compensated (is it the right file?)")
+    if before is not None:
+        print_progress(f"{args.program}: warning: compensated before ({before}); --force compensated it again: "
+                       "every target moved a second time")
     if error:
         print_progress(f"error: {error}")
         return 1

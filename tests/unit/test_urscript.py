@@ -285,13 +285,44 @@ def test_a_compensated_program_lands_within_0_02_mm_on_the_hidden_robot(robot, c
     # 0.02 mm: what the issue asks; the calibrated model's own error here is about 0.01 mm
     assert after <= 0.02, (after, as_written)
     assert as_written > 20.0 * after, (after, as_written)  # hidden errors of 0.5 mm / 0.05 deg: about 1 mm
-    assert without_target_numbers(compensated) == without_target_numbers(program)  # every other byte as it was
+    # every other byte as it was, and one line added last (every line keeps its number): the marker naming the
+    # model, which a second compensation refuses
+    *body, marker = out.read_text().splitlines(keepends=True)
+    assert marker.startswith("# cellcal compensated: with cal.yaml (sha256 ") and "nominal ur10e" in marker, marker
+    assert without_target_numbers(parse("".join(body))) == without_target_numbers(program)
     # a correction above --max-correction-deg is compensated all the same, with a warning naming the line
     assert main(["compensate", "--robot", str(folder / "cal.yaml"), "--program", str(folder / "prog.script"),
                  "-o", str(out), "--max-correction-deg", "1e-6"]) == 0
     err = capsys.readouterr().err
     assert "prog.script:4: warning: compensated, but the joints move by" in err
-    assert parse(out.read_text()) == compensated
+    assert parse(out.read_text()).targets == compensated.targets
+
+
+def test_a_compensated_program_or_target_file_is_not_compensated_again_without_force(robot, tmp_path, capsys):
+    """Compensating twice moves every target a second time (about the calibration's correction again):
+    the output's marker makes a second run refuse, status 2, nothing written; --force does it and says so."""
+    model, calibrated, truth, folder = robot
+    (tmp_path / "prog.script").write_text(every_form_program(model, calibrated.offsets[0]))
+    once, twice = tmp_path / "once.script", tmp_path / "twice.script"
+    base = ["compensate", "--robot", str(folder / "cal.yaml")]
+    assert main(base + ["--program", str(tmp_path / "prog.script"), "-o", str(once)]) == 0
+    capsys.readouterr()
+    assert main(base + ["--program", str(once), "-o", str(twice)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "once.script: already compensated (with cal.yaml (sha256" in err, err
+    assert "--force" in err and not twice.exists()
+    assert main(base + ["--program", str(once), "-o", str(twice), "--force", "--json"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["compensated_before"].startswith("cellcal compensated: with cal.yaml")
+    assert "compensated before" in captured.err and twice.read_text().count("# cellcal compensated:") == 2
+    # a target file: its rows carry the marker in a column, and the output is refused as input alike
+    targets, out, again = tmp_path / "t.csv", tmp_path / "t-cal.csv", tmp_path / "t-cal-cal.csv"
+    targets.write_text("x_mm,y_mm,z_mm,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg\n"
+                       "600,-150,400,20,-100,100,-90,-90,0\n")
+    assert main(base + ["--targets", str(targets), "-o", str(out)]) == 0
+    capsys.readouterr()
+    assert main(base + ["--targets", str(out), "-o", str(again)]) == 2
+    assert "t-cal.csv: already compensated" in capsys.readouterr().err and not again.exists()
 
 
 UNREACHABLE_PROGRAM = """\
