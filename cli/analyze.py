@@ -8,7 +8,7 @@ from cellcal.config.fixture_files import read_fixture
 from cellcal.config.robot_files import load_robot
 from cellcal.routines.framework.base import jsonable
 from cellcal.measurements.reader import joint_velocities, read_measurements
-from cellcal.measurements.table import check_joint_limits, repeated_warning
+from cellcal.measurements.table import check_joint_limits, overlap_rows, overlap_warning, repeated_warning
 from cellcal.solvers.analysis import point_analysis
 from cellcal.solvers.analysis.analyze import AnalyzeOptions, Finding, analyze
 from cellcal.solvers.analysis.naming import Scored
@@ -125,8 +125,9 @@ def validate_text(v: Transfer, path: str) -> list[str]:
     return lines
 
 
-def _read_validate(path: str, model):
-    """The --validate data set as observations and context; one message for what it lacks."""
+def _read_validate(path: str, model, cal_table):
+    """The --validate data set as observations and context, and how many of its rows are poses of the
+    calibration data (:func:`overlap_rows`, said on stderr); one message for what it lacks."""
     table = read_measurements(path, model.n_joints)
     check_joint_limits(table, model.joint_limits, model.name)
     obs = table.observations()  # refuses point-form rows: the effect is scored on measured positions
@@ -135,7 +136,10 @@ def _read_validate(path: str, model):
         raise UsageError(f"{path}: {len(obs)} measurements; --validate needs at least "
                          f"{max(MIN_VALIDATE, -(-2 * unknowns // 3))} to fit its own frame and "
                          f"{len(obs.target_names)} target offset(s) and still test the effect")
-    return obs, _context(table)
+    overlap = overlap_rows(cal_table, table)
+    if (warning := overlap_warning(cal_table, table, overlap)) is not None:
+        print_progress(f"warning: {warning}")
+    return obs, _context(table), overlap
 
 
 def _undecided_json(f: Finding) -> dict | None:
@@ -251,7 +255,7 @@ def run(args) -> int:
         obs = point_analysis.observations(fixture_fit, point_data)
     else:
         obs = table.observations()
-    obs_b, ctx_b = _read_validate(args.validate, model) if args.validate else (None, None)
+    obs_b, ctx_b, overlap = _read_validate(args.validate, model, table) if args.validate else (None, None, 0)
     ctx = _context(table)
     requested = tuple(dict.fromkeys(args.causes))
     unscorable = {c: why for c in requested if (why := CAUSES[c].unscorable(model, ctx))}
@@ -298,7 +302,7 @@ def run(args) -> int:
         if experiment is not None:
             out["discriminate"] = experiment
         if validation is not None:
-            out["validate"] = validate_json(validation)
+            out["validate"] = {**validate_json(validation), "overlap_rows": overlap}
         print(json.dumps(out, default=jsonable), flush=True)
     else:
         print(text, flush=True)

@@ -10,7 +10,8 @@ from cellcal.cli.common import UsageError, number, print_progress, whole
 from cellcal.config.fixture_files import read_fixture
 from cellcal.config.robot_files import load_robot
 from cellcal.measurements.reader import read_measurements
-from cellcal.measurements.table import MeasurementTable, check_joint_limits, repeated_warning
+from cellcal.measurements.table import (MeasurementTable, check_joint_limits, overlap_rows, overlap_warning,
+                                        repeated_warning)
 from cellcal.reports.identification import identification_json, identification_text
 from cellcal.solvers.identification.identify import LOSSES, REGULARIZE, IdentifyOptions, identify
 
@@ -54,8 +55,14 @@ def run(args) -> int:
     n_min = 10
     if len(cal) < n_min:
         raise UsageError(f"{args.data}: {len(cal)} calibration rows; identification needs at least {n_min}")
+    overlap = 0
+    if val is not None:  # validation rows that are calibration rows score the fit in-sample: said first
+        overlap = overlap_rows(cal, val)
+        if (warning := overlap_warning(cal, val, overlap)) is not None:
+            print_progress(f"warning: {warning}")
     if fixture is not None or any(t is not None and t.is_point.any() for t in (cal, val)):
-        return identify_points.run(args, model, cal, val, fixture)  # the point form: fixtures as the instrument
+        # the point form: fixtures as the instrument
+        return identify_points.run(args, model, cal, val, fixture, overlap)
     options = IdentifyOptions(regularize=args.regularize or "cv", loss=args.loss, folds=args.folds,
                               fixed=tuple(args.fix or ()), prior_mm=args.prior_mm)
     obs = cal.observations()
@@ -69,7 +76,10 @@ def run(args) -> int:
                                 cal.target_names)
     result = identify(model, obs, options, progress=print_progress)
     if args.json:
-        print(json.dumps(identification_json(result, obs, val_obs)))
+        doc = identification_json(result, obs, val_obs)
+        if "validate" in doc:
+            doc["validate"]["overlap_rows"] = overlap
+        print(json.dumps(doc))
     else:
         print(identification_text(result, obs, val_obs, model.name))
     if args.write_model:

@@ -103,7 +103,9 @@ def _data(table: MeasurementTable, keys, fixture, target_names) -> PointData:
                      _distances(keys, fixture))
 
 
-def run(args, model, cal: MeasurementTable, val: MeasurementTable | None, fixture: Fixture | None) -> int:
+def run(args, model, cal: MeasurementTable, val: MeasurementTable | None, fixture: Fixture | None,
+        overlap: int = 0) -> int:
+    """identify on point-form rows; `overlap`: how many validation rows are calibration rows."""
     if args.loss != "linear":
         raise UsageError(f"--loss {args.loss}: the point form is fitted by least squares (its rows are seatings, "
                          "each a repeatability; leave --loss out)")
@@ -138,6 +140,8 @@ def run(args, model, cal: MeasurementTable, val: MeasurementTable | None, fixtur
     if val is not None:
         validation = _validate(model, result, data, val, fixture, cal.target_names, options)
     doc = fixture_json(result, data, validation, model.name)
+    if "validate" in doc:
+        doc["validate"]["overlap_rows"] = overlap
     if args.json:
         print(json.dumps(doc))
     else:

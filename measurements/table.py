@@ -152,3 +152,46 @@ def repeated_warning(table: MeasurementTable) -> str | None:
     return (f"{table.path}: {len(repeated)} of {len(table)} rows repeat an earlier row exactly (line {again} is line "
             f"{first} again): copies, not measurements; the standard deviations and standard errors reported come "
             "out too small")
+
+
+# Two rows are the same pose when every joint agrees within this: a pose read again reads its joints to
+# the encoders' noise (about 1e-5 rad on a UR), while two poses of a calibration plan differ by degrees.
+SAME_POSE_RAD = 1e-4
+
+
+def overlap_rows(cal: MeasurementTable, val: MeasurementTable) -> int:
+    """How many rows of `val` are a pose `cal` has too: the same target name (and, on point rows, the
+    same point of the same setup) at joints within SAME_POSE_RAD of a calibration row. A validation on
+    such rows scores the fit on its own data."""
+    from scipy.spatial import cKDTree
+
+    def keys(table: MeasurementTable) -> np.ndarray:
+        names = np.array(table.target_names, dtype=object)[table.target].astype(str)
+        if table.point is not None:
+            names = np.char.add(np.char.add(np.char.add(names, "\0"), table.setup.astype(str)),
+                                np.char.add("\0", table.point.astype(str)))
+        return names
+
+    cal_keys, val_keys = keys(cal), keys(val)
+    count = 0
+    for key in np.unique(val_keys):
+        ours = cal.q_rad[cal_keys == key]
+        if not len(ours):
+            continue
+        theirs = val.q_rad[val_keys == key]
+        distance, _ = cKDTree(ours).query(theirs, p=np.inf)
+        count += int(np.count_nonzero(distance <= SAME_POSE_RAD))
+    return count
+
+
+def overlap_warning(cal: MeasurementTable, val: MeasurementTable, overlap: int) -> str | None:
+    """One line for stderr when validation rows are calibration rows, or None; a validation that is
+    mostly overlap is said to be no validation."""
+    if overlap == 0:
+        return None
+    most = 2 * overlap > len(val)
+    return (f"{val.path}: {overlap} of {len(val)} validation rows are poses the calibration rows of {cal.path} "
+            f"have too (same target, joints within {SAME_POSE_RAD:g} rad): "
+            + ("this is mostly the calibration's own data, not a validation; its score says how well the fit "
+               "fits, not how well it predicts" if most else "their part of the score is in-sample"))
+

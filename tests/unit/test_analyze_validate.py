@@ -78,6 +78,18 @@ def test_the_effect_carries_to_another_pose_set_of_the_same_robot(campaigns, cap
     assert 0.5 < v["coverage"]["all_joints"] <= min(v["coverage"]["per_joint"])
     assert (tmp_path / "report" / "validate.png").stat().st_size > 1000
     assert "validate on" in (tmp_path / "report" / "report.md").read_text()
+    assert v["overlap_rows"] == 0  # B's poses are its own
+
+
+def test_validating_on_the_data_analysed_is_counted_and_said_first(campaigns, capsys):
+    """--validate A on A: every row is a pose of the analysed data; the JSON counts them and stderr says,
+    before the result, that this is no validation."""
+    cause, (a, _, _) = campaigns
+    code, out, err = run_cli(capsys, "analyze", "--robot", ROBOT, "--data", str(a), "--validate", str(a), "--json")
+    assert code == 0, err
+    doc = json.loads(out)
+    assert doc["validate"]["overlap_rows"] == doc["validate"]["rows"] > 0, doc["validate"]
+    assert "validation rows are poses the calibration rows" in err and "not a validation" in err, err
 
 
 def test_an_effect_the_second_campaign_lacks_gives_no_gain(campaigns, capsys):

@@ -48,6 +48,19 @@ def test_json_has_every_key_the_contract_names(campaign, capsys):
     assert doc["before"]["validate_mean_mm"] > 3 * doc["validate"]["mean_mm"]
 
 
+def test_a_validation_on_the_calibration_rows_is_counted_and_said_first(campaign, capsys):
+    """--validate with the calibration file itself scores the fit on its own data: every row overlaps,
+    the JSON says so and stderr says first that it is no validation. A held-out file overlaps nowhere."""
+    folder, _, _ = campaign
+    code, out, err = run_cli(capsys, "identify", "--robot", "ur5e", "--data", str(folder / "cal.csv"),
+                             "--validate", str(folder / "cal.csv"), "--json")
+    assert code == 0 and json.loads(out)["validate"]["overlap_rows"] == 40
+    assert "40 of 40 validation rows are poses the calibration rows" in err and "not a validation" in err, err
+    code, out, err = run_cli(capsys, "identify", "--robot", "ur5e", "--data", str(folder / "cal.csv"),
+                             "--validate", str(folder / "val.csv"), "--json")
+    assert code == 0 and json.loads(out)["validate"]["overlap_rows"] == 0 and "validation rows are" not in err
+
+
 def test_split_column_reserves_validation_rows(campaign, capsys):
     folder, _, _ = campaign
     code, out, _ = run_cli(capsys, "identify", "--robot", "ur5e", "--data", str(folder / "split.csv"),

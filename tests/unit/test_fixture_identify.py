@@ -254,6 +254,19 @@ def test_identify_json_counts_conventions_and_validation(plate, capsys):
     assert all(abs(d["fitted_mm"] - d["known_mm"]) < d["sd_mm"] for d in doc["fixture_distances"])
 
 
+def test_validating_on_the_calibration_setups_is_counted_as_overlap(plate, capsys):
+    """The point form: validation rows that are calibration seatings (the same point of the same setup at
+    the same joints) are counted, and a validation made of them says first that it is none."""
+    folder = plate[0]
+    assert main(["identify", "--robot", "ur10e", "--data", str(folder / "cal.csv"), "--fixture",
+                 str(folder / "plate.yaml"), "--validate", str(folder / "cal.csv"), "--json"]) == 0
+    captured = capsys.readouterr()
+    doc = json.loads(captured.out)
+    assert doc["validate"]["overlap_rows"] == doc["rows"], doc["validate"]
+    assert "not a validation" in captured.err, captured.err
+    assert identify_json(folder, capsys)["validate"]["overlap_rows"] == 0  # a setup the calibration never saw
+
+
 def test_text_report_names_what_is_held(plate, capsys):
     folder = plate[0]
     assert main(["identify", "--robot", "ur10e", "--data", str(folder / "cal.csv"), "--fixture",
