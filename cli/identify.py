@@ -103,6 +103,9 @@ def add_parser(sub) -> None:
                    help="cv: L2 prior toward nominal, weight by k-fold cross-validation (default); "
                         "none: least squares over the identifiable parameters (tracker rows only: the point form "
                         "is fitted by least squares with --prior-mm's prior)")
+    p.add_argument("--force", action="store_true",
+                   help="with --write-model: write the model even when the fit fails its fixture's known distances "
+                        "(status 1 all the same)")
     p.add_argument("--loss", choices=LOSSES, default="linear",
                    help="robust loss against outliers (default: linear, i.e. least squares)")
     p.add_argument("--folds", type=whole(2, 100), default=5, help="folds of the cross-validation, 2 .. 100 (default 5)")

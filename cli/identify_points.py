@@ -20,6 +20,7 @@ from cellcal.reports.fixture_identification import fixture_json, fixture_text
 from cellcal.solvers.compensation.calibrated_model import from_fit
 from cellcal.solvers.fixtures.fixture_identify import MIN_ROWS_PER_POINT, identify_points, refit_points
 from cellcal.solvers.fixtures.point_problem import FixtureOptions, PointData
+from cellcal.solvers.identification.identify import IdentificationError
 
 
 def _keys(table: MeasurementTable) -> list[tuple[str, str]]:
@@ -142,12 +143,20 @@ def run(args, model, cal: MeasurementTable, val: MeasurementTable | None, fixtur
     doc = fixture_json(result, data, validation, model.name)
     if "validate" in doc:
         doc["validate"]["overlap_rows"] = overlap
+    misfit = distance_misfit(result, data, args.fixture or cal.path)
+    if misfit is not None:
+        doc["success"] = False
+        doc["error"] = {"code": 1, "message": misfit}
     if args.json:
         print(json.dumps(doc))
     else:
         print(fixture_text(doc, result))
-    if args.write_model:
+    if args.write_model and (misfit is None or args.force):
         _write_model(args, model, result, cal, validation)
+    if misfit is not None:
+        print_progress(f"error: {misfit}; " + ("the model was written all the same (--force)" if args.write_model
+                                               and args.force else "no model written (--force writes it)"))
+        return 1
     return 0
 
 
@@ -184,6 +193,31 @@ def _write_model(args, model, result, cal: MeasurementTable, validation) -> None
                           model_out.provenance("identify", args.data, len(cal), heldout, how))
 
 
+# A known distance the fit leaves further from its stated value than this many of its standard
+# deviations is not a distance of this fixture: a fit that meets its distances leaves them within
+# about one sd (the seatings pull a distance by far less than its sd when it is right).
+MISFIT_SD = 5.0
+
+
+def distance_misfit(result, data: PointData, path) -> str | None:
+    """Why the fit does not meet its fixture's known distances (the worst, beyond MISFIT_SD of its sd:
+    a wrong distance in the fixture file, or a bar of another length), or None."""
+    worst = None
+    for a, b, mm, sd in data.distances:
+        fitted = float(np.linalg.norm(result.point_positions[a] - result.point_positions[b]))
+        z = abs(fitted - mm) / sd
+        if z > MISFIT_SD and (worst is None or z > worst[0]):
+            worst = (z, a, b, mm, sd, fitted)
+    if worst is None:
+        return None
+    z, a, b, mm, sd, fitted = worst
+    (setup, pa), (_, pb) = data.points[a], data.points[b]
+    rms = float(np.sqrt(np.mean(result.errors_mm ** 2)))
+    return (f"{path}: the distance {pa}-{pb} of setup {setup} is given as {mm:g} mm (sd {sd:g}); the fit leaves it at "
+            f"{fitted:.3f} mm, {z:.0f} sd away, with the seatings {rms:.3f} mm rms from their points: the data say "
+            f"the distance is {'shorter' if fitted < mm else 'longer'} (is the fixture file right?)")
+
+
 def fixture_fit_for_analysis(args, model, table: MeasurementTable, fixture: Fixture | None):
     """``cellcal analyze`` on point-form rows: the same checks as identify's, then the fixture calibration
     that is the analysis' geometric baseline. Returns (fit, PointData)."""
@@ -205,4 +239,8 @@ def fixture_fit_for_analysis(args, model, table: MeasurementTable, fixture: Fixt
     options = FixtureOptions(seating_sd_mm=fixture.seating_sd_mm if fixture else FixtureOptions.seating_sd_mm,
                              stylus_radius_mm=fixture.stylus_radius_mm if fixture else None)
     data = _data(table, keys, fixture, table.target_names)
-    return identify_points(model, data, options, progress=print_progress), data
+    fit = identify_points(model, data, options, progress=print_progress)
+    misfit = distance_misfit(fit, data, args.fixture or table.path)
+    if misfit is not None:  # the baseline fails its own fixture: what is left over is the wrong distance
+        raise IdentificationError(f"{misfit}; no effect is named over a baseline that does not fit its fixture")
+    return fit, data

@@ -267,6 +267,31 @@ def test_validating_on_the_calibration_setups_is_counted_as_overlap(plate, capsy
     assert identify_json(folder, capsys)["validate"]["overlap_rows"] == 0  # a setup the calibration never saw
 
 
+def test_a_wrong_distance_fails_the_fit_writes_no_model_and_names_no_effect(plate, tmp_path, capsys):
+    """The plate's 50 mm given as 52 (a bar of another length, a typo): the fit cannot meet it (the seatings
+    put it near 51.2 mm, tens of its 0.01 mm sd away): status 1 naming the distance and what the fit left,
+    no model without --force, and analyze names no effect over that baseline."""
+    folder = plate[0]
+    wrong = tmp_path / "wrong.yaml"
+    wrong.write_text(fixture_text(SD_MM).replace("50.0", "52.0"))
+    model_file = tmp_path / "m.yaml"
+    argv = ["identify", "--robot", "ur10e", "--data", str(folder / "cal.csv"), "--fixture", str(wrong),
+            "--write-model", str(model_file)]
+    assert main(argv + ["--json"]) == 1
+    captured = capsys.readouterr()
+    doc = json.loads(captured.out)
+    assert doc["success"] is False and "the distance hole_0-hole_1" in doc["error"]["message"]
+    assert "is given as 52 mm (sd 0.01); the fit leaves it at 51." in captured.err and "shorter" in captured.err
+    assert "no model written (--force writes it)" in captured.err and not model_file.exists()
+    assert main(argv + ["--force"]) == 1 and model_file.exists()
+    capsys.readouterr()
+    assert main(["analyze", "--robot", "ur10e", "--data", str(folder / "cal.csv"), "--fixture", str(wrong)]) == 1
+    err = capsys.readouterr().err
+    assert "no effect is named over a baseline that does not fit its fixture" in err, err
+    # the right distance passes the same check
+    assert identify_json(folder, capsys)["success"] is True
+
+
 def test_text_report_names_what_is_held(plate, capsys):
     folder = plate[0]
     assert main(["identify", "--robot", "ur10e", "--data", str(folder / "cal.csv"), "--fixture",
