@@ -17,7 +17,7 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from cellcal.config.model_files import load_calibrated, source_model
+from cellcal.config.model_files import calibration_record, load_calibrated, source_model
 from cellcal.config.robot_files import load_robot
 from cellcal.measurements.table import MAX_JOINT, MAX_POSITION_MM, MAX_PAYLOAD_KG
 from cellcal.solvers.compensation.compensate import (FRAMES, JOINT_LIMITS, NOMINAL_MISMATCH_MM, OK, SINGULAR,
@@ -214,6 +214,7 @@ def run(args) -> int:
                              f"({', '.join(calibrated.target_names)})")
         offset = calibrated.offsets[calibrated.target_names.index(name)]
     _same_arm(args, calibrated, nominal, offset)
+    _fit_warning(args)
     if args.program is not None:  # a URScript program in, the same program compensated out
         return run_program(args, calibrated, nominal, offset)
     t = read_targets(args.targets, model.n_joints)
@@ -283,6 +284,21 @@ def run(args) -> int:
               + (f", {len(large)} above {args.max_correction_deg:g} deg (warned)" if len(large) else "")
               + f"; written to {args.out}")
     return 0
+
+
+# a model whose own training rows it leaves this many times further off than their noise does not fit them
+MISFIT_FACTOR = 5.0
+
+
+def _fit_warning(args) -> None:
+    """Warn of a model that does not fit its own data (its record's training rms far above the noise
+    the data claim: written with --force over a failed fit, or from data with a wrong fixture)."""
+    train = (calibration_record(args.robot).get("train") or {})
+    rms, noise = train.get("rms_mm"), train.get("noise_mm")
+    if isinstance(rms, (int, float)) and isinstance(noise, (int, float)) and noise > 0 and rms > MISFIT_FACTOR * noise:
+        print_progress(f"{args.robot}: warning: the model leaves its own training rows {rms:.3f} mm rms off, "
+                       f"{rms / noise:.0f} times the {noise:.3f} mm their noise accounts for: it does not fit its "
+                       "data (a wrong fixture distance?); its corrections may be wrong by as much")
 
 
 def _same_arm(args, calibrated, nominal, offset) -> None:

@@ -83,7 +83,7 @@ def run(args) -> int:
     else:
         print(identification_text(result, obs, val_obs, model.name))
     if args.write_model:
-        model_out.write_identified(args, model, result, len(cal), val_obs)
+        model_out.write_identified(args, model, result, len(cal), val_obs, obs)
     return 0
 
 

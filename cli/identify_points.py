@@ -152,7 +152,7 @@ def run(args, model, cal: MeasurementTable, val: MeasurementTable | None, fixtur
     else:
         print(fixture_text(doc, result))
     if args.write_model and (misfit is None or args.force):
-        _write_model(args, model, result, cal, validation)
+        _write_model(args, model, result, cal, validation, options)
     if misfit is not None:
         print_progress(f"error: {misfit}; " + ("the model was written all the same (--force)" if args.write_model
                                                and args.force else "no model written (--force writes it)"))
@@ -181,7 +181,7 @@ def _validate(model, result, data: PointData, val: MeasurementTable, fixture, ta
             "new_setups": new_setups}
 
 
-def _write_model(args, model, result, cal: MeasurementTable, validation) -> None:
+def _write_model(args, model, result, cal: MeasurementTable, validation, options: FixtureOptions) -> None:
     if validation is not None:
         heldout = float(validation["errors"].mean())
         how = (f"validation rows ({validation['rows']}): {validation['refitted_points']} point(s) of setups the "
@@ -189,8 +189,10 @@ def _write_model(args, model, result, cal: MeasurementTable, validation) -> None
     else:
         heldout, how = None, "none: no validation rows (point form: give --validate with a setup of its own)"
     calibrated = from_fit(model, cal.target_names, result.tracker_x(cal.target_names))
+    # a seating's distance from its point, were the fit perfect: the seating sd in each of three axes
+    noise = options.seating_sd_mm * np.sqrt(3.0)
     model_out.write_model(args.write_model, calibrated, args.robot,
-                          model_out.provenance("identify", args.data, len(cal), heldout, how))
+                          model_out.provenance("identify", args.data, len(cal), heldout, how, result.errors_mm, noise))
 
 
 # A known distance the fit leaves further from its stated value than this many of its standard

@@ -6,6 +6,8 @@ import datetime
 import hashlib
 from importlib import metadata
 
+import numpy as np
+
 from cellcal.config.model_files import write_calibrated
 from cellcal.solvers.compensation.calibrated_model import from_fit
 from cellcal.cli.common import UsageError, print_progress, writable_file
@@ -17,8 +19,11 @@ def check_target(path) -> None:
         writable_file(path, "--write-model")
 
 
-def provenance(command: str, data_path, rows: int, heldout_mean_mm: float | None, heldout_how: str) -> dict:
-    """The calibration section's record: who wrote it, when, from which data, how good on unseen data."""
+def provenance(command: str, data_path, rows: int, heldout_mean_mm: float | None, heldout_how: str,
+               train_mm=None, noise_mm: float | None = None) -> dict:
+    """The calibration section's record: who wrote it, when, from which data, how good on unseen data,
+    and (``train_mm``: each training row's error) how well it fits its own data against the noise those
+    data claim (``noise_mm``: the rms error a perfect fit would leave, None when the data claim none)."""
     try:
         version = metadata.version("cellcal")
     except metadata.PackageNotFoundError:
@@ -33,6 +38,9 @@ def provenance(command: str, data_path, rows: int, heldout_mean_mm: float | None
         "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "dataset": {"path": str(data_path), "sha256": digest.hexdigest(), "rows": int(rows)},
         "heldout": {"mean_mm": None if heldout_mean_mm is None else float(heldout_mean_mm), "how": heldout_how},
+        **({} if train_mm is None else {"train": {
+            "mean_mm": float(np.mean(train_mm)), "rms_mm": float(np.sqrt(np.mean(np.square(train_mm)))),
+            "noise_mm": None if noise_mm is None else float(noise_mm)}}),
     }
 
 
@@ -52,7 +60,7 @@ def add_argument(parser, analyze: bool = False) -> None:
                         help=f"write a calibrated robot model file: {what} (every --robot option reads it)")
 
 
-def write_identified(args, model, result, rows: int, val_obs) -> None:
+def write_identified(args, model, result, rows: int, val_obs, obs=None) -> None:
     """identify's result as a model file; held-out error from --validate, else from the CV curve."""
     if val_obs is not None:
         heldout, how = float(result.errors(val_obs).mean()), f"validation rows ({len(val_obs)})"
@@ -62,7 +70,8 @@ def write_identified(args, model, result, rows: int, val_obs) -> None:
     else:
         heldout, how = None, "none: no validation rows and no cross-validation (--regularize none)"
     calibrated = from_fit(model, result.layout.target_names, result.x)
-    write_model(args.write_model, calibrated, args.robot, provenance("identify", args.data, rows, heldout, how))
+    train = None if obs is None else result.errors(obs)
+    write_model(args.write_model, calibrated, args.robot, provenance("identify", args.data, rows, heldout, how, train))
 
 
 def write_finding(args, model, obs, finding) -> None:

@@ -32,8 +32,8 @@ from cellcal.config.reader import Section, read_yaml
 from cellcal.config.robot_files import ANGLE_UNITS, LENGTH_UNITS, ModelError, load_robot, resolve_robot
 
 EXTENSION_KEYS = ("calibration", "effects")
-CALIBRATION_KEYS = {"written_by", "command", "date_utc", "source_model", "dataset", "heldout", "base", "targets",
-                    "note"}
+CALIBRATION_KEYS = {"written_by", "command", "date_utc", "source_model", "dataset", "heldout", "train", "base",
+                    "targets", "note"}
 EFFECT_KEYS = {"cause", "where", "parameters", "units", "applied", "magnitude", "extra"}
 MOUNT_PARAMS = ("x", "y", "z", "rz", "ry", "rx")
 
@@ -65,6 +65,14 @@ def load_calibrated(name_or_path: str | Path) -> CalibratedModel:
                 k[model.index(name)] = value
     model = replace(model, nominal=k)  # the calibrated values are this model's own
     return CalibratedModel(model, k, base, names, offsets, effects)
+
+
+def calibration_record(name_or_path: str | Path) -> dict:
+    """The calibration section a model file records (``written_by``, ``heldout``, ``train`` ...), {} for a
+    model file without one."""
+    doc = read_yaml(resolve_robot(name_or_path), ModelError)
+    record = doc.get("calibration") if isinstance(doc, dict) else None
+    return record if isinstance(record, dict) else {}
 
 
 def source_model(name_or_path: str | Path) -> str | None:

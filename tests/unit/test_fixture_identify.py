@@ -285,6 +285,12 @@ def test_a_wrong_distance_fails_the_fit_writes_no_model_and_names_no_effect(plat
     assert "no model written (--force writes it)" in captured.err and not model_file.exists()
     assert main(argv + ["--force"]) == 1 and model_file.exists()
     capsys.readouterr()
+    # the model file records how well it fits its own rows; compensate with it warns that it does not
+    targets = tmp_path / "t.csv"
+    targets.write_text("x_mm,y_mm,z_mm,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg\n600,-150,400,20,-100,100,-90,-90,0\n")
+    assert main(["compensate", "--robot", str(model_file), "--targets", str(targets), "-o", str(tmp_path / "o.csv")]) == 0
+    err = capsys.readouterr().err
+    assert "m.yaml: warning: the model leaves its own training rows" in err and "does not fit its data" in err, err
     assert main(["analyze", "--robot", "ur10e", "--data", str(folder / "cal.csv"), "--fixture", str(wrong)]) == 1
     err = capsys.readouterr().err
     assert "no effect is named over a baseline that does not fit its fixture" in err, err
