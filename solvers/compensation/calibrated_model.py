@@ -137,6 +137,8 @@ class CalibratedModel:
             if e.cause not in built:
                 built[e.cause] = CAUSES[e.cause].terms(self.model, self.layout, self.x, obs, padded)
             term = next((t for t in built[e.cause] if t.names == e.names), None)
+            if term is None:  # several places at once: the analysis' search built it from single places
+                term = _combined(e, built[e.cause], len(qq), nj)
             if term is None:
                 raise ValueError(f"{e.cause} {e.where}: the cause no longer offers a term with parameters "
                                  f"{', '.join(e.names)}; this model file was written by another version")
@@ -290,3 +292,16 @@ def with_structural(model: KinematicModel, effects) -> KinematicModel:
                 if name not in model.param_names:
                     model = with_hayati_beta(model, int(name.removeprefix("beta")) - 1)
     return model
+
+
+def _combined(effect: Effect, offered: list[Term], n_rows: int, n_joints: int) -> Term | None:
+    """The term of an effect at several places, rebuilt as the analysis' forward search builds it
+    (``Cause.combine`` of single-place terms, one per place, whose parameters together are the
+    effect's), or None when the cause's single places do not make it up."""
+    wanted = set(effect.names)
+    parts = [t for t in offered if not t.multi and set(t.names) <= wanted]
+    if sorted(n for t in parts for n in t.names) != sorted(wanted) or len(parts) < 2:
+        return None
+    term = CAUSES[effect.cause].combine(tuple(parts), n_rows, n_joints)
+    return term if term.names == effect.names else None
+

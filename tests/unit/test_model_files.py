@@ -1,5 +1,6 @@
 """Calibrated model files: what identify/analyze write is what every --robot reads back, effects included."""
 import hashlib
+import json
 
 import numpy as np
 import pytest
@@ -147,3 +148,40 @@ def test_a_fitted_periodic_error_keeps_its_orders_and_coverage(tmp_path):
     probe[:, 1] = [0.5, 2.9, -3.0]
     delta = loaded.joint_delta(probe)
     assert abs(delta[0, 1]) > 1e-5 and np.all(delta[1:, 1] == 0.0)  # outside the coverage: the rigid model
+
+
+def test_an_effect_at_several_places_round_trips_and_compensates_through_the_cli(tmp_path, capsys):
+    """Compliance hidden at joints 2 and 3: analyze names it at both (the forward search joins the two
+    single places), writes the model; the model loads (its term rebuilt as the search built it) and
+    predicts what the analysis' own fit predicts at the calibration rows, and compensate uses it."""
+    from cellcal.measurements.reader import read_measurements
+    from cellcal.measurements.writer import write_measurements
+    from cellcal.solvers.compensation.compensate import rigid_frames
+
+    model = load_robot("ur10e")
+    rng = np.random.default_rng(11)
+    arm = PhysicalArm(model, rng, [HiddenEffect("joint_compliance", 1, rms_mm=0.4),
+                                   HiddenEffect("joint_compliance", 2, rms_mm=0.4)], target_offsets=[[0, 0, 100.0]])
+    campaign = arm.campaign(full_workspace(model, 200, rng))
+    data, model_file = tmp_path / "cal.csv", tmp_path / "m.yaml"
+    write_measurements(data, q_rad=campaign.obs.q, xyz_mm=campaign.obs.xyz_mm)
+    assert main(["analyze", "--robot", "ur10e", "--data", str(data), "--causes", "joint_compliance",
+                 "--write-model", str(model_file), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert (doc["cause"], doc["where"]) == ("joint_compliance", {"joints": [2, 3]}), doc["where"]
+    loaded = load_calibrated(model_file)
+    read = read_measurements(data, 6)
+    obs, ctx = read.observations(), Context(direction=approach_directions(read.q_rad))
+    finding = analyze(model, obs, ctx, AnalyzeOptions(causes=("joint_compliance",)))
+    s = finding.extended
+    own = from_fit(model, obs.target_names, s.x, s.terms, s.theta, obs.q).predict(obs.q, obs.target, ctx)
+    # the file holds each number to 1e-12 relative at most (repr of a float): far below 1e-9 mm here
+    assert np.abs(loaded.predict(obs.q, obs.target, ctx) - own).max() < 1e-9
+    q = full_workspace(model, 20, rng)
+    p = rigid_frames(model, model.nominal, np.array([0.0, 0.0, 100.0]))(q, None)[1]
+    targets = tmp_path / "t.csv"
+    targets.write_text("x_mm,y_mm,z_mm," + ",".join(f"q{j}_deg" for j in range(1, 7)) + "\n" + "".join(
+        ",".join(f"{v:.6f}" for v in [*p[i], *np.rad2deg(q[i])]) + "\n" for i in range(len(q))))
+    assert main(["compensate", "--robot", str(model_file), "--targets", str(targets), "-o",
+                 str(tmp_path / "o.csv"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["ok"] >= 18  # a couple of random targets may be out of reach
