@@ -185,3 +185,41 @@ def test_an_effect_at_several_places_round_trips_and_compensates_through_the_cli
     assert main(["compensate", "--robot", str(model_file), "--targets", str(targets), "-o",
                  str(tmp_path / "o.csv"), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["ok"] >= 18  # a couple of random targets may be out of reach
+
+
+ROUND_TRIPS = {  # (hidden effects, causes offered): one place, several places, a second effect of another cause
+    "compliance, one joint": ([HiddenEffect("joint_compliance", 1)], ("joint_compliance",)),
+    "compliance, two joints": ([HiddenEffect("joint_compliance", 1), HiddenEffect("joint_compliance", 2)],
+                               ("joint_compliance",)),
+    "backlash, one joint": ([HiddenEffect("backlash", 2)], ("backlash",)),
+    "backlash, two joints": ([HiddenEffect("backlash", 1), HiddenEffect("backlash", 2)], ("backlash",)),
+    "cyclic, one joint": ([HiddenEffect("cyclic_joint_error", 1, order=2, phase_rad=0.7)], ("cyclic_joint_error",)),
+    "cyclic, two joints": ([HiddenEffect("cyclic_joint_error", 1, order=2, phase_rad=0.7),
+                            HiddenEffect("cyclic_joint_error", 3, order=1, phase_rad=0.2)], ("cyclic_joint_error",)),
+    "tilt": ([HiddenEffect("parallel_axis_tilt", 1)], ("parallel_axis_tilt",)),
+    "compliance and cyclic": ([HiddenEffect("joint_compliance", 1), HiddenEffect("cyclic_joint_error", 3, order=2)],
+                              ("joint_compliance", "cyclic_joint_error")),
+}
+
+
+@pytest.mark.parametrize("case", sorted(ROUND_TRIPS))
+def test_whatever_analyze_writes_loads_and_predicts_what_its_fit_predicts(case, tmp_path):
+    """Every model analyze can write (the effect at one place, at several, with a second effect of
+    another cause) is read back, and predicts what the fit it came from predicts at its rows."""
+    from support.hidden_cases import make_case  # tests/support/hidden_cases.py
+
+    effects, causes = ROUND_TRIPS[case]
+    model = load_robot("ur10e")
+    data = make_case(model, effects, [6.0] * len(effects), n=200, seed=2).campaign
+    finding = analyze(model, data.obs, data.ctx, AnalyzeOptions(causes=causes))
+    s = finding.both if finding.both is not None else finding.extended
+    assert s is not None, finding.cause
+    calibrated = from_fit(model, data.obs.target_names, s.x, s.terms, s.theta, data.obs.q)
+    own = calibrated.predict(data.obs.q, data.obs.target, data.ctx)
+    path = write_calibrated(tmp_path / "m.yaml", calibrated, "ur10e", PROVENANCE,
+                            {s.cause: s.magnitude} if len(s.terms) == 1 else s.magnitude)
+    loaded = load_calibrated(path)
+    print(case, "->", [t.label() for t in s.terms])
+    # the file writes each number as repr(float): back to the last bit; 1e-9 mm leaves room for
+    # the rebuilt bases' own rounding
+    assert np.abs(loaded.predict(data.obs.q, data.obs.target, data.ctx) - own).max() < 1e-9
