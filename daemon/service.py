@@ -242,7 +242,7 @@ class Service:
                 "cell": {"name": self.cell.name}}
 
 
-ROBOT_FAULTS = ("disconnected", "protective_stop", "emergency_stop")
+ROBOT_FAULTS = ("disconnected", "protective stop", "emergency stop")  # RobotState's values a run cannot start from
 
 
 def health(state: str, active: bool, last: dict | None, devices: dict, waiting: dict | None,
@@ -253,9 +253,9 @@ def health(state: str, active: bool, last: dict | None, devices: dict, waiting: 
     problems, level = [], "ok"
     robot = devices.get("robot")
     if robot in ROBOT_FAULTS:
-        problems.append(f"robot {robot.replace('_', ' ')}")
+        problems.append(f"robot {robot}")
         level = "fault"
-    elif robot in ("reconnecting", "unknown"):
+    elif robot not in ("ready", None):  # reconnecting, not read yet, another program running on it
         problems.append(f"robot {robot}")
         level = "attention"
     if devices.get("panel") == "lost":

@@ -14,6 +14,14 @@ def ended(state: str, code: int, name: str, run_id: int = 7) -> dict:
             "reason": "...", "verdict": None, "at": 0.0, "fault_lamp": state in ("fault", "refused", "interrupted")}
 
 
+def test_the_robot_states_named_are_the_ones_the_service_records():
+    """seen["robot"] holds RobotState's values: the names health() knows must be those."""
+    from cellcal.daemon.service import ROBOT_FAULTS
+    from cellcal.drivers.interfaces import RobotState
+
+    assert set(ROBOT_FAULTS) <= {s.value for s in RobotState} and RobotState.READY.value == "ready"
+
+
 def test_idle_with_everything_answering_and_a_good_last_run_is_ok():
     assert health("idle", False, ended("done", 0, "OK"), GOOD, None, None) == {"level": "ok", "says": "idle"}
     assert health("idle", False, None, GOOD, None, None) == {"level": "ok", "says": "idle"}  # no run yet
@@ -21,8 +29,11 @@ def test_idle_with_everything_answering_and_a_good_last_run_is_ok():
 
 @pytest.mark.parametrize("devices, level, says", [
     ({**GOOD, "robot": "disconnected"}, "fault", "idle; robot disconnected"),
-    ({**GOOD, "robot": "protective_stop"}, "fault", "idle; robot protective stop"),
+    ({**GOOD, "robot": "protective stop"}, "fault", "idle; robot protective stop"),
+    ({**GOOD, "robot": "emergency stop"}, "fault", "idle; robot emergency stop"),
     ({**GOOD, "robot": "reconnecting"}, "attention", "idle; robot reconnecting"),
+    ({**GOOD, "robot": "program running"}, "attention", "idle; robot program running"),
+    ({**GOOD, "robot": "unknown"}, "attention", "idle; robot unknown"),
     ({**GOOD, "panel": "lost"}, "attention", "idle; panel lost"),
     ({**GOOD, "robot": "disconnected", "panel": "lost"}, "fault", "idle; robot disconnected; panel lost"),
 ])
