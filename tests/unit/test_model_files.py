@@ -197,6 +197,8 @@ ROUND_TRIPS = {  # (hidden effects, causes offered): one place, several places, 
     "cyclic, two joints": ([HiddenEffect("cyclic_joint_error", 1, order=2, phase_rad=0.7),
                             HiddenEffect("cyclic_joint_error", 3, order=1, phase_rad=0.2)], ("cyclic_joint_error",)),
     "tilt": ([HiddenEffect("parallel_axis_tilt", 1)], ("parallel_axis_tilt",)),
+    "thermal drift": ([HiddenEffect("thermal_drift")], ("thermal_drift",)),
+    "trigger latency": ([HiddenEffect("trigger_latency")], ("trigger_latency",)),
     "compliance and cyclic": ([HiddenEffect("joint_compliance", 1), HiddenEffect("cyclic_joint_error", 3, order=2)],
                               ("joint_compliance", "cyclic_joint_error")),
 }
