@@ -96,8 +96,9 @@ MARK_COLUMN = "compensated_with"  # the column a compensated target file carries
 
 
 def mark(args, nominal) -> str:
-    """The marker line of what this run writes: the model (its file's content hash), the nominal model
-    and the date, so that compensating the output again is caught."""
+    """What this run's output is marked with (after MARK: a program's last comment line, a target file's
+    MARK_COLUMN): the model (its file's content hash), the nominal model and the date, so that
+    compensating the output again is caught."""
     import datetime
     import hashlib
 
@@ -105,8 +106,8 @@ def mark(args, nominal) -> str:
     path = resolve_robot(args.robot)
     digest = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
     when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
-    return (f"# {MARK} with {path.name} (sha256 {digest}), nominal {nominal.name}, {when}: compensating this "
-            "again would move its targets a second time")
+    return (f"with {path.name} (sha256 {digest}), nominal {nominal.name}, {when}: compensating this again would "
+            "move its targets a second time")
 
 
 def marked(lines) -> str | None:
@@ -340,7 +341,6 @@ def _write(path, t, result, unit: str, with_rotation: bool, marker: str) -> None
     added = ([f"q{j}_{unit}" for j in range(1, nj + 1)] + [f"q{j}_nominal_{unit}" for j in range(1, nj + 1)]
              + ["x_cmd_mm", "y_cmd_mm", "z_cmd_mm"] + (["qw_cmd", "qx_cmd", "qy_cmd", "qz_cmd"] if with_rotation else [])
              + ["correction_deg", "status", MARK_COLUMN])
-    marker = marker.lstrip("#").strip().removeprefix(MARK).strip()
     quat = Rotation.from_matrix(result.rotation).as_quat()[:, [3, 0, 1, 2]]
     # the input's own joint columns (the branch each row was given in) are kept, renamed where the
     # solution's take their names: q1_deg -> q1_branch_deg; any other column the solution names is replaced
@@ -400,7 +400,7 @@ def run_program(args, calibrated, nominal, tcp_mm) -> int:
             text = rewrite(program.text, result.replacements)
             ending = "" if not text or text.endswith(("\n", "\r")) else "\n"
             with open(args.out, "wb") as f:  # the marker last: every line keeps its number
-                f.write(encode(text + ending + mark(args, nominal) + "\n"))
+                f.write(encode(f"{text}{ending}# {MARK} {mark(args, nominal)}\n"))
         except OSError as exc:
             raise UsageError(f"-o {args.out}: cannot write: {exc.strerror or exc}") from None
     counts = Counter(o.status for o in result.per_target)

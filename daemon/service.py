@@ -60,8 +60,8 @@ class Service:
         self.last: RunEnd | None = None
         # what status() reports, each kept current by the thread that knows it (plain attribute
         # writes: a reader never takes a lock the run or the panel loop holds)
-        self.seen = {"routine": None, "progress": None, "since": time.time(), "reason": None, "result_code": None,
-                     "robot": None, "last_run": None, "waiting": None, "mounted_read_at_run": None}
+        self.seen = {"routine": None, "progress": None, "since": time.time(), "robot": None, "last_run": None,
+                     "waiting": None, "mounted_read_at_run": None}
         self.panel = PanelProtocol(self)
         self.custody = ToolCustody(self, reconnect)
         self.runs = RunMachine(self)
@@ -87,7 +87,6 @@ class Service:
             name = ResultCode(code).name
         except ValueError:
             name = str(code)
-        self.seen["reason"], self.seen["result_code"] = reason, int(code)
         self.seen["last_run"] = {"id": run_id, "routine": routine, "state": state, "result_code": int(code),
                                  "result": name, "reason": reason,
                                  "verdict": None if verdict is None else str(verdict),
@@ -233,8 +232,8 @@ class Service:
         return {"state": self.state, "run_id": self.run_id if self.active else None,
                 "last_run_id": None if last is None else last["id"], "routine": seen["routine"],
                 "progress": seen["progress"] if self.active else None, "since": seen["since"],
-                "reason": seen["reason"], "result_code": seen["result_code"],
-                "result": None if seen["result_code"] is None else ResultCode(seen["result_code"]).name,
+                # the last finished run's, as earlier versions of the API said them
+                **{key: None if last is None else last[key] for key in ("reason", "result_code", "result")},
                 "last_run": last, "waiting": waiting,
                 "health": health(self.state, self.active, last, devices, waiting, custody.owed.run_of()),
                 "mounted_tool": mounted, "devices": devices,

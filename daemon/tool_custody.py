@@ -96,12 +96,19 @@ class ToolCustody:
     def held_frame(self, tool_id: int) -> tuple[np.ndarray, str]:
         """The frame the controller holds for tool `tool_id` (m, rad) and where it comes from:
         the last frame written or restored for it in this store, else the tool as drawn."""
-        rows = [r for r in self.service.store.tool_frames() if int(r.get("tool_id") or 1) == tool_id]
-        if rows:
-            row = rows[-1]
-            done = "written" if row["action"] == "write" else "restored"
-            return np.asarray(row["frame_after"], dtype=float), f"the last frame {done} for it (run {row['run_id']})"
+        written = self._last_written(tool_id)
+        if written is not None:
+            return written
         return np.asarray(self.service.cell.tools[tool_id].tcp_pose, dtype=float), "its drawing (never calibrated here)"
+
+    def _last_written(self, tool_id: int) -> tuple[np.ndarray, str] | None:
+        """The last frame written or restored for tool `tool_id` in this store, and its origin in words."""
+        rows = [r for r in self.service.store.tool_frames() if int(r.get("tool_id") or 1) == tool_id]
+        if not rows:
+            return None
+        row = rows[-1]
+        done = "written" if row["action"] == "write" else "restored"
+        return np.asarray(row["frame_after"], dtype=float), f"the last frame {done} for it (run {row['run_id']})"
 
     def not_the_written_frame(self, controller_frame) -> tuple[np.ndarray, str, str] | None:
         """At a start with no tool change: when the controller holds another frame than the last one
@@ -109,12 +116,11 @@ class ToolCustody:
         frame changed on the pendant), (that frame, where it is from, why it is set), else None. A
         tool never calibrated here has no such frame: whatever the controller holds stays (a check of
         a controller holding none compares with the tool's drawing)."""
-        tool_id = self.run_tool
-        held = np.asarray(controller_frame, dtype=float)
-        rows = [r for r in self.service.store.tool_frames() if int(r.get("tool_id") or 1) == tool_id]
-        if not rows:
+        written = self._last_written(self.run_tool)
+        if written is None:
             return None
-        frame, origin = self.held_frame(tool_id)
+        frame, origin = written
+        held = np.asarray(controller_frame, dtype=float)
         if held.shape == frame.shape and np.abs(held - frame).max() <= TOLERANCE:
             return None
         what = ("holds no tool frame (all zero: a restarted controller without it?)" if not np.any(held) else

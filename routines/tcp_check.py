@@ -5,11 +5,12 @@ tolerance bands (``[tool.bands]`` of the cell file, :class:`cellcal.config.cells
 The check moves as :mod:`.tcp_laser` does, with the controller on its *own* tool frame (the
 frame it holds for the tool: the last one written back; the tool as drawn when it holds none,
 so a change is never reported against the bare flange; the service sets the last frame it
-wrote on a controller that lost it, before the run) and with fewer motions: the tool upright only, an approach along its axis onto the beams'
-crossing and back, and at each of ``heights_mm`` a sweep through both beams and back, at
-each of ``spins_deg`` (turns about the vertical). The fit (:mod:`cellcal.solvers.tool_frames.tcp_check`)
-finds the tip, and the axis where the sweeps cut the tool at two heights, relative to that
-frame, with standard deviations that include the uncertainty of the beams' positions.
+wrote on a controller that lost it, before the run) and with fewer motions: the tool upright
+only, an approach along its axis onto the beams' crossing and back, and at each of
+``heights_mm`` a sweep through both beams and back, at each of ``spins_deg`` (turns about
+the vertical). The fit (:mod:`cellcal.solvers.tool_frames.tcp_check`) finds the tip, and the
+axis where the sweeps cut the tool at two heights, relative to that frame, with standard
+deviations that include the uncertainty of the beams' positions.
 
 What it determines, and what it cannot:
 

@@ -361,9 +361,7 @@ class GuardedRobot:
         if np.any(turned < low) or np.any(turned > high):
             return None
         joints = ", ".join(f"{i + 1} ({np.rad2deg(q[i]):.2f} deg)" for i in np.flatnonzero(outside))
-        cell = self.guard.limits
-        return Move.joint(f"unwind joint {joints} back inside its limits before '{first.label}'", turned,
-                          cell["joint_speed_rad_s"], cell["joint_accel_rad_s2"], robot=self.name)
+        return self._joint_move(f"unwind joint {joints} back inside its limits before '{first.label}'", turned)
 
     def to_plan_start(self, first: Move) -> Move | None:
         """The joint move to the joints every plan is checked from (the robot's home) when the arm is
@@ -379,9 +377,12 @@ class GuardedRobot:
         q = np.asarray(self.robot.actual_q(), dtype=float)
         if q.shape != arm.home.q_rad.shape or np.abs(q - arm.home.q_rad).max() <= AT_HOME_RAD:
             return None
+        return self._joint_move(f"back to home, where the plan starts, before '{first.label}'", arm.home.q_rad.copy())
+
+    def _joint_move(self, label: str, q) -> Move:
+        """A joint move of this robot at the cell's joint speed and acceleration limits."""
         cell = self.guard.limits
-        return Move.joint(f"back to home, where the plan starts, before '{first.label}'", arm.home.q_rad.copy(),
-                          cell["joint_speed_rad_s"], cell["joint_accel_rad_s2"], robot=self.name)
+        return Move.joint(label, q, cell["joint_speed_rad_s"], cell["joint_accel_rad_s2"], robot=self.name)
 
     def set_tcp(self, tool_pose) -> None:
         tracked, self._tool_frame = self._tool_frame is not None, None  # unknown should the write fail
