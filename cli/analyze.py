@@ -246,6 +246,7 @@ def run(args) -> int:
     if (warning := repeated_warning(table)) is not None:
         print_progress(f"warning: {warning}")
     check_joint_limits(table, model.joint_limits, model.name)
+    model_out.drawn_targets(args, table.target_names)  # refused now rather than after the analysis
     if len(table) < MIN_MEASUREMENTS:
         raise UsageError(f"{args.data}: {len(table)} measurements; the analysis needs at least {MIN_MEASUREMENTS}")
     fixture = read_fixture(args.fixture) if args.fixture else None

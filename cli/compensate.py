@@ -17,12 +17,13 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from cellcal.config.model_files import calibration_record, load_calibrated, source_model
+from cellcal.config.model_files import calibration_record, covariance, drawn_targets, load_calibrated, source_model
 from cellcal.config.robot_files import load_robot
 from cellcal.measurements.table import MAX_JOINT, MAX_POSITION_MM, MAX_PAYLOAD_KG
 from cellcal.solvers.compensation.compensate import (FRAMES, JOINT_LIMITS, NOMINAL_MISMATCH_MM, OK, SINGULAR,
                                                      SINGULAR_MM_PER_RAD, UNREACHABLE, compensate, controller_frame,
                                                      nominal_mismatch_mm, targets_in_model_frame)
+from cellcal.solvers.compensation.tool_map import tool_map
 from cellcal.solvers.analysis.effects import Context, approach_directions
 from cellcal.cli.common import UsageError, counted, number, print_progress, writable_file
 
@@ -61,10 +62,13 @@ def add_parser(sub):
                         "without it such a program ends with status 1 and nothing is written")
     p.add_argument("--nominal", metavar="ROBOT",
                    help="the controller's nominal model (default: the model the calibration started from)")
-    p.add_argument("--target", metavar="ID", help="which calibrated target offset is the tool point (default: the first)")
+    p.add_argument("--target", metavar="ID", help="which measured target is the tool point (default: the first): its "
+                                                  "drawn offset where the model file records drawn targets, else its "
+                                                  "calibrated offset")
     p.add_argument("--tcp-mm", nargs=3, type=number(-MAX_TOOL_MM, MAX_TOOL_MM, unit="mm"), metavar=("X", "Y", "Z"),
-                   help="tool point in the flange frame instead of a calibrated target offset (mm, each within "
-                        f"+-{MAX_TOOL_MM:g})")
+                   help="tool point in the flange frame as the controller knows it, instead of a measured target (mm, "
+                        f"each within +-{MAX_TOOL_MM:g}); mapped into the calibrated model through the model file's "
+                        "drawn targets (docs/programs.md, Tools)")
     p.add_argument("--seed-deg", nargs="+", type=number(-MAX_JOINT["deg"], MAX_JOINT["deg"], unit="deg"),
                    metavar="Q", help="joints (deg, each within two turns) of the branch to start from when TARGETS "
                                      "has no joint columns")
@@ -206,18 +210,21 @@ def run(args) -> int:
     nominal = load_robot(args.nominal or source_model(args.robot) or args.robot)
     if nominal.n_joints != model.n_joints:
         raise UsageError(f"--nominal {args.nominal}: {nominal.n_joints} joints, the calibrated model {model.n_joints}")
+    tools = _tool_map(args, calibrated, nominal)
     if args.tcp_mm is not None:
-        offset = np.array(args.tcp_mm)
+        tcp = np.array(args.tcp_mm)
     else:
         name = args.target or calibrated.target_names[0]
         if name not in calibrated.target_names:
             raise UsageError(f"--target {name}: not a target of {args.robot} "
                              f"({', '.join(calibrated.target_names)})")
-        offset = calibrated.offsets[calibrated.target_names.index(name)]
+        which = calibrated.target_names.index(name)
+        tcp = (calibrated.offsets if tools.drawn is None else tools.drawn)[which]
+    offset = tools.to_model(tcp)  # the tool point in the calibrated end frame
     _same_arm(args, calibrated, nominal, offset)
     _fit_warning(args)
     if args.program is not None:  # a URScript program in, the same program compensated out
-        return run_program(args, calibrated, nominal, offset)
+        return run_program(args, calibrated, nominal, tcp, tools)
     t = read_targets(args.targets, model.n_joints)
     refuse_marked(args, args.targets, t["compensated"])
     n = len(t["xyz"])
@@ -239,13 +246,15 @@ def run(args) -> int:
 
     frame = args.frame or "base"
     started = time.perf_counter()
-    controller = controller_frame(calibrated, nominal, offset_mm=offset)
+    at_model, at_controller = tools.frame_points(tcp)
+    controller = controller_frame(calibrated, nominal, offset_mm=at_model, nominal_offset_mm=at_controller)
     xyz, rot_model = targets_in_model_frame(calibrated, nominal, t["xyz"], rot, frame, controller=controller)
-    result = compensate(nominal, calibrated, xyz, rot_model, seed, offset_mm=offset, ctx_at=ctx_at,
-                        controller=controller)
+    result = compensate(nominal, calibrated, xyz, rot_model, seed, offset_mm=offset, nominal_offset_mm=tcp,
+                        ctx_at=ctx_at, controller=controller)
+    bound = tools.bound_mm(result.q, tcp)
     seconds = time.perf_counter() - started
     unit = args.unit or t["unit"] or "deg"
-    _write(args.out, t, result, unit, rot is not None, mark(args, nominal))
+    _write(args.out, t, result, unit, rot is not None, mark(args, nominal), bound)
     bad = np.flatnonzero(result.status != OK)
     reasons = {int(i): _reason(result, i, nominal) for i in bad}
     for i in bad[:SHOWN_ROWS]:
@@ -272,7 +281,9 @@ def run(args) -> int:
                                      "correction_deg": float(np.rad2deg(result.correction_rad[i]))} for i in large],
                "max_correction_deg": args.max_correction_deg,
                "nominal_model": nominal.name, "out": str(args.out), "seconds": seconds,
-               "compensated_before": t["compensated"]}
+               "compensated_before": t["compensated"], "tool": _tool_doc(tools, tcp, offset),
+               "bound_mm": None if bound is None or not ok.any() else
+               {"max": float(bound[ok].max()), "mean": float(bound[ok].mean())}}
     if t["compensated"] is not None:
         print_progress(f"{args.targets}: warning: compensated before ({t['compensated']}); --force compensated it "
                        "again: every target moved a second time")
@@ -284,7 +295,48 @@ def run(args) -> int:
               f"deg, max {summary['correction_deg']['max']:.4f} deg; {counted(len(bad), 'row')} not ok"
               + (f", {len(large)} above {args.max_correction_deg:g} deg (warned)" if len(large) else "")
               + f"; written to {args.out}")
+        print(_tool_text(tools, tcp, offset, summary["bound_mm"]))
     return 0
+
+
+def _tool_map(args, calibrated, nominal):
+    """The model's ``ToolMap``: its drawn targets, the nominal model it was calibrated from (which tells
+    the held parameters from the estimated ones; --nominal when the file does not say) and its held-out
+    error."""
+    from cellcal.config.robot_files import ModelError
+
+    try:
+        drawn = drawn_targets(args.robot, calibrated.target_names)
+        cov = covariance(args.robot, calibrated.layout.names)
+    except ModelError as exc:
+        raise UsageError(str(exc)) from None
+    source = source_model(args.robot)
+    heldout = (calibration_record(args.robot).get("heldout") or {}).get("mean_mm")
+    return tool_map(calibrated, load_robot(source) if source else nominal, drawn,
+                    heldout if isinstance(heldout, (int, float)) else None, cov)
+
+
+def _tool_doc(tools, tcp, offset) -> dict:
+    """The JSON's ``tool``: the default tool point as the controller knows it and in the calibrated end frame,
+    the drawn targets it is mapped through and the spread the bounds take for what the calibration held."""
+    return {"tcp_mm": [float(v) for v in tcp], "model_mm": [float(v) for v in offset],
+            "drawn_targets": None if tools.drawn is None else tools.drawn.tolist(),
+            "unseen_sd": {"deg": tools.sd_deg, "mm": tools.sd_mm}, "own_error_mm": tools.own_mm}
+
+
+def _tool_text(tools, tcp, offset, bound) -> str:
+    where = " ".join(f"{v:g}" for v in np.round(tcp, 4))
+    model = " ".join(f"{v:g}" for v in np.round(offset, 4))
+    if tools.drawn is None:
+        text = (f"tool: ({where}) mm taken as a point of the calibrated end frame, as its target offsets are (the model "
+                "file records no drawn targets, identify/analyze --drawn-target: a TCP given as drawn lands off by "
+                "its difference from the calibrated offset)")
+    else:
+        text = f"tool: ({where}) mm as the controller knows it is ({model}) mm in the calibrated end frame"
+    if bound is not None:
+        text += (f"; where the targets land: within {bound['mean']:.3f} mm on average, {bound['max']:.3f} mm at most "
+                 "(95 % bounds: the model's own error and the lever arm of what the calibration could not see)")
+    return text
 
 
 # a model whose own training rows it leaves this many times further off than their noise does not fit them
@@ -335,12 +387,12 @@ def _reason(result, i: int, nominal) -> str:
     return status
 
 
-def _write(path, t, result, unit: str, with_rotation: bool, marker: str) -> None:
+def _write(path, t, result, unit: str, with_rotation: bool, marker: str, bound=None) -> None:
     nj = result.q.shape[1]
     scale = np.rad2deg if unit == "deg" else (lambda v: v)
     added = ([f"q{j}_{unit}" for j in range(1, nj + 1)] + [f"q{j}_nominal_{unit}" for j in range(1, nj + 1)]
              + ["x_cmd_mm", "y_cmd_mm", "z_cmd_mm"] + (["qw_cmd", "qx_cmd", "qy_cmd", "qz_cmd"] if with_rotation else [])
-             + ["correction_deg", "status", MARK_COLUMN])
+             + ["correction_deg", "bound_mm", "status", MARK_COLUMN])
     quat = Rotation.from_matrix(result.rotation).as_quat()[:, [3, 0, 1, 2]]
     # the input's own joint columns (the branch each row was given in) are kept, renamed where the
     # solution's take their names: q1_deg -> q1_branch_deg; any other column the solution names is replaced
@@ -358,15 +410,16 @@ def _write(path, t, result, unit: str, with_rotation: bool, marker: str) -> None
                               *(quat[i] if with_rotation else ())]
                     values = [f"{v:.10g}" if np.isfinite(v) else "" for v in values]
                 else:
-                    values = [""] * (len(added) - 3)
+                    values = [""] * (len(added) - 4)  # correction, bound, status and marker follow
                 correction = np.rad2deg(result.correction_rad[i])
+                within = "" if bound is None or result.status[i] != OK else f"{bound[i]:.4g}"
                 w.writerow([row[k] for k in keep] + values + [f"{correction:.6g}" if np.isfinite(correction) else "",
-                                                              result.status[i], marker])
+                                                              within, result.status[i], marker])
     except OSError as exc:
         raise UsageError(f"-o {path}: cannot write: {exc.strerror or exc}") from None
 
 
-def run_program(args, calibrated, nominal, tcp_mm) -> int:
+def run_program(args, calibrated, nominal, tcp_mm, tools) -> int:
     """``--program``: the URScript program with its literal targets compensated (programs/apply.py) and a
     report per target. Status 1, nothing written, when a literal target could not be compensated, unless
     ``--allow-partial``; a program that cannot be read is a UsageError before anything is computed."""
@@ -390,7 +443,8 @@ def run_program(args, calibrated, nominal, tcp_mm) -> int:
         program = read_program(args.program)
         before = marked(program.text.splitlines())
         refuse_marked(args, args.program, before)
-        result = compensate_program(program, nominal, calibrated, default_tcp_mm=tcp_mm, seed_rad=seed)
+        result = compensate_program(program, nominal, calibrated, default_tcp_mm=tcp_mm, seed_rad=seed,
+                                    tool_map=tools)
     except ProgramError as exc:
         raise UsageError(str(exc)) from None
     failed = result.failed
@@ -414,6 +468,7 @@ def run_program(args, calibrated, nominal, tcp_mm) -> int:
         doc = {"program": str(args.program), "out": str(args.out), "written": written, "targets": n,
                "compensated": done, "not_compensated": dict(sorted(counts.items())), "compensated_before": before,
                "nominal_model": nominal.name, "seconds": result.seconds,
+               "tool": _tool_doc(tools, tcp_mm, tools.to_model(tcp_mm)),
                "report": [o.as_dict() for o in result.per_target]}
         if error:
             doc["error"] = {"code": 1, "message": error}
@@ -424,13 +479,17 @@ def run_program(args, calibrated, nominal, tcp_mm) -> int:
             which = " " + t.role.removeprefix("pose_") if t.call == "movec" else ""  # movec's via and to
             where = f"{args.program}:{t.line}: {t.call}{which} ({t.kind})"
             if o.status == COMPENSATED:
+                within = "" if o.bound_mm is None else f", lands within {o.bound_mm:.3f} mm (95 %)"
                 print(f"{where}: ok, moved {o.shift_mm:.4f} mm and {o.turn_deg:.4f} deg, joints by up to "
-                      f"{o.joint_deg:.4f} deg")
+                      f"{o.joint_deg:.4f} deg{within}")
             else:
                 print(f"{where}: {o.status}: {o.reason}")
         print(f"compensated {done} of {counted(n, 'target')} of {args.program} with {args.robot} (nominal: "
               f"{nominal.name}) in {result.seconds:.2f} s" + (f"; not compensated: {left}" if left else "")
               + (f"; written to {args.out}" if written else "; nothing written"))
+        bounds = [o.bound_mm for o in result.per_target if o.bound_mm is not None]
+        print(_tool_text(tools, tcp_mm, tools.to_model(tcp_mm),
+                         {"max": max(bounds), "mean": sum(bounds) / len(bounds)} if bounds else None))
     large = [o for o in result.per_target if o.status == COMPENSATED and o.joint_deg > args.max_correction_deg]
     for o in large[:SHOWN_ROWS]:
         print_progress(f"{args.program}:{o.target.line}: warning: compensated, but the joints move by "

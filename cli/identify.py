@@ -52,6 +52,7 @@ def run(args) -> int:
         raise UsageError(f"--fix: {', '.join(bad)} not a parameter of {model.name} "
                          f"(parameters: {', '.join(model.param_names)})")
     model_out.check_target(args.write_model)
+    model_out.drawn_targets(args, cal.target_names)  # refused now rather than after the fit
     n_min = 10
     if len(cal) < n_min:
         raise UsageError(f"{args.data}: {len(cal)} calibration rows; identification needs at least {n_min}")

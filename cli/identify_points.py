@@ -192,7 +192,8 @@ def _write_model(args, model, result, cal: MeasurementTable, validation, options
     # a seating's distance from its point, were the fit perfect: the seating sd in each of three axes
     noise = options.seating_sd_mm * np.sqrt(3.0)
     model_out.write_model(args.write_model, calibrated, args.robot,
-                          model_out.provenance("identify", args.data, len(cal), heldout, how, result.errors_mm, noise))
+                          model_out.provenance("identify", args.data, len(cal), heldout, how, result.errors_mm, noise),
+                          drawn=model_out.drawn_targets(args, cal.target_names))
 
 
 # A known distance the fit leaves further from its stated value than this many of its standard

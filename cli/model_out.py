@@ -8,8 +8,9 @@ from importlib import metadata
 
 import numpy as np
 
-from cellcal.config.model_files import write_calibrated
+from cellcal.config.model_files import covariance_record, write_calibrated
 from cellcal.solvers.compensation.calibrated_model import from_fit
+from cellcal.solvers.compensation.tool_map import fit_covariance
 from cellcal.cli.common import UsageError, print_progress, writable_file
 
 
@@ -17,6 +18,47 @@ def check_target(path) -> None:
     """Refuse an output path that cannot be written before any computation."""
     if path is not None:
         writable_file(path, "--write-model")
+
+
+MAX_DRAWN_MM = 5000.0  # a target 5 m from the flange is beyond any tool an arm carries (as compensate's --tcp-mm)
+
+
+def drawn_targets(args, target_names) -> dict[str, list[float]] | None:
+    """``--drawn-target [ID] X Y Z`` (repeated) as {target id: [x, y, z] mm}: each measured target as the
+    controller knows it (the TCP a program sets to use it), for every target of the data or none.
+    None when not given; a UsageError for anything unusable, before any computation."""
+    given = getattr(args, "drawn_target", None)
+    if not given:
+        return None
+    if args.write_model is None:
+        raise UsageError("--drawn-target: recorded in the model file; give --write-model as well")
+    names = tuple(str(t) for t in target_names)
+    out: dict[str, list[float]] = {}
+    for values in given:
+        if len(values) == 3 and len(names) == 1:
+            name, xyz = names[0], values
+        elif len(values) == 4:
+            name, xyz = values[0], values[1:]
+        else:
+            raise UsageError(f"--drawn-target {' '.join(values)}: give ID X Y Z (mm)" +
+                             (" or, with one target, X Y Z" if len(names) == 1 else
+                              f"; the data measure {len(names)} targets ({', '.join(names)})"))
+        if name not in names:
+            raise UsageError(f"--drawn-target {name}: not a target of the data ({', '.join(names)})")
+        if name in out:
+            raise UsageError(f"--drawn-target {name}: given twice")
+        try:
+            point = [float(v) for v in xyz]
+        except ValueError:
+            raise UsageError(f"--drawn-target {' '.join(values)}: X Y Z must be numbers (mm)") from None
+        if not all(abs(v) <= MAX_DRAWN_MM for v in point):  # NaN and inf fail this too
+            raise UsageError(f"--drawn-target {' '.join(values)}: each of X Y Z must be a finite number of mm "
+                             f"within +-{MAX_DRAWN_MM:g}")
+        out[name] = point
+    missing = [t for t in names if t not in out]
+    if missing:
+        raise UsageError(f"--drawn-target: give every measured target or none; missing: {', '.join(missing)}")
+    return {t: out[t] for t in names}
 
 
 def provenance(command: str, data_path, rows: int, heldout_mean_mm: float | None, heldout_how: str,
@@ -44,7 +86,13 @@ def provenance(command: str, data_path, rows: int, heldout_mean_mm: float | None
     }
 
 
-def write_model(path, calibrated, source, record: dict, magnitudes=None) -> None:
+def write_model(path, calibrated, source, record: dict, magnitudes=None, drawn=None, cov=None) -> None:
+    """The model file, with ``drawn`` ({target: [x, y, z] mm}, ``drawn_targets``) and ``cov`` (the estimates'
+    covariance over ``calibrated.layout.names``) recorded when given."""
+    if drawn is not None:
+        record = {**record, "drawn_targets": drawn}
+    if cov is not None:
+        record = {**record, "covariance": covariance_record(cov, calibrated.layout.names)}
     try:
         out = write_calibrated(path, calibrated, source, record, magnitudes)
     except OSError as exc:
@@ -58,6 +106,12 @@ def add_argument(parser, analyze: bool = False) -> None:
             "the identified geometry, instrument frame and target offsets")
     parser.add_argument("--write-model", metavar="OUT.yaml",
                         help=f"write a calibrated robot model file: {what} (every --robot option reads it)")
+    parser.add_argument("--drawn-target", nargs="+", action="append", metavar="VALUE",
+                        help="ID X Y Z, with --write-model: a measured target as the controller knows it, the TCP (mm, "
+                             "flange frame) a program sets to use it, e.g. the drawing's position of the SMR; X Y Z "
+                             "alone when the data measure one target. Repeat for every target. Recorded in the model file, "
+                             "it lets compensate map a program's TCPs into the calibrated model and state each "
+                             "target's error bound (docs/programs.md)")
 
 
 def write_identified(args, model, result, rows: int, val_obs, obs=None) -> None:
@@ -71,7 +125,8 @@ def write_identified(args, model, result, rows: int, val_obs, obs=None) -> None:
         heldout, how = None, "none: no validation rows and no cross-validation (--regularize none)"
     calibrated = from_fit(model, result.layout.target_names, result.x)
     train = None if obs is None else result.errors(obs)
-    write_model(args.write_model, calibrated, args.robot, provenance("identify", args.data, rows, heldout, how, train))
+    write_model(args.write_model, calibrated, args.robot, provenance("identify", args.data, rows, heldout, how, train),
+                drawn=drawn_targets(args, result.layout.target_names), cov=result.covariance)
 
 
 def write_finding(args, model, obs, finding) -> None:
@@ -82,4 +137,9 @@ def write_finding(args, model, obs, finding) -> None:
     magnitudes = {scored.cause: scored.magnitude} if len(scored.terms) == 1 else scored.magnitude
     record = provenance("analyze", args.data, len(obs), scored.heldout_mean_mm,
                         f"grouped {args.folds}-fold cross-validation ({scored.label})")
-    write_model(args.write_model, calibrated, args.robot, record, magnitudes)
+    free = np.ones(calibrated.layout.size, bool)  # estimated: what the fit moved from nominal, base and offsets
+    nominal = dict(zip(model.param_names, model.nominal))
+    free[: calibrated.layout.n_kin] = [nominal.get(n) != v for n, v in zip(calibrated.model.param_names, calibrated.k)]
+    cov = fit_covariance(calibrated.layout, calibrated.x, obs, scored.residuals, free)
+    write_model(args.write_model, calibrated, args.robot, record, magnitudes, drawn_targets(args, obs.target_names),
+                cov)

@@ -33,7 +33,7 @@ from cellcal.config.robot_files import ANGLE_UNITS, LENGTH_UNITS, ModelError, lo
 
 EXTENSION_KEYS = ("calibration", "effects")
 CALIBRATION_KEYS = {"written_by", "command", "date_utc", "source_model", "dataset", "heldout", "train", "base",
-                    "targets", "note"}
+                    "targets", "drawn_targets", "covariance", "note"}
 EFFECT_KEYS = {"cause", "where", "parameters", "units", "applied", "magnitude", "extra"}
 MOUNT_PARAMS = ("x", "y", "z", "rz", "ry", "rx")
 
@@ -73,6 +73,60 @@ def calibration_record(name_or_path: str | Path) -> dict:
     doc = read_yaml(resolve_robot(name_or_path), ModelError)
     record = doc.get("calibration") if isinstance(doc, dict) else None
     return record if isinstance(record, dict) else {}
+
+
+def drawn_targets(name_or_path: str | Path, target_names) -> np.ndarray | None:
+    """(T, 3) mm: the measured targets as the controller knows them (``calibration.drawn_targets``), in the
+    order of ``target_names``; None when the file records none. A ModelError for a record that does not
+    give every target as three finite numbers."""
+    path = resolve_robot(name_or_path)
+    doc = read_yaml(path, ModelError)
+    top = Section(str(path), None, doc, ModelError)
+    cal = top.section("calibration")
+    if "drawn_targets" not in cal:
+        return None
+    drawn = cal.section("drawn_targets")
+    missing = [t for t in target_names if t not in drawn.mapping]
+    if missing or set(drawn.mapping) - set(target_names):
+        drawn.fail(None, f"expected every calibrated target ({', '.join(target_names)}) -> [x, y, z] mm, "
+                         f"got {', '.join(map(str, drawn.mapping)) or 'none'}")
+    return np.array([drawn.vector(t, 3) for t in target_names])
+
+
+def covariance(name_or_path: str | Path, names) -> np.ndarray | None:
+    """(len(names), len(names)): the calibration's covariance of what it estimated
+    (``calibration.covariance``: ``unknowns`` and ``matrix``, mm and rad), placed at ``names`` (a
+    calibrated model's unknowns, ``Layout.names``); 0 for what it did not estimate. None when the file
+    records none; a ModelError for a record that is not a symmetric matrix of known unknowns."""
+    path = resolve_robot(name_or_path)
+    top = Section(str(path), None, read_yaml(path, ModelError), ModelError)
+    cal = top.section("calibration")
+    if "covariance" not in cal:
+        return None
+    record = cal.section("covariance").expect({"unknowns", "matrix"}, ("unknowns", "matrix"))
+    unknowns, matrix = record.raw("unknowns"), record.raw("matrix")
+    index = {n: i for i, n in enumerate(names)}
+    if not isinstance(unknowns, list) or any(u not in index for u in unknowns) or len(set(unknowns)) != len(unknowns):
+        record.fail("unknowns", f"expected a list of distinct unknowns of this model ({', '.join(names)})")
+    try:
+        m = np.array(matrix, dtype=float)
+    except (TypeError, ValueError):
+        m = np.zeros(0)
+    n = len(unknowns)
+    if m.shape != (n, n) or not np.isfinite(m).all() or not np.allclose(
+            m, m.T, rtol=1e-9, atol=1e-9 * np.abs(np.diag(m)).max(initial=0.0)):  # as written: symmetric to its digits
+        record.fail("matrix", f"expected a symmetric {n} x {n} matrix of finite numbers (mm and rad)")
+    out = np.zeros((len(names), len(names)))
+    at = [index[u] for u in unknowns]
+    out[np.ix_(at, at)] = m
+    return out
+
+
+def covariance_record(cov: np.ndarray, names) -> dict:
+    """``calibration.covariance`` of a covariance over ``names`` (0 rows: not estimated, left out)."""
+    keep = np.flatnonzero(np.diag(cov) > 0)
+    cov = 0.5 * (cov + cov.T)  # a sandwich product is symmetric up to rounding: written exactly so
+    return {"unknowns": [str(names[i]) for i in keep], "matrix": [_floats(row) for row in cov[np.ix_(keep, keep)]]}
 
 
 def source_model(name_or_path: str | Path) -> str | None:

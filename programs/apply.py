@@ -13,6 +13,11 @@ makes of it:
 * a joint target ``[q1..q6]`` puts the tool where the nominal forward kinematics of those
   joints says.
 
+A tool is the controller's, a point in the flange frame of the drawing; the calibrated model
+takes it through the model's ``solvers.compensation.tool_map.ToolMap`` (through the nearest
+measured target, as drawn and as calibrated), which also states where each compensated target
+lands (``bound_mm``, 95 %).
+
 That pose, mapped from the controller's base frame into the calibrated model's frame
 (``solvers.compensation.compensate.targets_in_model_frame``, frame ``base``: the controller's frame fitted
 once per program at the tool point the calibration knows, the calibrated target or
@@ -66,13 +71,14 @@ class TargetCompensation:
     shift_mm: float | None = None  # OK: how far the written tool point moved (nominal kinematics)
     turn_deg: float | None = None  # OK: how far the written tool orientation turned
     joint_deg: float | None = None  # OK: the largest joint correction
+    bound_mm: float | None = None  # OK: 95 % bound of where the tool point lands (None: not known)
 
     def as_dict(self) -> dict:
         t = self.target
         return {"line": t.line, "column": t.column, "call": t.call, "role": t.role, "kind": t.kind,
                 "source": t.source, "tcp_line": None if t.tcp is None else t.tcp.line, "status": self.status,
                 "reason": self.reason, "shift_mm": self.shift_mm, "turn_deg": self.turn_deg,
-                "joint_deg": self.joint_deg}
+                "joint_deg": self.joint_deg, "bound_mm": self.bound_mm}
 
 
 @dataclass(frozen=True)
@@ -101,12 +107,16 @@ class _Row:
     q: np.ndarray | None  # the joints the controller reaches it at (nominal model); None until solved
 
 
-def compensate_program(program: Program, nominal, calibrated, *, default_tcp_mm, seed_rad=None) -> ProgramCompensation:
+def compensate_program(program: Program, nominal, calibrated, *, default_tcp_mm, seed_rad=None,
+                       tool_map=None) -> ProgramCompensation:
     """Every literal target of `program` compensated with `calibrated` (a ``CalibratedModel``);
     `nominal` is the controller's model, `default_tcp_mm` (3,) the tool point where the program
     sets no tool, `seed_rad` the joints the program starts from (needed only when a pose target
-    comes before any target the joints are known at). ProgramError for a robot model that is not
-    a six-joint arm (URScript's joint lists have six values) or a pose whose branch nothing says."""
+    comes before any target the joints are known at), `tool_map` the model's
+    ``solvers.compensation.tool_map.ToolMap`` (how the controller's tool points map into the
+    calibrated end frame, and each target's bound; None: tool points taken as given in that frame,
+    no bound). ProgramError for a robot model that is not a six-joint arm (URScript's joint lists
+    have six values) or a pose whose branch nothing says."""
     started = time.perf_counter()
     if nominal.n_joints != JOINT_VALUES:
         raise ProgramError(f"{program.name}: URScript moves {JOINT_VALUES} joints; the robot model "
@@ -152,8 +162,10 @@ def compensate_program(program: Program, nominal, calibrated, *, default_tcp_mm,
                                           "from the previous target's joints")
     rows = [r for r in rows if np.isfinite(r.q).all()]
     # one controller frame for the whole program, fitted at the tool the calibration knows (module docstring)
-    controller = solver.controller_frame(calibrated, nominal, offset_mm=np.asarray(default_tcp_mm, dtype=float))
-    _compensate_rows(program, rows, per_target, nominal, calibrated, controller)
+    default = np.asarray(default_tcp_mm, dtype=float)
+    at_model, at_controller = (default, default) if tool_map is None else tool_map.frame_points(default)
+    controller = solver.controller_frame(calibrated, nominal, offset_mm=at_model, nominal_offset_mm=at_controller)
+    _compensate_rows(program, rows, per_target, nominal, calibrated, controller, tool_map)
     return ProgramCompensation(tuple(per_target), time.perf_counter() - started)
 
 
@@ -248,7 +260,7 @@ def _nominal_inverse(frames, position, flange, seed) -> np.ndarray:
     return out
 
 
-def _compensate_rows(program, rows, per_target, nominal, calibrated, controller) -> None:
+def _compensate_rows(program, rows, per_target, nominal, calibrated, controller, tool_map=None) -> None:
     if not rows:
         return
     direction = approach_directions(np.array([r.q for r in rows]))  # joints in program order: backlash
@@ -263,8 +275,11 @@ def _compensate_rows(program, rows, per_target, nominal, calibrated, controller)
         def ctx_at(q, which, d=group_direction):
             return Context(direction=d[which])
 
+        tool = np.array(tool_mm)  # as the controller knows it; in the calibrated end frame through the tool map
         result = solver.compensate(nominal, calibrated, in_model[0], in_model[1], q_controller,
-                                   offset_mm=np.array(tool_mm), ctx_at=ctx_at, controller=controller)
+                                   offset_mm=tool if tool_map is None else tool_map.to_model(tool),
+                                   nominal_offset_mm=tool, ctx_at=ctx_at, controller=controller)
+        bound = None if tool_map is None else tool_map.bound_mm(result.q, tool)
         for g, j in enumerate(group):
             row, status = rows[j], str(result.status[g])
             target = program.targets[row.index]
@@ -284,7 +299,8 @@ def _compensate_rows(program, rows, per_target, nominal, calibrated, controller)
                 target, OK, values=tuple(float(v) for v in values),
                 shift_mm=float(np.linalg.norm(result.position_mm[g] - row.position_mm)),
                 turn_deg=float(np.rad2deg(np.linalg.norm(turn))),
-                joint_deg=float(np.rad2deg(np.abs(q - row.q).max())))
+                joint_deg=float(np.rad2deg(np.abs(q - row.q).max())),
+                bound_mm=None if bound is None else float(bound[g]))
 
 
 def _rotvec_near(rotation: np.ndarray, reference: np.ndarray) -> np.ndarray:
