@@ -20,6 +20,8 @@ from cellcal.solvers.geometry.robot_model import KinematicModel, with_hayati_bet
 from cellcal.sims.physics.kinematic_arm import ArmTruth, SimulatedArm
 from cellcal.sims.physics.workspace import full_workspace
 
+AMBIENT_C = 21.0  # the cell's temperature: a cold arm
+WARMUP_K = 8.0  # how far a thermal drift's arm warms up over a campaign (its size is reached there)
 CAUSE_IDS = tuple(CAUSES)  # every cause analyze can name, and so every effect the arm can hide
 
 
@@ -143,21 +145,28 @@ class PhysicalArm(SimulatedArm):
         """Truth: c (rad/Nm), b (rad), A (rad), k (1/K), beta (rad) or tau (s). For scoring only."""
         return self._size[e]
 
-    def reached(self, q, target=None, payload_kg=None) -> np.ndarray:
+    def reached(self, q, target=None, payload_kg=None, temp_c=None) -> np.ndarray:
         """Truth: where the targets really are at commanded joints q (N, 3) mm, instrument frame, with
-        every joint-space effect and no noise (approach directions from the row order). For scoring."""
+        every joint-space effect and no noise (approach directions from the row order), the arm at rest
+        (no trigger latency) and at ``temp_c`` (a thermal drift's temperature; None: at AMBIENT_C, cold).
+        For scoring."""
         q = np.atleast_2d(np.asarray(q, dtype=float))
         target = np.zeros(len(q), dtype=int) if target is None else np.asarray(target)
         direction = approach_directions(q)
         payload = None if payload_kg is None else np.broadcast_to(np.asarray(payload_kg, float), (len(q),)).copy()
         delta = sum((self._size[e] * self._unit_delta_q(e, q, direction, payload, None) for e in self.effects
                      if e.cause not in ("parallel_axis_tilt", "thermal_drift", "trigger_latency")), np.zeros_like(q))
+        thermal = [e for e in self.effects if e.cause == "thermal_drift"]
+        if thermal and temp_c is not None:
+            dT = np.broadcast_to(np.asarray(temp_c, dtype=float) - AMBIENT_C, (len(q),))
+            return self._positions(q + delta, target, dT, self._size[thermal[0]] / WARMUP_K)
         return self._positions(q + delta, target)
 
     # -- a measurement campaign ---------------------------------------------------
     def campaign(self, q, *, target=None, payload_kg=None, t_s=None, dq_rad_s=None,
-                 warmup_K: float = 8.0) -> Campaign:
+                 warmup_K: float | None = None) -> Campaign:
         """Visit q in order and measure; returns data as a CSV would carry it."""
+        warmup_K = WARMUP_K if warmup_K is None else warmup_K
         q = np.atleast_2d(np.asarray(q, dtype=float))
         n = len(q)
         target = np.zeros(n, dtype=int) if target is None else np.asarray(target)
@@ -171,7 +180,7 @@ class PhysicalArm(SimulatedArm):
                 t_s = t
                 dT = warmup_K * (1.0 - np.exp(-(t - t.min()) / e.tau_s))
                 k_thermal = self._size[e] / warmup_K  # rms_mm is reached at full warm-up
-                temp = 21.0 + dT
+                temp = AMBIENT_C + dT
             elif e.cause == "trigger_latency":
                 if dq_rad_s is None:
                     raise ValueError("trigger_latency needs the joint velocities at the triggers (dq_rad_s)")

@@ -14,7 +14,7 @@ import pytest
 from cellcal.cli.main import main
 from cellcal.config.robot_files import load_robot
 from cellcal.measurements.writer import write_measurements
-from cellcal.programs.urscript import JOINTS, RUNTIME, parse
+from cellcal.programs.urscript import JOINTS, parse
 from cellcal.sims.physics.physical_arm import PhysicalArm
 from cellcal.sims.physics.workspace import full_workspace
 from cellcal.solvers.compensation import compensate as solver
