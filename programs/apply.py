@@ -48,8 +48,9 @@ IK_ITERATIONS = 100  # damped Newton steps of at most 0.3 rad: room for a move a
 # seed that moved less cannot change the branch the solve converges to (the solve's own tolerance is 1e-10 rad).
 SEED_MOVED_RAD = 1e-6
 MAX_SWEEPS = 6  # batched sweeps over all poses before the rest is solved row by row
-# Rows the calibrated solve takes at once: its (rows, 6, 6) Jacobians and the effects' bases stay a few MB,
-# and a row's answer does not depend on the rows it is solved with.
+# Rows a solve takes at once (the controller's inverse and the calibrated one): its (rows, 6, 6) Jacobians,
+# the chain's frames and the effects' bases stay a few MB, and a row's answer does not depend on the rows
+# it is solved with.
 CHUNK_ROWS = 4096
 WORDS = {  # the solver's statuses, said
     "unreachable": "out of reach",
@@ -310,10 +311,10 @@ def _nominal_inverse(frames, position, flange, seed) -> np.ndarray:
     seed = np.asarray(seed, dtype=float)
     has_seed = np.isfinite(seed).all(axis=1)
     out = np.full(seed.shape, np.nan)
-    if has_seed.any():
-        q, done = solver.solve(frames, position[has_seed], flange[has_seed], seed[has_seed],
-                               max_iter=IK_ITERATIONS)[:2]
-        out[np.flatnonzero(has_seed)[done]] = q[done]
+    rows = np.flatnonzero(has_seed)
+    for chunk in np.array_split(rows, -(-len(rows) // CHUNK_ROWS)) if len(rows) else ():
+        q, done = solver.solve(frames, position[chunk], flange[chunk], seed[chunk], max_iter=IK_ITERATIONS)[:2]
+        out[chunk[done]] = q[done]
     return out
 
 

@@ -188,27 +188,30 @@ def rewrite(text: str,
     """``text`` with the numbers of each given literal target replaced by the new values
     (same count and units: m and rad), every other character as it was."""
     pairs = replacements.items() if isinstance(replacements, Mapping) else replacements
-    edits = []
+    edits = []  # per target: where its first number starts, the target, its new values
     for target, values in pairs:
         if target.kind not in (POSE, JOINTS):
             raise ValueError(f"line {target.line}: {target.call} {target.role} is computed at run time; "
                              "only literal targets are rewritten")
         if len(values) != len(target.numbers):
             raise ValueError(f"line {target.line}: {len(values)} values for a literal of {len(target.numbers)}")
-        for number, value in zip(target.numbers, values):
+        for number in target.numbers:
             if text[number.start:number.end] != number.text:
                 raise ValueError(f"line {target.line}: the text is not the one this target was parsed from")
-            edits.append((number.start, number.end, format_number(value)))
+        if target.numbers:
+            edits.append((target.numbers[0].start, len(edits), target, values))
     edits.sort()
-    for (_, end, _), (start, _, _) in zip(edits, edits[1:]):
-        if start < end:
-            raise ValueError("two replacements overlap (the same target given twice?)")
-    out, at = [], 0
-    for start, end, new in edits:
-        out += [text[at:start], new]
-        at = end
-    out.append(text[at:])
-    return "".join(out)
+    done, pieces, at = [], [], 0  # the pieces joined a few thousand at a time: no list of them all
+    for _, _, target, values in edits:
+        for number, value in zip(target.numbers, values):
+            if number.start < at:
+                raise ValueError("two replacements overlap (the same target given twice?)")
+            pieces += [text[at:number.start], format_number(value)]
+            at = number.end
+        if len(pieces) > 4096:
+            done.append("".join(pieces))
+            pieces = []
+    return "".join(done + pieces + [text[at:]])
 
 
 def format_number(value: float) -> str:
