@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import json
+import sys
 import time
 
 import numpy as np
@@ -468,11 +469,15 @@ def run_program(args, calibrated, nominal, tcp_mm, tools) -> int:
         doc = {"program": str(args.program), "out": str(args.out), "written": written, "targets": n,
                "compensated": done, "not_compensated": dict(sorted(counts.items())), "compensated_before": before,
                "nominal_model": nominal.name, "seconds": result.seconds,
-               "tool": _tool_doc(tools, tcp_mm, tools.to_model(tcp_mm)),
-               "report": [o.as_dict() for o in result.per_target]}
-        if error:
-            doc["error"] = {"code": 1, "message": error}
-        print(json.dumps(doc))
+               "tool": _tool_doc(tools, tcp_mm, tools.to_model(tcp_mm))}
+        tail = f', "error": {json.dumps({"code": 1, "message": error})}' if error else ""
+        # json.dumps of the whole document, its report written a thousand targets at a time (a long
+        # program's report as one list of dicts and one string would double the command's memory)
+        sys.stdout.write(json.dumps(doc)[:-1] + ', "report": [')
+        for k in range(0, n, 1000):
+            sys.stdout.write((", " if k else "") + ", ".join(json.dumps(o.as_dict())
+                                                            for o in result.per_target[k:k + 1000]))
+        sys.stdout.write(f"]{tail}}}\n")
     else:
         for o in result.per_target:
             t = o.target

@@ -29,7 +29,9 @@ import bisect
 import math
 import re
 from collections.abc import Iterable, Mapping, Sequence
+from array import array
 from dataclasses import dataclass
+from typing import NamedTuple
 
 MOTIONS = {  # motion command -> its target parameters, in order (URScript's names, usable as keywords)
     "movej": ("q",),
@@ -43,15 +45,27 @@ POSE_VALUES = 6  # x, y, z (m), rx, ry, rz (rad)
 JOINT_VALUES = 6  # URScript's joint vectors: the six joints of a UR arm
 DECIMALS = 10  # 1e-10 m and 1e-10 rad: a thousand times finer than any arm repeats
 
-_TOKEN = re.compile(r"""
-    (?P<space>[ \t\f\v\r\n\ufeff]+|\\[ \t]*(?:\r\n|\r|\n))
+_NUMBER = r"(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
+_SPACE = r"[ \t\f\v\r\n\ufeff]+|\\[ \t]*(?:\r\n|\r|\n)"
+# what may stand between the values of a literal list: spaces, line continuations and comments, taken whole
+# (possessive: a comment never gives back the ']' it holds)
+_GAP = r"(?:[ \t\f\v\r\n\ufeff]++|\\[ \t]*+(?:\r\n|\r|\n)|\#[^\r\n]*+)*+"
+_SIGNED = rf"[+-]?{_GAP}(?>{_NUMBER}){_GAP}"
+_TOKEN = re.compile(rf"""
+    (?P<space>{_SPACE})
   | (?P<comment>\#[^\r\n]*)
-  | (?P<number>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)
+  | (?P<list>\[{_GAP}{_SIGNED}(?:,{_GAP}{_SIGNED})*\])
+  | (?P<number>{_NUMBER})
   | (?P<name>[A-Za-z_][A-Za-z0-9_]*)
   | (?P<string>"(?:[^"\\\r\n]|\\[^\r\n])*"|'(?:[^'\\\r\n]|\\[^\r\n])*')
   | (?P<open_string>["'])
   | (?P<op>==|!=|<=|>=|.)
 """, re.VERBOSE | re.DOTALL)
+_IN_LIST = re.compile(rf"(?P<gap>(?:{_SPACE}|\#[^\r\n]*)+)|(?P<sign>[+-])|(?P<number>{_NUMBER})|[,\[\]]")
+_KIND_CODES = {"number": 0, "name": 1, "string": 2, "op": 3, "list": 4}
+_NUMBER_KIND, _NAME, _STRING, _OP, _LIST = range(5)
+_KIND_NAMES = tuple(_KIND_CODES)
+_CALLS = frozenset(MOTIONS) | {SET_TCP}
 _CLOSES = {")": "(", "]": "["}
 
 
@@ -59,16 +73,14 @@ class ProgramError(Exception):
     """A program that cannot be read as URScript: the message names the file, line and column."""
 
 
-@dataclass(frozen=True)
-class Token:
-    kind: str  # number, name, string, op
+class Token(NamedTuple):
+    kind: str  # number, name, string, op, list (a literal list of numbers ``[1, -2.5]``, brackets included)
     text: str
     start: int  # offsets in the program's text
     end: int
 
 
-@dataclass(frozen=True)
-class Number:
+class Number(NamedTuple):
     """One value of a literal: its characters (sign included) and what they say."""
 
     start: int
@@ -77,7 +89,7 @@ class Number:
     value: float
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class SetTcp:
     """A ``set_tcp`` call: the tool pose it sets (m, rad), or None when computed at run time."""
 
@@ -87,7 +99,7 @@ class SetTcp:
     pose: tuple[float, ...] | None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Target:
     """One target of a motion call, as written."""
 
@@ -131,66 +143,43 @@ def encode(text: str) -> bytes:
 
 
 def tokenize(text: str, name: str = "<program>") -> list[Token]:
-    """The program's tokens (no spaces or comments); ProgramError for a string left open or a
-    bracket that is not closed by its own kind."""
-    lines = _LineIndex(text)
-    tokens: list[Token] = []
-    stack: list[Token] = []
-    for m in _TOKEN.finditer(text):
-        kind = m.lastgroup
-        if kind in ("space", "comment"):
-            continue
-        token = Token(kind, m.group(), m.start(), m.end())
-        if kind == "open_string":
-            raise ProgramError(f"{name}:{lines.where(token.start)}: a string opened here is not closed on its line")
-        if token.text in "([" and kind == "op":
-            stack.append(token)
-        elif token.text in _CLOSES and kind == "op":
-            if not stack:
-                raise ProgramError(f"{name}:{lines.where(token.start)}: {token.text!r} closes nothing")
-            opened = stack.pop()
-            if opened.text != _CLOSES[token.text]:
-                raise ProgramError(f"{name}:{lines.where(token.start)}: {token.text!r} closes the {opened.text!r} "
-                                   f"opened at {lines.where(opened.start)}")
-        tokens.append(token)
-    if stack:
-        raise ProgramError(f"{name}:{lines.where(stack[-1].start)}: {stack[-1].text!r} is never closed")
-    return tokens
+    """The program's tokens (no spaces or comments; a literal list of numbers is one token of kind
+    ``list``); ProgramError for a string left open or a bracket that is not closed by its own kind."""
+    scan = _Scan(text, name)
+    return [scan.token(i) for i in range(len(scan))]
 
 
 def parse(text: str, name: str = "<program>") -> Program:
     """Every motion target and set_tcp of the program, in the order they are written.
     ProgramError, naming file:line:column, for a literal number no double holds (``1e400``)."""
-    tokens = tokenize(text, name)
-    lines = _LineIndex(text)
-    for token in tokens:
-        if token.kind == "number" and not math.isfinite(float(token.text)):
-            raise ProgramError(f"{name}:{lines.where(token.start)}: {token.text} is beyond any number the "
-                               "controller holds (a double's largest is about 1.8e308)")
-    partner = _partners(tokens)
+    scan = _Scan(text, name)
+    if scan.beyond is not None:
+        start, number = scan.beyond
+        raise ProgramError(f"{name}:{scan.lines.where(start)}: {number} is beyond any number the "
+                           "controller holds (a double's largest is about 1.8e308)")
+    lines, n = scan.lines, len(scan)
     targets: list[Target] = []
     tcps: list[SetTcp] = []
     tcp: SetTcp | None = None
-    for i, token in enumerate(tokens):
-        if token.kind != "name" or (token.text not in MOTIONS and token.text != SET_TCP):
-            continue
-        if i + 1 >= len(tokens) or tokens[i + 1].text != "(" or tokens[i + 1].kind != "op":
+    for i in scan.calls:  # the names of the calls looked for, in the order they are written
+        if i + 1 >= n or scan.kinds[i + 1] != _OP or scan.text_of(i + 1) != "(":
             continue  # the name alone (a value, or a variable of that name)
-        if i > 0 and (tokens[i - 1].text in ("def", ".")):
+        if i > 0 and scan.text_of(i - 1) in ("def", "."):
             continue  # a definition of a function of that name, or a member
-        args = _arguments(tokens, i + 1, partner[i + 1])
-        if token.text == SET_TCP:
-            value = _argument(args, 0, "pose")
-            line, column = lines.line_column(value[0].start if value else token.start)
-            literal = _literal(value, text) if value else None
+        call = scan.text_of(i)
+        args = scan.arguments(i + 1)
+        if call == SET_TCP:
+            value = scan.argument(args, 0, "pose")
+            line, column = lines.line_column(scan.starts[value[0]] if value else scan.starts[i])
+            literal = scan.literal(value) if value else None
             pose = literal[1] if literal and literal[0] == POSE and len(literal[1]) == POSE_VALUES else None
-            tcp = SetTcp(line, column, _source(value, text), None if pose is None else tuple(n.value for n in pose))
+            tcp = SetTcp(line, column, scan.source(value), None if pose is None else tuple(n.value for n in pose))
             tcps.append(tcp)
             continue
-        for position, role in enumerate(MOTIONS[token.text]):
-            value = _argument(args, position, role)
-            line, column = lines.line_column(value[0].start if value else token.start)
-            targets.append(_target(token.text, role, value, text, line, column, tcp))
+        for position, role in enumerate(MOTIONS[call]):
+            value = scan.argument(args, position, role)
+            line, column = lines.line_column(scan.starts[value[0]] if value else scan.starts[i])
+            targets.append(_target(scan, call, role, value, line, column, tcp))
     return Program(name, text, tuple(targets), tuple(tcps))
 
 
@@ -199,27 +188,30 @@ def rewrite(text: str,
     """``text`` with the numbers of each given literal target replaced by the new values
     (same count and units: m and rad), every other character as it was."""
     pairs = replacements.items() if isinstance(replacements, Mapping) else replacements
-    edits = []
+    edits = []  # per target: where its first number starts, the target, its new values
     for target, values in pairs:
         if target.kind not in (POSE, JOINTS):
             raise ValueError(f"line {target.line}: {target.call} {target.role} is computed at run time; "
                              "only literal targets are rewritten")
         if len(values) != len(target.numbers):
             raise ValueError(f"line {target.line}: {len(values)} values for a literal of {len(target.numbers)}")
-        for number, value in zip(target.numbers, values):
+        for number in target.numbers:
             if text[number.start:number.end] != number.text:
                 raise ValueError(f"line {target.line}: the text is not the one this target was parsed from")
-            edits.append((number.start, number.end, format_number(value)))
+        if target.numbers:
+            edits.append((target.numbers[0].start, len(edits), target, values))
     edits.sort()
-    for (_, end, _), (start, _, _) in zip(edits, edits[1:]):
-        if start < end:
-            raise ValueError("two replacements overlap (the same target given twice?)")
-    out, at = [], 0
-    for start, end, new in edits:
-        out += [text[at:start], new]
-        at = end
-    out.append(text[at:])
-    return "".join(out)
+    done, pieces, at = [], [], 0  # the pieces joined a few thousand at a time: no list of them all
+    for _, _, target, values in edits:
+        for number, value in zip(target.numbers, values):
+            if number.start < at:
+                raise ValueError("two replacements overlap (the same target given twice?)")
+            pieces += [text[at:number.start], format_number(value)]
+            at = number.end
+        if len(pieces) > 4096:
+            done.append("".join(pieces))
+            pieces = []
+    return "".join(done + pieces + [text[at:]])
 
 
 def format_number(value: float) -> str:
@@ -246,85 +238,136 @@ class _LineIndex:
         return "%d:%d" % self.line_column(offset)
 
 
-def _partners(tokens: list[Token]) -> dict[int, int]:
-    """Index of each opening bracket -> index of its closing one (the tokens are balanced)."""
-    out, stack = {}, []
-    for i, t in enumerate(tokens):
-        if t.kind != "op":
-            continue
-        if t.text in "([":
-            stack.append(i)
-        elif t.text in _CLOSES:
-            out[stack.pop()] = i
+class _Scan:
+    """The tokens of a program (no spaces or comments), kept as their kinds and offsets only, each
+    opening bracket's closing one, and where the names of the calls looked for are: a long program
+    is read in one pass without an object per token. ProgramError as :func:`tokenize` says."""
+
+    def __init__(self, text: str, name: str):
+        self.text, self.lines = text, _LineIndex(text)
+        kinds, starts, ends = array("b"), array("q"), array("q")
+        self.partner: dict[int, int] = {}  # index of each opening bracket -> index of its closing one
+        self.calls: list[int] = []  # the names in _CALLS
+        self.beyond: tuple[int, str] | None = None  # the first number no double holds: (offset, its text)
+        stack: list[int] = []
+        for m in _TOKEN.finditer(text):
+            kind = m.lastgroup
+            if kind == "space" or kind == "comment":
+                continue
+            start, end = m.span()
+            i = len(kinds)
+            if kind == "op":
+                op = m.group()
+                if op == "(" or op == "[":
+                    stack.append(i)
+                elif op == ")" or op == "]":
+                    if not stack:
+                        raise ProgramError(f"{name}:{self.lines.where(start)}: {op!r} closes nothing")
+                    opened = stack.pop()
+                    if text[starts[opened]] != _CLOSES[op]:
+                        raise ProgramError(f"{name}:{self.lines.where(start)}: {op!r} closes the "
+                                           f"{text[starts[opened]]!r} opened at {self.lines.where(starts[opened])}")
+                    self.partner[opened] = i
+            elif kind == "name":
+                if m.group() in _CALLS:
+                    self.calls.append(i)
+            elif kind == "number":
+                if self.beyond is None and not math.isfinite(float(m.group())):
+                    self.beyond = (start, m.group())
+            elif kind == "list":
+                if self.beyond is None and _MAY_OVERFLOW.search(text, start, end):
+                    self.beyond = next(((n.start(), n.group()) for n in _IN_LIST.finditer(text, start, end)
+                                        if n.lastgroup == "number" and not math.isfinite(float(n.group()))), None)
+            elif kind == "open_string":
+                raise ProgramError(f"{name}:{self.lines.where(start)}: a string opened here is not closed on its line")
+            kinds.append(_KIND_CODES[kind])
+            starts.append(start)
+            ends.append(end)
+        if stack:
+            raise ProgramError(f"{name}:{self.lines.where(starts[stack[-1]])}: {text[starts[stack[-1]]]!r} is "
+                               "never closed")
+        self.kinds, self.starts, self.ends = kinds, starts, ends
+
+    def __len__(self) -> int:
+        return len(self.kinds)
+
+    def text_of(self, i: int) -> str:
+        return self.text[self.starts[i]:self.ends[i]]
+
+    def token(self, i: int) -> Token:
+        return Token(_KIND_NAMES[self.kinds[i]], self.text_of(i), self.starts[i], self.ends[i])
+
+    def arguments(self, open_at: int) -> list[range]:
+        """The arguments of the call whose '(' is token `open_at` (token ranges), split at the commas
+        of its own level; a bracketed group is one piece of an argument."""
+        close_at = self.partner[open_at]
+        args, first, k = [], open_at + 1, open_at + 1
+        while k < close_at:
+            if self.kinds[k] == _OP and self.text[self.starts[k]] == ",":  # no other operator starts with ',
+                args.append(range(first, k))
+                first = k = k + 1
+                continue
+            k = self.partner.get(k, k) + 1
+        if first < close_at or args:
+            args.append(range(first, close_at))
+        return args
+
+    def argument(self, args: list[range], position: int, keyword: str) -> range | None:
+        """The value of a parameter given by keyword or by position (keywords come after positions)."""
+        positional = []
+        for arg in args:
+            if len(arg) >= 2 and self.kinds[arg[0]] == _NAME and self.kinds[arg[1]] == _OP \
+                    and self.text_of(arg[1]) == "=":
+                if self.text_of(arg[0]) == keyword:
+                    return arg[2:] or None
+                continue
+            positional.append(arg)
+        return positional[position] if position < len(positional) and positional[position] else None
+
+    def source(self, tokens: range | None) -> str:
+        """The tokens as written, whitespace runs (and what the scanner skips) shown as one space."""
+        return " ".join(self.text[self.starts[tokens[0]]:self.ends[tokens[-1]]].split()) if tokens else ""
+
+    def literal(self, tokens: range) -> tuple[str, list[Number]] | None:
+        """(POSE or JOINTS, its numbers) when the tokens are ``p[n, ...]`` or ``[n, ...]``, else None."""
+        kind, body = JOINTS, tokens
+        if self.kinds[tokens[0]] == _NAME and self.text_of(tokens[0]) == "p":
+            kind, body = POSE, tokens[1:]
+        if len(body) == 1 and self.kinds[body[0]] == _LIST:
+            return kind, _list_numbers(self.text, self.starts[body[0]], self.ends[body[0]])
+        # a list the list token does not take holds no number: the empty one ``[]``, or not a literal
+        if len(body) == 2 and self.text_of(body[0]) == "[" and self.text_of(body[1]) == "]" \
+                and self.kinds[body[0]] == _OP:
+            return kind, []
+        return None
+
+
+_PLAIN_NUMBER = re.compile(rf"(?:([+-])[ \t\f\v\r\n\ufeff]*)?({_NUMBER})")  # a value of a list without comments
+_MAY_OVERFLOW = re.compile(r"[eE]|\d{300}")  # a number beyond a double's range has an exponent or 309 digits
+
+
+def _list_numbers(text: str, start: int, end: int) -> list[Number]:
+    """The numbers of the list token text[start:end], each with its sign and what stands between them."""
+    if text.find("#", start, end) < 0 and text.find("\\", start, end) < 0:  # no comment, no continuation
+        return [Number(m.start(), m.end(), m.group(), (-1.0 if m.group(1) == "-" else 1.0) * float(m.group(2)))
+                for m in _PLAIN_NUMBER.finditer(text, start, end)]
+    out, sign_at, sign = [], -1, 1.0
+    for m in _IN_LIST.finditer(text, start, end):
+        kind = m.lastgroup
+        if kind == "sign":
+            sign_at, sign = m.start(), (-1.0 if m.group() == "-" else 1.0)
+        elif kind == "number":
+            at = m.start() if sign_at < 0 else sign_at
+            out.append(Number(at, m.end(), text[at:m.end()], sign * float(m.group())))
+            sign_at, sign = -1, 1.0
     return out
 
 
-def _arguments(tokens, open_at: int, close_at: int) -> list[list[Token]]:
-    """The call's arguments (token lists), split at the commas of its own level."""
-    partner = _partners(tokens[open_at:close_at + 1])
-    args, current, k = [], [], 1
-    inner = tokens[open_at:close_at + 1]
-    while k < len(inner) - 1:
-        t = inner[k]
-        if t.kind == "op" and t.text == ",":
-            args.append(current)
-            current = []
-            k += 1
-            continue
-        end = partner.get(k, k)  # a bracketed group is one piece of the argument
-        current.extend(inner[k:end + 1])
-        k = end + 1
-    if current or args:
-        args.append(current)
-    return args
-
-
-def _argument(args: list[list[Token]], position: int, keyword: str) -> list[Token] | None:
-    """The value of a parameter given by keyword or by position (keywords come after positions)."""
-    positional = []
-    for arg in args:
-        if len(arg) >= 2 and arg[0].kind == "name" and arg[1].kind == "op" and arg[1].text == "=":
-            if arg[0].text == keyword:
-                return arg[2:] or None
-            continue
-        positional.append(arg)
-    return positional[position] if position < len(positional) and positional[position] else None
-
-
-def _source(tokens: list[Token] | None, text: str) -> str:
-    return " ".join(text[tokens[0].start:tokens[-1].end].split()) if tokens else ""
-
-
-def _literal(tokens: list[Token], text: str) -> tuple[str, list[Number]] | None:
-    """(POSE or JOINTS, its numbers) when the tokens are ``p[n, ...]`` or ``[n, ...]``, else None."""
-    kind, body = JOINTS, tokens
-    if tokens and tokens[0].kind == "name" and tokens[0].text == "p":
-        kind, body = POSE, tokens[1:]
-    if len(body) < 2 or body[0].text != "[" or body[-1].text != "]" or body[0].kind != "op":
-        return None
-    numbers, k, inner = [], 0, body[1:-1]
-    while k < len(inner):
-        sign = 1.0
-        start = inner[k].start
-        if inner[k].kind == "op" and inner[k].text in "+-":
-            sign = -1.0 if inner[k].text == "-" else 1.0
-            k += 1
-        if k >= len(inner) or inner[k].kind != "number":
-            return None
-        numbers.append(Number(start, inner[k].end, text[start:inner[k].end], sign * float(inner[k].text)))
-        k += 1
-        if k < len(inner):
-            if inner[k].kind != "op" or inner[k].text != "," or k + 1 == len(inner):
-                return None
-            k += 1
-    return kind, numbers
-
-
-def _target(call, role, value, text, line, column, tcp) -> Target:
-    source = _source(value, text)
+def _target(scan: _Scan, call, role, value, line, column, tcp) -> Target:
+    source = scan.source(value)
     if not value:
         return Target(line, column, call, role, RUNTIME, "", None, (), tcp, f"no {role} given")
-    literal = _literal(value, text)
+    literal = scan.literal(value)
     if literal is None:
         return Target(line, column, call, role, RUNTIME, source, None, (), tcp, "computed at run time")
     kind, numbers = literal

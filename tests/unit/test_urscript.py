@@ -23,6 +23,9 @@ from cellcal.solvers.geometry import se3
 from cellcal.solvers.compensation.calibrated_model import from_fit
 from cellcal.solvers.identification.identify import IdentifyOptions, identify
 from cellcal.solvers.geometry.inverse import inverse, tcp_frames
+from cellcal.solvers.analysis.effects import Context, approach_directions
+
+from support.programs import long_program
 
 # -- the scanner ---------------------------------------------------------------------------------------------
 
@@ -262,6 +265,89 @@ def test_compensated_with_the_true_model_the_program_lands_exactly(robot, monkey
     error = np.linalg.norm(drive(out, model, truth, truth.offsets[0]) - meant(program, model, truth, truth.offsets[0]),
                            axis=1)
     assert error.max() < 1e-4, error
+
+
+def row_by_row(program, model, calibrated, default_tool_mm):
+    """The straightforward reading of a program, the reference for compensate_program: target after target,
+    each pose's controller joints by its own nominal inverse from the previous target's, then every target's
+    calibrated joints (one solve per target's tool: the solver's rows are independent). {target index:
+    (status, values or None)}."""
+    out, rows, last = {}, [], None
+    for k, t in enumerate(program.targets):
+        if t.kind == RUNTIME or (t.tcp is not None and t.tcp.pose is None):
+            out[k] = ("runtime" if t.kind == RUNTIME else "tcp_unknown", None)
+            continue
+        tool = np.r_[default_tool_mm / 1000.0, 0, 0, 0] if t.tcp is None else np.array(t.tcp.pose)
+        frames = solver.rigid_frames(model, model.nominal, tool[:3] * 1000.0)
+        tool_rot = se3.rotvec_to_matrix(tool[3:])
+        if t.kind == JOINTS:
+            q = np.array(t.values)
+            if ((q < model.joint_limits[:, 0]) | (q > model.joint_limits[:, 1])).any():
+                out[k] = ("joint_limits", None)
+                continue
+            rot, p = frames(q[None], None)[:2]
+            position, flange = p[0], rot[0]
+        else:
+            position = np.array(t.values[:3]) * 1000.0
+            flange = se3.rotvec_to_matrix(np.array(t.values[3:])) @ tool_rot.T
+            q, done = solver.solve(frames, position[None], flange[None], last[None], max_iter=apply.IK_ITERATIONS)[:2]
+            if not done[0]:
+                out[k] = ("unreachable", None)
+                continue
+            q = q[0]
+        last = q
+        rows.append((k, tuple(tool[:3] * 1000.0), tool_rot, position, flange, q))
+    direction = approach_directions(np.array([r[5] for r in rows]))
+    controller = solver.controller_frame(calibrated, model, offset_mm=default_tool_mm)
+    for tool in dict.fromkeys(r[1] for r in rows):
+        group = [j for j, r in enumerate(rows) if r[1] == tool]
+        xyz, rot = solver.targets_in_model_frame(calibrated, model, np.array([rows[j][3] for j in group]),
+                                                 np.array([rows[j][4] for j in group]), "base", controller=controller)
+        result = solver.compensate(model, calibrated, xyz, rot, np.array([rows[j][5] for j in group]),
+                                   offset_mm=np.array(tool), controller=controller,
+                                   ctx_at=lambda q, which, d=direction[group]: Context(direction=d[which]))
+        for g, j in enumerate(group):
+            k, _, tool_rot, _, _, _ = rows[j]
+            target = program.targets[k]
+            values = None
+            if result.status[g] == "ok" and target.kind == JOINTS:
+                values = result.q[g]
+            elif result.status[g] == "ok":
+                r = se3.matrix_to_rotvec(result.rotation[g] @ tool_rot)
+                other = r * (1.0 - 2.0 * np.pi / np.linalg.norm(r))  # the same turn the other way round
+                written = np.array(target.values[3:])
+                near = r if np.linalg.norm(r - written) <= np.linalg.norm(other - written) else other
+                values = np.r_[result.position_mm[g] / 1000.0, near]
+            out[k] = (str(result.status[g]), values)
+    return out
+
+
+@pytest.mark.parametrize("sweeps, chunk", [(apply.MAX_SWEEPS, apply.CHUNK_ROWS), (1, 7)],
+                         ids=["sweeps", "row-by-row tail, chunks of 7"])
+def test_the_batched_program_gives_the_row_by_row_answer(robot, monkeypatch, sweeps, chunk):
+    """compensate_program solves all poses at once, sweep after sweep, finishes what has not settled row
+    by row, and compensates the targets in chunks: the answer is the straightforward one, target after
+    target. A program of four tools (one set at run time), joint and pose targets, targets computed at run
+    time, a pose 3 m away (the controller's own model does not reach it: the next pose is solved from the
+    target before it) and a joint target outside the limits, its paths up to 80 poses long between joint
+    targets (far more than the sweeps settle). Statuses equal, values to 1e-10 (m and rad): the solvers stop
+    at 1e-7 mm and 1e-10 rad, and a pose solved from a seed that moved by under SEED_MOVED_RAD lands on the
+    same solution to that tolerance."""
+    monkeypatch.setattr(apply, "MAX_SWEEPS", sweeps)
+    monkeypatch.setattr(apply, "CHUNK_ROWS", chunk)
+    model, calibrated, _, _ = robot
+    text = long_program(model, calibrated.offsets[0], lines=180, seed=2).replace(
+        "  sleep(0.01)  # station 1 done", "  movel(p[3.0, 0.0, 0.5, 0.0, 3.14, 0.0])  # 3 m away\n"
+        "  movej([0.35, -1.7, 1.7, -1.57, -1.57, 6.5])  # joint 6 beyond 360 deg\n  sleep(0.01)").replace(
+        "\nend\n", "\n  set_tcp(tool_of(2))\n  movel(p[0.5, -0.2, 0.4, 0, 3.14, 0])\nend\n")
+    program = parse(text, "long.script")
+    result = compensate_program(program, model, calibrated, default_tcp_mm=calibrated.offsets[0])
+    want = row_by_row(program, model, calibrated, calibrated.offsets[0])
+    got = {k: (o.status, o.values) for k, o in enumerate(result.per_target)}
+    assert [s for s, _ in got.values()] == [want[k][0] for k in got]
+    assert {"ok", "runtime", "tcp_unknown", "unreachable", "joint_limits"} <= {s for s, _ in got.values()}
+    difference = max(np.abs(np.subtract(v, want[k][1])).max() for k, (s, v) in got.items() if s == "ok")
+    assert difference <= 1e-10, difference
 
 
 def test_a_compensated_program_lands_within_0_02_mm_on_the_hidden_robot(robot, capsys):
