@@ -17,7 +17,7 @@ from support.point_data import plate_placements, seat  # tests/support/point_dat
 
 from cellcal.config.robot_files import load_robot
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
-from cellcal.solvers.estimation import identifiability
+from cellcal.solvers.estimation import crossval, identifiability
 from cellcal.solvers.fixtures.point_problem import FixtureOptions, PointData, PointProblem, _frames
 from cellcal.solvers.geometry import se3
 
@@ -179,3 +179,76 @@ def test_the_start_by_blocks_is_the_dense_linear_least_squares():
     np.testing.assert_allclose(z[u.target(0)], sol[:3], rtol=0, atol=tol)
     np.testing.assert_allclose(z[u.points_slice][3:], sol[3:], rtol=0, atol=tol)
     np.testing.assert_array_equal(z[u.point(0)], [600.0, 0.0, 100.0])
+
+
+# -- the analysis' folds: crossval.PointFoldFactors against the points as columns of their own ---------------
+
+
+def _fold_problem(path: bool):
+    """90 rows of a random linearised model (4 columns) at 9 points, 3 folds: with sub-folds, or path-ordered
+    with gaps (rows each fold's training also leaves out). Point 8 lies in fold 0 alone (no training row in
+    that fold: it must stay where it is); the rows of points 6 and 7 are contacts (one direction measured)."""
+    rng = np.random.default_rng(4)
+    n, p, n_points = 90, 4, 9
+    point = np.arange(n) % 8
+    fold = rng.integers(0, 3, n)
+    where = np.flatnonzero(fold == 0)[:6]
+    point[where] = 8
+    j = rng.normal(size=(n, 3, p))
+    r = rng.normal(size=(n, 3)) * 0.1
+    pj = -np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+    normal = rng.normal(size=(n, 3))
+    normal /= np.linalg.norm(normal, axis=1)[:, None]
+    contact = np.isin(point, (6, 7))
+    proj = normal[:, :, None] * normal[:, None, :]
+    j[contact] = proj[contact] @ j[contact]
+    r[contact] = np.einsum("nij,nj->ni", proj[contact], r[contact])
+    pj[contact] = -proj[contact]
+    ids = fold.view(crossval.FoldIds)
+    if path:
+        ids.exclude = tuple(np.flatnonzero((fold != k) & (rng.random(n) < 0.15)) for k in range(3))
+    else:
+        ids.sub = rng.integers(0, 2, n)
+    return ids, j, r, pj, point, n_points
+
+
+@pytest.mark.parametrize("path", [False, True])
+def test_the_points_eliminated_in_every_fold_give_the_steps_and_errors_of_point_columns(path):
+    """Against ``FoldFactors`` over [J | P] (each point's three columns as columns): the model's steps,
+    the held-out errors, the inner folds' sums of squares, the R factor of all rows. Each is one solve of
+    the training's normal equations, so each agrees to a small multiple of kappa * eps of those."""
+    folds, j, r, pj, point, n_points = _fold_problem(path)
+    n, p = len(r), j.shape[2]
+    columns = np.zeros((n, 3, 3 * n_points))
+    for c in range(3):
+        columns[np.arange(n), :, 3 * point + c] = pj[:, :, c]
+    dense = crossval.FoldFactors(folds, p + 3 * n_points)
+    dense.add(slice(None), np.concatenate([j, columns], axis=2), r)
+    mine = crossval.PointFoldFactors(folds, p, point, n_points)
+    mine.add(slice(None), j, r, pj)
+    mine.add_projected(slice(None), j, r, pj)
+    kappa = max(np.linalg.cond(dense.training(k)[0][np.ix_(keep, keep)])
+                for k in range(3) for keep in [np.linalg.norm(dense.training(k)[0], axis=0) > 0])
+    tol = SLACK * EPS * kappa
+    steps_dense = dense.steps(np.arange(p + 3 * n_points))
+    steps = mine.steps(np.arange(p))
+    np.testing.assert_allclose(steps[0], steps_dense[0, :, :p], rtol=0, atol=tol * np.abs(steps_dense).max())
+    errors_dense = crossval.heldout_errors([(slice(None), np.concatenate([j, columns], axis=2))], r, dense,
+                                           steps_dense)
+    errors = mine.heldout_errors([(slice(None), j, pj)], r, steps)
+    np.testing.assert_allclose(errors, errors_dense, rtol=0, atol=tol * errors_dense.max())
+    for k in range(3):  # every inner fold's held-out sum of squares: the nested selections' scores
+        assert mine.inner_sse(k) == pytest.approx(dense.inner_sse(k), rel=tol)
+    for (t, h), (td, hd) in zip(mine.outer(), dense.outer()):  # the outer folds, as the selection scores them
+        w = np.append(-np.linalg.lstsq(t[:p, :p], t[:p, p], rcond=None)[0], 1.0)
+        wd = np.append(-np.linalg.lstsq(td[:-1, :-1], td[:-1, -1], rcond=None)[0], 1.0)
+        assert w @ h @ w == pytest.approx(wd @ hd @ wd, rel=tol)
+    # R of all rows with the points projected out: R^T R is the Schur complement of the points' block
+    full = dense.r_all()
+    gram = full.T @ full
+    keep = np.r_[np.arange(p), p + 3 * n_points]
+    pts = np.arange(p, p + 3 * n_points)
+    schur = gram[np.ix_(keep, keep)] - gram[np.ix_(keep, pts)] @ np.linalg.pinv(gram[np.ix_(pts, pts)]) @ \
+        gram[np.ix_(pts, keep)]
+    r_all = mine.r_all()
+    np.testing.assert_allclose(r_all.T @ r_all, schur, rtol=0, atol=tol * np.abs(gram).max())
