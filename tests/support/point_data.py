@@ -9,9 +9,11 @@ controller reports. The truth (points, arm) is returned for scoring only.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from cellcal.config.robot_files import load_robot
 from cellcal.measurements.writer import write_measurements
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.solvers.geometry import se3
@@ -162,10 +164,6 @@ def campaign(folder, setups: int, per_socket: int = 8, seed: int = 1, spacing_mm
     the flange) seated per_socket times in both sockets of a bar spacing_mm long at ``setups`` placements
     (tilt up to 45 deg, both wrist branches), with a third-order periodic error of amp_deg hidden at joint 5
     (0: none). Writes folder/points.csv and folder/fixture.yaml; returns their paths and the PlateData."""
-    from pathlib import Path
-
-    from cellcal.config.robot_files import load_robot
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
