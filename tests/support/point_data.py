@@ -4,7 +4,8 @@ The simulated arm (``SimulatedArm``: hidden geometric errors of up to 0.5 mm and
 offset a few mm off its drawing) seats its target in each socket of a plate in many orientations;
 each seating lands within the repeatability of the socket's centre (the tip is at c + e, e normal
 with ``repeatability_mm`` per axis), and the joint values the true arm needs for that are what the
-controller reports. The truth (points, arm) is returned for scoring only.
+controller reports. The truth (points, arm) is returned for scoring only. ``campaign`` writes a whole
+campaign (the CSV and its fixture file) for the command line and the benches.
 """
 from __future__ import annotations
 
