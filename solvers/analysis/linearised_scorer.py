@@ -31,8 +31,10 @@ class LinearisedScorer:
         self.model, self.geometric_fit, self.obs, self.folds, self.prior_mm = model, geometric_fit, obs, folds, prior_mm
         self.robust = robust
         self.baseline_residuals_mm = geometric_fit.residuals_mm
-        # the geometry's columns: its free parameters, and with point-form data each point's position
-        self.n_geometry = int(geometric_fit.free.sum()) + getattr(geometric_fit, "n_point_columns", 0)
+        # the geometry's columns: its free parameters; with point-form data each row's point besides, estimated
+        # with the geometry in every fold and eliminated (crossval.PointFoldFactors)
+        self._points = getattr(geometric_fit, "point_jacobian", None)  # point_analysis.PointGeometry
+        self.n_geometry = int(geometric_fit.free.sum())
         self.terms = list(terms)
         self._at: dict[int, slice] = {}
         col = self.n_geometry
@@ -41,27 +43,39 @@ class LinearisedScorer:
             col += t.size
         self.n_columns = col
         self._structural: dict[int, np.ndarray] = {}  # columns of terms that change the rigid model, (N, 3, m)
-        self.factors = crossval.FoldFactors(folds, col)
-        for rows, j in self._columns():
-            self.factors.add(rows, *robust.weighted(rows, j, self.baseline_residuals_mm[rows]))
-        self.r = self.factors.r_all()[:col, :col]  # R factor of all columns, all rows
-        self.scale = norm_scale(np.linalg.norm(self.r, axis=0), len(obs))
+        if self._points is None:
+            self.factors = crossval.FoldFactors(folds, col)
+            for rows, j in self._columns():
+                self.factors.add(rows, *robust.weighted(rows, j, self.baseline_residuals_mm[rows]))
+        else:
+            self.factors = crossval.PointFoldFactors(folds, col, geometric_fit.point, geometric_fit.n_points)
+            for add in (self.factors.add, self.factors.add_projected):  # the second pass: R of all rows
+                for rows, j, pj in self._columns():
+                    jw, rw = robust.weighted(rows, np.concatenate([j, pj], axis=2), self.baseline_residuals_mm[rows])
+                    add(rows, jw[:, :, :col], rw, jw[:, :, col:])
+        self.r = self.factors.r_all()[:col, :col]  # R factor of all columns, all rows (points projected out)
+        # each column's size over the rows (with points: as the rows measure it, not projected)
+        self._norms = np.linalg.norm(self.r, axis=0) if self._points is None else self.factors.column_norms()[:col]
+        self.scale = norm_scale(self._norms, len(obs))
 
     def _columns(self):
-        """(rows, [geometry | every term] columns (n, 3, n_columns)) over all rows in blocks."""
+        """(rows, [geometry | every term] columns (n, 3, n_columns)) over all rows in blocks; with point-form
+        data (rows, columns, d residual / d the row's point (n, 3, 3))."""
         fit, obs = self.geometric_fit, self.obs
-        n_free = int(fit.free.sum())
-        points = getattr(fit, "point_columns", None)  # point-form data: point_analysis.PointGeometry
         for rows, _, jx, jq in jacobian_chunks(fit.layout, fit.x, obs, with_joints=True):
             out = np.empty((len(jx), 3, self.n_columns))
-            out[:, :, :n_free] = jx[:, :, fit.free]
-            if points is not None:  # each point's position, estimated with the geometry in every fold
-                out[:, :, n_free: self.n_geometry] = points(rows)
+            out[:, :, : self.n_geometry] = jx[:, :, fit.free]
             for t in self.terms:
                 out[:, :, self._at[id(t)]] = self._term_columns(t, rows, jx, jq)
-            if points is not None:  # what the rows measure (a contact: the distance along the ball's normal)
-                out = fit.project(rows, out)
-            yield rows, out
+            if self._points is None:
+                yield rows, out
+            else:  # what the rows measure (a contact: the distance along the ball's normal)
+                yield rows, fit.project(rows, out), self._points(rows)
+
+    def _heldout(self, steps: np.ndarray) -> np.ndarray:
+        if self._points is None:
+            return crossval.heldout_errors(self._columns(), self.baseline_residuals_mm, self.factors, steps)
+        return self.factors.heldout_errors(self._columns(), self.baseline_residuals_mm, steps)
 
     def _term_columns(self, term: Term, rows, jacobian_x, jacobian_q) -> np.ndarray:
         """d p / d theta of a term at the geometric fit, for these rows (n, 3, m)."""
@@ -92,8 +106,7 @@ class LinearisedScorer:
 
     def heldout_errors_many(self, term_sets) -> np.ndarray:
         """(len(term_sets), N) held-out error of each measurement, for each set of terms with geometry."""
-        steps = np.concatenate([self.factors.steps(self.estimated(tuple(ts))) for ts in term_sets])
-        return crossval.heldout_errors(self._columns(), self.baseline_residuals_mm, self.factors, steps)
+        return self._heldout(np.concatenate([self.factors.steps(self.estimated(tuple(ts))) for ts in term_sets]))
 
     def steps(self, terms: tuple[Term, ...]) -> np.ndarray:
         """(1, folds, p) each fold's step with geometry and these terms, for ``heldout_errors_of_steps``."""
@@ -101,7 +114,7 @@ class LinearisedScorer:
 
     def heldout_errors_of_steps(self, steps: np.ndarray) -> np.ndarray:
         """(len(steps), N) held-out error of each measurement for each set of fold steps (folds, p)."""
-        return crossval.heldout_errors(self._columns(), self.baseline_residuals_mm, self.factors, steps)
+        return self._heldout(steps)
 
     def mean_mm(self, errors: np.ndarray) -> np.ndarray:
         """Held-out score of errors along the last axis (``RobustScoring.mean_mm``)."""
@@ -126,9 +139,12 @@ class LinearisedScorer:
         """Does geometry + outer span every column of inner? (Then outer explains nothing
         that inner cannot, wherever the two tie.)"""
         a = self.r[:, self._cols((outer,))]
-        b = self.r[:, self._term_cols(inner)]
+        cols = self._term_cols(inner)
+        b = self.r[:, cols]
         coef = np.linalg.lstsq(a, b, rcond=None)[0]
-        return bool(np.linalg.norm(a @ coef - b) <= NESTED_RTOL * np.linalg.norm(b))
+        # relative to inner's own size over the rows (with points: before they are projected out)
+        size = np.linalg.norm(b) if self._points is None else np.sqrt(np.sum(self._norms[cols] ** 2))
+        return bool(np.linalg.norm(a @ coef - b) <= NESTED_RTOL * size)
 
 
 def term_columns(model, fit: Identification, obs: Observations, term: Term, rows, jacobian_x, jacobian_q,

@@ -6,8 +6,10 @@ the fixture calibration (``fixture_identify.identify_points``), and what point r
 differs in two ways, both carried by :class:`PointGeometry`:
 
 - each point's position is an unknown of its own, estimated with the geometry in every fold
-  (``point_columns``: d residual / d point = -I), so a held-out row is scored against its point
+  (``point_jacobian``: d residual / d point = -I), so a held-out row is scored against its point
   as the fold's training rows place it. The rows of a point therefore need not share a fold.
+  Each point's three columns touch its own rows only: the scorer eliminates them in every
+  training (``crossval.PointFoldFactors``) instead of carrying them as columns of their own.
 - a contact measures one number, the distance from the ball's surface: its residual and every
   column of its row are projected on the ball's normal there (``projector``), so a held-out
   error is that distance and nothing along the surface counts.
@@ -47,17 +49,10 @@ class PointGeometry:
     held_without_distances: tuple[str, ...]  # estimated by the fixture fit, held at its values here: the rows
     #                                        alone (the distances are no rows) do not determine them above the noise
 
-    @property
-    def n_point_columns(self) -> int:
-        return 3 * self.n_points
-
-    def point_columns(self, rows) -> np.ndarray:
-        """d residual / d point positions of these rows, (n, 3, 3 n_points)."""
-        idx = np.arange(len(self.point))[rows]
-        out = np.zeros((len(idx), 3, self.n_point_columns))
-        for c in range(3):
-            out[np.arange(len(idx)), c, 3 * self.point[idx] + c] = -1.0
-        return self.project(rows, out)
+    def point_jacobian(self, rows) -> np.ndarray:
+        """d residual / d the position of each of these rows' own point, (n, 3, 3)."""
+        n = len(np.arange(len(self.point))[rows])
+        return self.project(rows, -np.broadcast_to(np.eye(3), (n, 3, 3)))
 
     def project(self, rows, columns: np.ndarray) -> np.ndarray:
         """Columns (n, 3, m) of these rows as the rows measure them: along the normal for contacts."""
@@ -133,21 +128,26 @@ def _rows_alone_keep(g: PointGeometry, obs: Observations) -> np.ndarray:
     fixture fit's prior is held), in mm for lengths and mm at the arm's reach for angles."""
     fit = g.fixture_fit
     free = np.flatnonzero(g.free)
-    blocks, tips = [], []
-    for rows, p, j in jacobian_chunks(g.layout, g.x, obs):
-        cols = np.concatenate([g.project(rows, j[:, :, free]), g.point_columns(rows)], axis=2)
-        blocks.append(cols.reshape(-1, cols.shape[2]))
-        tips.append(p)
-    j = np.concatenate(blocks)
-    reach = max(float(np.median(np.linalg.norm(np.concatenate(tips), axis=1))), 1.0)
-    is_angle = np.r_[g.layout.is_angle[free], np.zeros(g.n_point_columns, bool)]
-    j = j / np.where(is_angle, 1.0 / reach, 1.0)
-    nuisance = np.zeros(j.shape[1], bool)
-    nuisance[len(free):] = True  # the points and the target offsets are always estimated
-    nuisance[: len(free)] = free >= g.layout.n_kin
-    keep = identifiability.analyse(j, nuisance, ~nuisance, noise_mm=fit.noise_mm, prior_mm=fit.options.prior_mm,
-                                   with_condition=False).keep
+    j = np.empty((len(obs), 3, len(free)))
+    tips = np.empty((len(obs), 3))
+    for rows, p, jr in jacobian_chunks(g.layout, g.x, obs):
+        j[rows] = g.project(rows, jr[:, :, free])
+        tips[rows] = p
+    reach = max(float(np.median(np.linalg.norm(tips, axis=1))), 1.0)
+    j = j / np.where(g.layout.is_angle[free], 1.0 / reach, 1.0)
+    # the points projected out of their own rows (the target offsets are always estimated: the nuisance);
+    # the R factor of what is left has the singular values and subsets of the columns with the points
+    pj = g.point_jacobian(slice(None))
+    s = np.zeros((g.n_points, 3, len(free)))
+    n = np.zeros((g.n_points, 3, 3))
+    np.add.at(s, g.point, np.einsum("nci,ncp->nip", pj, j))
+    np.add.at(n, g.point, np.einsum("nci,ncj->nij", pj, pj))
+    j = j - pj @ (np.linalg.pinv(n, hermitian=True) @ s)[g.point]
+    nuisance = free >= g.layout.n_kin
+    r = np.linalg.qr(j.reshape(-1, len(free)), mode="r")
+    keep = identifiability.analyse(r, nuisance, ~nuisance, noise_mm=fit.noise_mm, prior_mm=fit.options.prior_mm,
+                                   with_condition=False, n_rows=3 * len(obs)).keep
     out = g.free.copy()
-    out[free] = keep[: len(free)]
+    out[free] = keep
     return out
 

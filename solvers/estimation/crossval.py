@@ -293,6 +293,180 @@ class FoldFactors:
         return out
 
 
+class PointFoldFactors(FoldFactors):
+    """``FoldFactors`` of a linearised model whose rows also measure an unknown point each (point-form
+    data: a seating's point, estimated with the model in every training), the points eliminated.
+
+    Besides the model's p columns, each row has a derivative over its own point's position
+    (``add``'s pj, (n, 3, 3)): a point's three columns touch only its own rows. Every training's
+    normal equations over [J | r] are given with its points eliminated, the Schur complement
+    G - S^T N^+ S (G the training rows' Gram of [J | r], S = P^T [J | r] and N = P^T P per point);
+    each held-out Gram is that of the held-out rows with their points at the training's estimate,
+    which moves with the model's step w = [step; 1] as -N^+ S w. So every sum of squares, step and
+    held-out error over the model's columns is the one the point columns would give as columns of
+    their own, from (p + 1) x (p + 1) matrices. A point without training rows stays where it is.
+
+    Kept per atom (the rows of one fold and one sub-fold, or of one fold and one set of trainings that
+    leave them out as a gap): the Gram of [J | r], and per (atom, point) present S and N. The R factor
+    of all rows (``r_all``) is of the rows with their points projected out, [J | r] - P N^+ S over all
+    rows, which takes a second pass over the rows (``add_projected``).
+    """
+
+    def __init__(self, folds: np.ndarray, p: int, point: np.ndarray, n_points: int):
+        exclude = getattr(folds, "exclude", None)
+        sub = getattr(folds, "sub", None)
+        self.folds = np.asarray(folds)
+        self.ids, self.index = np.unique(self.folds, return_inverse=True)
+        self.index = self.index.ravel()
+        self.p = p
+        n = len(self.folds)
+        bits = np.zeros(n, dtype=np.int64)
+        if exclude is not None:
+            for k, rows in enumerate(exclude):
+                bits[rows] |= 1 << k
+        self._path = exclude is not None and bool(bits.any())
+        self._sub = None if sub is None or self._path else np.asarray(sub)
+        second = bits if self._path else (self._sub if self._sub is not None else np.zeros(n, dtype=np.int64))
+        atoms, self._atom = np.unique(np.stack([self.index, second], axis=1), axis=0, return_inverse=True)
+        self._atom = self._atom.ravel()
+        self._atom_fold, self._atom_second = atoms[:, 0], atoms[:, 1]
+        self.point, self.n_points = np.asarray(point), n_points
+        pairs, self._pair = np.unique(self._atom * n_points + self.point, return_inverse=True)
+        self._pair = self._pair.ravel()
+        self._pair_atom, self._pair_point = pairs // n_points, pairs % n_points
+        self._gram = np.zeros((len(atoms), p + 1, p + 1))
+        self._cross = np.zeros((len(pairs), 3, p + 1))  # P^T [J | r] per (atom, point)
+        self._pp = np.zeros((len(pairs), 3, 3))  # P^T P per (atom, point)
+        self._all = RFactor(p + 1)
+        self._cache: dict = {}
+
+    def add(self, rows, j: np.ndarray, r: np.ndarray, pj: np.ndarray) -> None:
+        """Rows (a slice or indices of the measurements): j (n, 3, p), r (n, 3), pj (n, 3, 3) d r / d point."""
+        rows = np.arange(len(self.folds))[rows]
+        block = np.concatenate([j, r[:, :, None]], axis=2)  # (n, 3, p + 1)
+        flat = block.reshape(-1, self.p + 1)
+        atom = np.repeat(self._atom[rows], 3)
+        for a in np.unique(atom):
+            mine = flat[atom == a]
+            self._gram[a] += mine.T @ mine
+        pair = self._pair[rows]
+        np.add.at(self._cross, pair, np.einsum("nci,nca->nia", pj, block))
+        np.add.at(self._pp, pair, np.einsum("nci,ncj->nij", pj, pj))
+        self._cache.clear()
+
+    def _sums(self, atoms: np.ndarray):
+        """(Gram of [J | r], S (points, 3, p + 1), N (points, 3, 3)) over the atoms marked."""
+        sel = atoms[self._pair_atom]
+        s = np.zeros((self.n_points, 3, self.p + 1))
+        n = np.zeros((self.n_points, 3, 3))
+        np.add.at(s, self._pair_point[sel], self._cross[sel])
+        np.add.at(n, self._pair_point[sel], self._pp[sel])
+        return self._gram[atoms].sum(axis=0), s, n
+
+    def _moves(self, train: np.ndarray):
+        """(the training's Gram of [J | r], points eliminated; M (points, 3, p + 1): each point's estimate
+        moves by M w with the model's step w = [step; 1])."""
+        key = ("train", train.tobytes())
+        if key not in self._cache:
+            g, s, n = self._sums(train)
+            m = -np.linalg.pinv(n, hermitian=True) @ s
+            self._cache[key] = (g + _inner(s, m), m)
+        return self._cache[key]
+
+    def _pair_of(self, train: np.ndarray, held: np.ndarray):
+        """(training Gram, held-out Gram) of [J | r], the points eliminated as the class docstring says."""
+        t, m = self._moves(train)
+        g, s, n = self._sums(held)
+        cross = _inner(s, m)
+        return t, g + cross + cross.T + _inner(m, n @ m)
+
+    def _train_mask(self, k: int, also: int | None = None) -> np.ndarray:
+        """Atoms of fold k's training (k indexes self.ids), less fold `also` (and both folds' gaps)."""
+        out = self._atom_fold != k
+        if also is not None:
+            out &= self._atom_fold != also
+        if self._path:
+            out &= (self._atom_second >> k & 1) == 0
+            if also is not None:
+                out &= (self._atom_second >> also & 1) == 0
+        return out
+
+    @property
+    def factors(self) -> list[np.ndarray]:
+        """One R factor of [J | r] over every row, the points projected out (the normal equations of all
+        rows with every point estimated)."""
+        return [self.r_all()]
+
+    def add_projected(self, rows, j: np.ndarray, r: np.ndarray, pj: np.ndarray) -> None:
+        """The second pass, after every row was given to ``add``: the same rows, for ``r_all``."""
+        if "all" not in self._cache:
+            self._cache["all"] = self._moves(np.ones(len(self._gram), bool))[1]
+        m = self._cache["all"]
+        block = np.concatenate([j, r[:, :, None]], axis=2)
+        block = block + pj @ m[self.point[rows]]
+        self._all.add(block.reshape(-1, self.p + 1))
+
+    def r_all(self) -> np.ndarray:
+        return self._all.r
+
+    def column_norms(self) -> np.ndarray:
+        """Norms of the columns of [J | r] over every row, points not eliminated."""
+        return np.sqrt(np.clip(np.diagonal(self._gram.sum(axis=0)), 0.0, None))
+
+    def training(self, k: int):
+        g, _ = self._moves(self._train_mask(k))
+        return g[: self.p, : self.p], g[: self.p, self.p]
+
+    def outer(self) -> list:
+        return [self._pair_of(self._train_mask(k), self._atom_fold == k) for k in range(len(self.ids))]
+
+    def inner_parts(self, k: int):
+        return None  # the inner trainings' points are eliminated each on its own: no shared Gram to subtract
+
+    def inner(self, k: int) -> list:
+        out = []
+        for j in range(len(self.ids)):
+            if j == k:
+                continue
+            if self._sub is not None:  # each sub-fold of fold j held out from fold k's training
+                for s in np.unique(self._atom_second[self._atom_fold == j]):
+                    held = (self._atom_fold == j) & (self._atom_second == s)
+                    out.append(self._pair_of(self._train_mask(k) & ~held, held))
+            else:
+                held = self._atom_fold == j
+                if self._path:
+                    held &= (self._atom_second >> k & 1) == 0
+                out.append(self._pair_of(self._train_mask(k, j), held))
+        return out
+
+    def point_steps(self, k: int, steps: np.ndarray) -> np.ndarray:
+        """(len(steps), points, 3): each point's move in fold k's training with the model's steps (s, p)."""
+        _, m = self._moves(self._train_mask(k))
+        w = np.concatenate([steps, np.ones((len(steps), 1))], axis=1)
+        return np.einsum("pia,sa->spi", m, w)
+
+    def heldout_errors(self, columns, r: np.ndarray, steps: np.ndarray) -> np.ndarray:
+        """``heldout_errors`` with the points: columns yields (rows slice, J rows (n, 3, p), pj (n, 3, 3))."""
+        moves = [self.point_steps(k, steps[:, k, :]) for k in range(len(self.ids))]
+        errs = np.empty((len(steps), len(r)))
+        for rows, j, pj in columns:
+            fold = self.index[rows]
+            point = self.point[rows]
+            out = errs[:, rows]
+            for k in np.unique(fold):
+                sel = np.flatnonzero(fold == k)
+                moved = (j[sel].reshape(-1, self.p) @ steps[:, k, :].T).reshape(len(sel), 3, len(steps))
+                moved += np.einsum("nij,snj->nis", pj[sel], moves[k][:, point[sel]])
+                pred = r[rows][sel][:, :, None] + moved
+                out[:, sel] = np.sqrt(np.sum(pred * pred, axis=1)).T
+        return errs
+
+
+def _inner(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """sum over points of a_p^T b_p for (points, 3, m) stacks: one matrix product."""
+    return a.reshape(-1, a.shape[2]).T @ b.reshape(-1, b.shape[2])
+
+
 # The prior weights a nested ridge chooses among (``ridge_steps``), each relative to a penalised column's own
 # squared norm over the training rows: from none to a prior that weighs like 1% of the rows, a factor 100
 # apart (finer grids changed Agile Justin's held-out mean by under 0.005 mm and cost twice the solves). A

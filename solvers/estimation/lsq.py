@@ -100,6 +100,16 @@ class NormalEquations:
             self.a += j.T @ (j * w[:, None])
             self.g += j.T @ (d1 * f)
 
+    def diagonal(self) -> np.ndarray:
+        return np.diag(self.a)
+
+    def product(self, s: np.ndarray) -> np.ndarray:
+        return self.a @ s
+
+    def damped_step(self, mu: float, d: np.ndarray) -> np.ndarray:
+        """-(A + mu D^2)^-1 g, D = diag(d), solved in the scaled variables D s."""
+        return _solve_damped(self.a / np.outer(d, d), self.g / d, mu) / d
+
 
 MESSAGES = {
     0: "The maximum number of function evaluations is exceeded.",
@@ -125,7 +135,9 @@ def levenberg_marquardt(evaluate, x0: np.ndarray, x_scale: np.ndarray, ftol: flo
     """Minimise a least-squares cost given as normal equations.
 
     evaluate(x, jac) returns a ``NormalEquations`` at x (with the matrix and gradient
-    when jac is true, the cost alone otherwise). Steps solve
+    when jac is true, the cost alone otherwise), or any object with its ``cost``, ``g``,
+    ``diagonal``, ``product`` and ``damped_step`` (a structured J^T J that solves its own
+    damped steps, as ``fixtures.point_blocks.BlockSystem`` does). Steps solve
     (A + mu D^2) s = -g with D = 1 / x_scale; mu follows the gain ratio (Nielsen's rule).
     Termination as scipy's "lm": ftol on the relative cost reduction, actual and predicted;
     xtol on the scaled step; gtol on the largest cosine between the residual and a column.
@@ -137,24 +149,23 @@ def levenberg_marquardt(evaluate, x0: np.ndarray, x_scale: np.ndarray, ftol: flo
     nfev = njev = 1
     mu, nu = None, 2.0
     while True:
-        cost, a, g = ne.cost, ne.a, ne.g
-        col = np.sqrt(np.clip(np.diag(a), 0.0, None))
+        cost, g = ne.cost, ne.g
+        diagonal = ne.diagonal()
+        col = np.sqrt(np.clip(diagonal, 0.0, None))
         fnorm = np.sqrt(2.0 * cost)
         if cost == 0.0 or len(x) == 0:
             return Solution(x, cost, nfev, njev, 1, MESSAGES[1])
         cosines = np.abs(g[col > 0]) / (col[col > 0] * fnorm)
         if not cosines.size or cosines.max() <= gtol:
             return Solution(x, cost, nfev, njev, 1, MESSAGES[1])
-        a_scaled = a / np.outer(d, d)
-        g_scaled = g / d
         if mu is None:
-            mu = 1e-3 * max(float(np.max(np.diag(a_scaled))), 1e-300)
+            mu = 1e-3 * max(float(np.max(diagonal / d**2)), 1e-300)
         while True:
-            step = _solve_damped(a_scaled, g_scaled, mu) / d
+            step = ne.damped_step(mu, d)
             x_new = x + step
             new = evaluate(x_new, False)
             nfev += 1
-            predicted = -(g @ step + 0.5 * step @ (a @ step))
+            predicted = -(g @ step + 0.5 * step @ ne.product(step))
             actual = cost - new.cost if np.isfinite(new.cost) else -np.inf
             ratio = actual / predicted if predicted > 0 else 0.0
             accepted = ratio > 1e-4

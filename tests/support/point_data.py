@@ -4,14 +4,17 @@ The simulated arm (``SimulatedArm``: hidden geometric errors of up to 0.5 mm and
 offset a few mm off its drawing) seats its target in each socket of a plate in many orientations;
 each seating lands within the repeatability of the socket's centre (the tip is at c + e, e normal
 with ``repeatability_mm`` per axis), and the joint values the true arm needs for that are what the
-controller reports. The truth (points, arm) is returned for scoring only.
+controller reports. The truth (points, arm) is returned for scoring only. ``campaign`` writes a whole
+campaign (the CSV and its fixture file) for the command line and the benches.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from cellcal.config.robot_files import load_robot
 from cellcal.measurements.writer import write_measurements
 from cellcal.sims.physics.kinematic_arm import SimulatedArm
 from cellcal.solvers.geometry import se3
@@ -154,3 +157,29 @@ def workspace_errors(arm: SimulatedArm, k, offset, q, align_from=None, align_to=
     mine = org + rot @ np.asarray(offset)
     r, t = se3.rigid_fit(*((align_from, align_to) if align_from is not None else (mine, truth)))
     return np.linalg.norm(mine @ r.T + t - truth, axis=1)
+
+
+def campaign(folder, setups: int, per_socket: int = 8, seed: int = 1, spacing_mm: float = 200.0,
+             sd_mm: float = 0.01, amp_deg: float = 0.0, stylus_radius_mm=None):
+    """A point-form campaign on disk: a UR10e (hidden geometry, repeatability 0.03 mm, target 100 mm off
+    the flange) seated per_socket times in both sockets of a bar spacing_mm long at ``setups`` placements
+    (tilt up to 45 deg, both wrist branches), with a third-order periodic error of amp_deg hidden at joint 5
+    (0: none). Writes folder/points.csv and folder/fixture.yaml; returns their paths and the PlateData."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    arm = SimulatedArm(load_robot("ur10e"), rng, repeatability_mm=0.03, target_offsets=[[0.0, 0.0, 100.0]])
+
+    def warp(q):
+        q = q.copy()
+        q[:, 4] += np.deg2rad(amp_deg) * np.sin(3 * q[:, 4] + 0.7)
+        return q
+
+    data = seat(arm, plate_placements(rng, setups), per_socket, rng, max_tilt_deg=45.0, wrists=("normal", "flipped"),
+                spacing_mm=spacing_mm, warp=warp if amp_deg else None, stylus_radius_mm=stylus_radius_mm)
+    write(folder / "points.csv", data)
+    text = f"points: [hole_0, hole_1]\ndistances_mm:\n  - [hole_0, hole_1, {spacing_mm}, {sd_mm}]\nseating_sd_mm: 0.03\n"
+    if stylus_radius_mm is not None:
+        text += f"stylus_radius_mm: {stylus_radius_mm}\n"
+    (folder / "fixture.yaml").write_text(text)
+    return folder / "points.csv", folder / "fixture.yaml", data

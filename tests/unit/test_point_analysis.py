@@ -94,8 +94,8 @@ def test_the_geometry_refits_each_point_and_holds_what_only_the_distances_fix():
     g = point_analysis.geometry(fit, data, obs)
     # the residuals are the fixture calibration's own (predicted tip - fitted point), to rounding
     assert np.allclose(np.linalg.norm(g.residuals_mm, axis=1), fit.errors_mm, atol=1e-9)
-    cols = g.point_columns(np.arange(3))
-    assert cols.shape == (3, 3, 3 * len(keys)) and np.all(cols.sum(axis=(1, 2)) == -3)  # -I at the row's point
+    jac = g.point_jacobian(np.arange(3))  # d residual / d the row's own point: -I for a socket
+    assert jac.shape == (3, 3, 3) and np.array_equal(jac, -np.broadcast_to(np.eye(3), (3, 3, 3)))
     held = set(g.held_without_distances)
     estimated = {n for i, n in enumerate(UR10E.param_names) if fit.free[i]}
     assert held and held < estimated  # held: some of what the fit estimated, never anything it held
