@@ -164,3 +164,14 @@ def test_a_nominal_model_of_another_arm_is_refused_and_nothing_written(files, ca
     assert own < NOMINAL_MISMATCH_MM / 4 and other > 5 * NOMINAL_MISMATCH_MM  # far apart on both sides
     assert main(argv + ["--nominal", "ur10e"]) == 0  # accepted (the unreachable row 5 is reported by row)
     assert out.exists()
+
+
+@pytest.mark.parametrize("d", [1, 6, 7, 23])
+def test_the_joint_sample_is_scipys_halton_sequence(d):
+    """joint_sample's own Halton sequence is scipy.stats.qmc's unscrambled one, point for point (both sum
+    the same powers of the bases in the same order: equal to the last bit)."""
+    from scipy.stats import qmc
+
+    from cellcal.solvers.compensation.compensate import halton
+
+    assert np.array_equal(halton(1024, d), qmc.Halton(d=d, scramble=False).random(1025)[1:])
