@@ -137,9 +137,12 @@ def write_finding(args, model, obs, finding) -> None:
     magnitudes = {scored.cause: scored.magnitude} if len(scored.terms) == 1 else scored.magnitude
     record = provenance("analyze", args.data, len(obs), scored.heldout_mean_mm,
                         f"grouped {args.folds}-fold cross-validation ({scored.label})")
-    free = np.ones(calibrated.layout.size, bool)  # estimated: what the fit moved from nominal, base and offsets
-    nominal = dict(zip(model.param_names, model.nominal))
-    free[: calibrated.layout.n_kin] = [nominal.get(n) != v for n, v in zip(calibrated.model.param_names, calibrated.k)]
-    cov = fit_covariance(calibrated.layout, calibrated.x, obs, scored.residuals, free)
+    cov = None  # the point form's rows are its points' fitted positions: their own uncertainty is not in obs
+    if getattr(args, "fixture", None) is None:
+        free = np.ones(calibrated.layout.size, bool)  # estimated: what the fit moved from nominal, base and offsets
+        nominal = dict(zip(model.param_names, model.nominal))
+        free[: calibrated.layout.n_kin] = [nominal.get(n) != v
+                                           for n, v in zip(calibrated.model.param_names, calibrated.k)]
+        cov = fit_covariance(calibrated.layout, calibrated.x, obs, scored.residuals, free)
     write_model(args.write_model, calibrated, args.robot, record, magnitudes, drawn_targets(args, obs.target_names),
                 cov)

@@ -13,6 +13,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import yaml
 import pytest
 
 from cellcal.cli.main import main
@@ -312,10 +313,13 @@ def test_text_report_names_what_is_held(plate, capsys):
 def test_written_model_predicts_as_the_fit(plate, tmp_path, capsys):
     folder, arm, data = plate
     out = tmp_path / "ur10e-plate.yaml"
-    doc = identify_json(folder, capsys, "--write-model", str(out))
+    doc = identify_json(folder, capsys, "--write-model", str(out), "--drawn-target", "0", "0", "100")
     calibrated = load_robot(str(out))  # every --robot option reads it
     k = model_k(doc)
     assert np.allclose(calibrated.nominal, k, rtol=0, atol=1e-9)
+    # the target as drawn is recorded; the point form records no covariance (docs/robot-model-extension.md)
+    record = yaml.safe_load(out.read_text())["calibration"]
+    assert record["drawn_targets"] == {"tcp": [0.0, 0.0, 100.0]} and "covariance" not in record
 
 
 def test_calibrated_arm_beats_nominal_over_the_workspace_relative_to_the_plate(plate, capsys):

@@ -64,9 +64,11 @@ def test_every_model_analyze_writes_goes_through_compensate_and_iso9283(case, tm
 
     # analyze -> the model file
     assert main(["analyze", "--robot", "ur10e", "--data", str(data), "--causes", *causes,
-                 "--write-model", str(model_file), "--json"]) == 0
+                 "--write-model", str(model_file), "--drawn-target", "0", "0", "100", "--json"]) == 0
     finding = json.loads(capsys.readouterr().out)
     assert finding["cause"] in causes, (case, finding["cause"])
+    record = yaml.safe_load(model_file.read_text())["calibration"]  # the target as drawn, the fit's covariance
+    assert record["drawn_targets"] == {"tcp": [0.0, 0.0, 100.0]} and "target.tcp.x" in record["covariance"]["unknowns"]
     heldout_mm = finding["extended"]["heldout_mean_mm"]
     # a thermal drift's model is at the calibration's median temperature when told none (robot-model-extension.md):
     # the hidden robot is taken at that temperature too; every other effect leaves it None (ambient)
