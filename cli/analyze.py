@@ -45,6 +45,15 @@ def add_parser(sub):
                    help="a second data set (another time, pose set or target): the named effect as fitted on "
                         "--data, with only B's instrument frame and target offsets fitted on B, scored against "
                         "the geometry alone, with how much of B lies inside --data's joint ranges")
+    setup = p.add_mutually_exclusive_group()
+    setup.add_argument("--same-setup", action="store_true",
+                       help="with --validate: B was taken in --data's setup (a test set of the same session: the "
+                            "same instrument frame and targets): score it with the frame and target offsets fitted "
+                            "on --data, nothing fitted on B (on a small B the refit of --new-setup flatters both "
+                            "scores)")
+    setup.add_argument("--new-setup", action="store_true",
+                       help="with --validate: B was taken in another setup: B's own instrument frame and target "
+                            "offsets fitted on B (the default)")
     p.add_argument("--fixture", metavar="FIXTURE.yaml",
                    help="for rows of the point form (sockets, stylus balls; docs/measurements.md): the fixture's "
                         "points, known distances and seating noise, as identify --fixture takes them; the "
@@ -108,13 +117,15 @@ def validate_json(v: Transfer) -> dict:
     """The finding tried on the --validate data set."""
     return {"baseline_mean_mm": v.baseline_mean_mm, "extended_mean_mm": v.extended_mean_mm, "gain_pct": v.gain_pct,
             "rows": len(v.baseline_errors_mm), "effect": v.carried or None,
+            "setup": "same" if v.same_setup else "new",
             "coverage": {"per_joint": list(v.coverage_per_joint), "all_joints": v.coverage_all},
             "note": v.note}
 
 
 def validate_text(v: Transfer, path: str) -> list[str]:
-    lines = [f"validate on {path} ({len(v.baseline_errors_mm)} measurements; frame and target offsets fitted on it, "
-             "everything else as fitted here):"]
+    how = ("the same setup: frame and target offsets as fitted here, nothing fitted on it" if v.same_setup else
+           "frame and target offsets fitted on it, everything else as fitted here")
+    lines = [f"validate on {path} ({len(v.baseline_errors_mm)} measurements; {how}):"]
     if v.extended_errors_mm is None:
         lines.append(f"  geometry only {v.baseline_mean_mm:.4f} mm mean; {v.note}")
     else:
@@ -237,6 +248,9 @@ def finding_text(f: Finding, robot: str, n: int, not_scored=(), validation=None)
 
 
 def run(args) -> int:
+    if (args.same_setup or args.new_setup) and not args.validate:
+        raise UsageError(f"--{'same' if args.same_setup else 'new'}-setup: says how --validate's data set is scored; "
+                         "give --validate as well")
     model_out.check_target(args.write_model)
     if args.report:  # before the analysis: a folder that cannot take the report is said at once
         writable_folder(args.report, "--report")
@@ -257,6 +271,11 @@ def run(args) -> int:
     else:
         obs = table.observations()
     obs_b, ctx_b, overlap = _read_validate(args.validate, model, table) if args.validate else (None, None, 0)
+    if obs_b is not None and args.same_setup:
+        unknown = sorted(set(obs_b.target_names) - set(obs.target_names))
+        if unknown:
+            raise UsageError(f"--same-setup: {args.validate} measures target(s) {', '.join(unknown)} that {args.data} "
+                             "does not, so the setup gives them no offset; drop --same-setup to fit them on it")
     ctx = _context(table)
     requested = tuple(dict.fromkeys(args.causes))
     unscorable = {c: why for c in requested if (why := CAUSES[c].unscorable(model, ctx))}
@@ -274,7 +293,7 @@ def run(args) -> int:
     validation = None
     if obs_b is not None:
         try:
-            validation = transfer(model, finding, obs, obs_b, ctx_b, args.loss)
+            validation = transfer(model, finding, obs, obs_b, ctx_b, args.loss, same_setup=args.same_setup)
         except IdentificationError as exc:
             raise IdentificationError(f"--validate {args.validate}: {exc}") from None  # exit 1: B's data are wrong
     text = finding_text(finding, model.name, len(obs), not_scored,

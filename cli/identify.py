@@ -39,6 +39,9 @@ def run(args) -> int:
         if data is not None and (warning := repeated_warning(data)) is not None:
             print_progress(f"warning: {warning}")
     cal, val = _split(table, validate, args.data)
+    if (args.same_setup or args.new_setup) and val is None:
+        raise UsageError(f"--{'same' if args.same_setup else 'new'}-setup: says how validation rows are scored; give "
+                         "--validate (or rows marked split=val)")
     if val is not None:
         unknown = sorted(set(val.target_names) - set(cal.target_names))
         if unknown:
@@ -63,6 +66,10 @@ def run(args) -> int:
             print_progress(f"warning: {warning}")
     if fixture is not None or any(t is not None and t.is_point.any() for t in (cal, val)):
         # the point form: fixtures as the instrument
+        if args.same_setup or args.new_setup:
+            raise UsageError(f"--{'same' if args.same_setup else 'new'}-setup: point-form rows are validated with "
+                             "each setup's points as calibrated and the points of a setup the calibration never saw "
+                             "placed anew; the option is for measured positions")
         return identify_points.run(args, model, cal, val, fixture, overlap)
     options = IdentifyOptions(regularize=args.regularize or "cv", loss=args.loss, folds=args.folds,
                               fixed=tuple(args.fix or ()), prior_mm=args.prior_mm)
@@ -77,12 +84,12 @@ def run(args) -> int:
                                 cal.target_names)
     result = identify(model, obs, options, progress=print_progress)
     if args.json:
-        doc = identification_json(result, obs, val_obs)
+        doc = identification_json(result, obs, val_obs, args.new_setup)
         if "validate" in doc:
             doc["validate"]["overlap_rows"] = overlap
         print(json.dumps(doc))
     else:
-        print(identification_text(result, obs, val_obs, model.name))
+        print(identification_text(result, obs, val_obs, model.name, args.new_setup))
     if args.write_model:
         model_out.write_identified(args, model, result, len(cal), val_obs, obs)
     return 0
@@ -100,6 +107,13 @@ def add_parser(sub) -> None:
                         "(a point column instead of x_mm, y_mm, z_mm; docs/measurements.md)")
     p.add_argument("--validate", metavar="VAL.csv",
                    help="measurements to validate on (default: rows of --data marked split=val, if any)")
+    setup = p.add_mutually_exclusive_group()
+    setup.add_argument("--same-setup", action="store_true",
+                       help="validation rows taken in the calibration's setup (the default): scored with the "
+                            "calibrated instrument frame and target offsets, nothing fitted on them")
+    setup.add_argument("--new-setup", action="store_true",
+                       help="validation rows taken in another setup: their own instrument frame and target offsets "
+                            "fitted on them (kinematics as calibrated), as analyze --validate does by default")
     p.add_argument("--regularize", choices=REGULARIZE,
                    help="cv: L2 prior toward nominal, weight by k-fold cross-validation (default); "
                         "none: least squares over the identifiable parameters (tracker rows only: the point form "

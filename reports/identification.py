@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from cellcal.solvers.identification.identify import Identification
+from cellcal.solvers.identification.kinematic_fit import register
 from cellcal.solvers.identification.measurement_model import Observations, predict
 
 
@@ -74,7 +75,8 @@ def fit_diagnostics(result) -> dict:
             "message": result.message, "seconds": result.seconds}
 
 
-def identification_json(result: Identification, obs: Observations, val: Observations | None) -> dict:
+def identification_json(result: Identification, obs: Observations, val: Observations | None,
+                        new_setup: bool = False) -> dict:
     """The JSON of ``cellcal identify``.
 
     "unidentifiable" names every geometric parameter the data cannot determine and that
@@ -95,9 +97,12 @@ def identification_json(result: Identification, obs: Observations, val: Observat
                        "cv_curve": [{"lambda": lam, "heldout_mean_mm": e} for lam, e in result.cv_curve]},
         **fit_diagnostics(result),
     }
-    if val is not None:
-        out["validate"] = error_stats(_errors(result, result.x, val))
-        out["before"]["validate_mean_mm"] = float(_errors(result, result.x_nominal, val).mean())
+    if val is not None:  # new_setup: the validation rows' own frame and target offsets, fitted on them
+        x_after, x_before = (result.x, result.x_nominal)
+        if new_setup:
+            x_after, x_before = (register(result.layout, x, val).x for x in (x_after, x_before))
+        out["validate"] = {**error_stats(_errors(result, x_after, val)), "setup": "new" if new_setup else "same"}
+        out["before"]["validate_mean_mm"] = float(_errors(result, x_before, val).mean())
     return out
 
 
@@ -106,10 +111,12 @@ def _value(value: float, unit: str) -> str:
 
 
 def identification_text(result: Identification, obs: Observations, val: Observations | None,
-                        robot: str) -> str:
-    doc = identification_json(result, obs, val)
+                        robot: str, new_setup: bool = False) -> str:
+    doc = identification_json(result, obs, val, new_setup)
+    setup = ("its own frame and target offsets fitted on it" if new_setup else
+             "the same setup: frame and target offsets as calibrated")
     lines = [f"cellcal identify: {robot}, {len(obs)} calibration measurements"
-             + (f", {len(val)} validation" if val is not None else ""), ""]
+             + (f", {len(val)} validation ({setup})" if val is not None else ""), ""]
     lines.append(f"{'':24s}{'before':>10s}{'after':>10s}   (mean error, mm)")
     lines.append(f"{'calibration data':24s}{doc['before']['train_mean_mm']:10.3f}{doc['train']['mean_mm']:10.3f}")
     if val is not None:

@@ -2,6 +2,9 @@
 
 The finding of :func:`.analyze.analyze` on data set A carried to data set B (another time, pose set
 or target): A's kinematics and effect parameters held, only B's own frame and target offsets fitted.
+When B was taken in A's setup (a test set of the same session: the same instrument frame, the same
+targets), nothing is fitted on B (``same_setup``): refitting 9 parameters on a small B flatters both
+scores, most the one with fewer rows per parameter.
 """
 from __future__ import annotations
 
@@ -36,6 +39,7 @@ class Transfer:
     coverage_per_joint: tuple[float, ...]  # fraction of B's rows whose angle lies within A's range, per joint
     coverage_all: float  # fraction of B's rows with every joint within A's ranges
     note: str = ""
+    same_setup: bool = False  # True: B scored with A's frame and target offsets (nothing fitted on B)
 
     @property
     def baseline_mean_mm(self) -> float:
@@ -53,17 +57,34 @@ class Transfer:
 
 
 def transfer(model, finding: Finding, obs_a: Observations, obs_b: Observations, ctx_b: Context,
-             loss: str = "linear") -> Transfer:
+             loss: str = "linear", same_setup: bool = False) -> Transfer:
     """Score A's finding on B: A's geometric fit, and A's fit of geometry plus the named effect,
-    each with B's frame and target offsets refitted on B (everything else as on A); B's rows
-    inside A's joint ranges (``coverage``). When B cannot show the effect (it leaves a place of
-    the effect without the motion its basis needs) only the geometry is scored, and the note says why."""
+    each with B's frame and target offsets refitted on B (everything else as on A), or with
+    ``same_setup`` as fitted on A (nothing fitted on B; TransferError for a target of B that A
+    does not measure); B's rows inside A's joint ranges (``coverage``). When B cannot show the
+    effect (it leaves a place of the effect without the motion its basis needs) only the geometry
+    is scored, and the note says why."""
     lo, hi = obs_a.q.min(0), obs_a.q.max(0)
     inside = (obs_b.q >= lo) & (obs_b.q <= hi)
-    start = identify(model, obs_b)  # B's own fit: where its frame and targets start from
     layout = Layout(model, obs_b.target_names)
-    x_geo = np.concatenate([finding.baseline.x[: model.n_params], start.x[layout.n_kin:]])
-    baseline = _frame_refit(layout, obs_b, x_geo, (), np.zeros(0), loss)
+    if same_setup:
+        unknown = sorted(set(obs_b.target_names) - set(obs_a.target_names))
+        if unknown:
+            raise TransferError(f"target(s) {', '.join(unknown)} of the second data set are not measured in the "
+                                "first, so a setup shared with it gives them no offset")
+        layout_a = Layout(model, obs_a.target_names)
+        which = [obs_a.target_names.index(t) for t in obs_b.target_names]
+
+        def setup_of(x_a):  # A's base and the offsets of B's targets, in B's layout
+            return np.concatenate([x_a[layout_a.base], *(x_a[layout_a.target(i)] for i in which)])
+
+        x_geo = np.concatenate([finding.baseline.x[: model.n_params], setup_of(finding.baseline.x)])
+        refit = _as_fitted
+    else:
+        start = identify(model, obs_b)  # B's own fit: where its frame and targets start from
+        x_geo = np.concatenate([finding.baseline.x[: model.n_params], start.x[layout.n_kin:]])
+        refit = _frame_refit
+    baseline = refit(layout, obs_b, x_geo, (), np.zeros(0), loss)
     extended, carried, note = None, "", ""
     if finding.cause == "none":
         note = ("no effect named on the first data set: nothing to carry over; the geometric fit alone is "
@@ -74,9 +95,13 @@ def transfer(model, finding: Finding, obs_a: Observations, obs_b: Observations, 
         structural = [t for t in named.terms if t.model is not None]
         if structural:  # a different rigid model: its extra parameters as fitted on A
             ext_layout = Layout(structural[-1].model, obs_b.target_names)
-            x_ext = np.concatenate([named.x[: ext_layout.n_kin], start.x[layout.n_kin:]])
+            x_ext = np.concatenate([named.x[: ext_layout.n_kin], x_geo[layout.n_kin:]])
         else:
             x_ext[: model.n_params] = named.x[: model.n_params]
+        if same_setup:  # the frame and offsets the extended fit put on A
+            n_kin_a = ext_layout.n_kin
+            x_ext[n_kin_a:] = np.concatenate([named.x[n_kin_a: n_kin_a + 6],
+                                              *(named.x[n_kin_a + 6 + 3 * i: n_kin_a + 9 + 3 * i] for i in which)])
         carried = named.label
         try:
             terms = tuple(_term_on_rows(t, model, layout, x_ext, obs_b, ctx_b) for t in named.terms
@@ -84,9 +109,9 @@ def transfer(model, finding: Finding, obs_a: Observations, obs_b: Observations, 
         except TransferError as exc:  # B cannot show the effect: the geometry alone is scored, and why said
             carried, note = "", str(exc)
         else:
-            extended = _frame_refit(ext_layout, obs_b, x_ext, terms, named.theta, loss)
+            extended = refit(ext_layout, obs_b, x_ext, terms, named.theta, loss)
     return Transfer(baseline, extended, carried, tuple(float(f) for f in inside.mean(0)),
-                    float(inside.all(1).mean()), note)
+                    float(inside.all(1).mean()), note, same_setup)
 
 
 def _term_on_rows(term: Term, model, layout: Layout, x: np.ndarray, obs: Observations, ctx: Context) -> Term:
@@ -108,6 +133,13 @@ def _term_on_rows(term: Term, model, layout: Layout, x: np.ndarray, obs: Observa
                             "temperature); only the geometry is scored: measure it with that joint moving as in "
                             "the first")
     return same[0]
+
+
+def _as_fitted(layout: Layout, obs: Observations, x: np.ndarray, terms: tuple[Term, ...], theta: np.ndarray,
+               loss: str) -> np.ndarray:
+    """(M,) errors with everything as given: nothing fitted on these rows."""
+    model = ExtendedModel(layout, obs, x, np.zeros(layout.size, bool), terms)
+    return np.linalg.norm(model.residuals_mm(np.asarray(theta, dtype=float)[: model.n_theta]), axis=1)
 
 
 def _frame_refit(layout: Layout, obs: Observations, x: np.ndarray, terms: tuple[Term, ...], theta: np.ndarray,
