@@ -533,3 +533,19 @@ def test_links_between_the_pages_resolve():
     for page in [*DOCS.glob("*.md"), README]:
         for target in re.findall(r"\]\(([^)#:]+\.md)(?:#[^)]*)?\)", page.read_text(encoding="utf-8")):
             assert (page.parent / target).is_file(), f"{page.name} links to {target}, which does not exist"
+
+
+# -- the robot models page: every shipped file, with its source -------------------------------------------------------
+
+
+def test_robot_models_page_lists_every_shipped_file_with_its_source():
+    """docs/robot-models.md's table names exactly the files of config/robots/, each with a source, and each file
+    opens with its header comment (where the numbers come from)."""
+    from cellcal.config.robot_files import shipped_robots
+
+    rows = table_under((DOCS / "robot-models.md").read_text(encoding="utf-8"), "# Robot model files")
+    names = [_code(r["name"]) for r in rows]
+    assert sorted(names) == sorted(shipped_robots()), "the table and config/robots/ differ"
+    assert all(r["source of the nominal values"].strip() for r in rows), "a row without a source"
+    for name, path in shipped_robots().items():
+        assert path.read_text(encoding="utf-8").startswith("# "), f"{path.name}: no header comment naming its source"

@@ -175,3 +175,77 @@ def test_shipped_ur_e_series_matches_rtb_e_series(ours, rtb_name):
     expected = rtb_fkine(robot, q)
     ours_t = np.asarray(robot.base.A) @ ours_homogeneous(model, model.nominal, q) @ np.asarray(robot.tool.A)
     assert_same_poses(expected, ours_t, ours)
+
+
+# --- the makers' models against the toolbox's own models of the same robots ----------------------
+
+def test_shipped_ur10_is_rtb_ur10():
+    """config/robots/ur10.yaml (UR's CB3 table) and the toolbox's UR10 are the same robot, to rounding."""
+    robot = rtb_robot("UR10")
+    model = load_robot("ur10")
+    q = random_configs(6, seed=10)
+    assert_same_poses(rtb_fkine(robot, q), ours_homogeneous(model, model.nominal, q), "ur10.yaml")
+
+
+def test_shipped_ur5_is_rtb_ur5_but_for_the_toolboxs_d1():
+    """config/robots/ur5.yaml has UR's d1 = 0.089159 m; the toolbox's UR5 has 0.089459 m, 0.3 mm more (every
+    other row is UR's). d1 is a Tz right after Rz(q1), so the toolbox's UR5 is ours lifted 0.3 mm along the
+    base z: compared as such, everything else must agree to rounding."""
+    robot = rtb_robot("UR5")
+    model = load_robot("ur5")
+    lift_m = robot.links[0].d - model.nominal[model.index("d1")] / 1000.0
+    assert lift_m == pytest.approx(0.0003, abs=1e-12)  # the one known difference, and no other value of it
+    lift = np.eye(4)
+    lift[2, 3] = lift_m
+    q = random_configs(6, seed=5)
+    assert_same_poses(rtb_fkine(robot, q), lift @ ours_homogeneous(model, model.nominal, q), "ur5.yaml")
+
+
+def test_shipped_franka_panda_is_rtb_panda_without_its_hand():
+    """config/robots/franka-panda.yaml is Franka's table with the flange row folded into d7; the toolbox's
+    Panda has the same rows (d7 = 0.107 m too) and adds the hand as its tool (Tz(0.103 m) Rz(-45 deg)), which
+    is not part of a nominal arm file (every calibration estimates the target offset): ours @ tool = toolbox."""
+    robot = rtb_robot("Panda")
+    model = load_robot("franka-panda")
+    tool = np.asarray(robot.tool.A)
+    assert tool[2, 3] == pytest.approx(0.103, abs=1e-12)  # the hand, as described above
+    q = random_configs(7, seed=7)
+    assert_same_poses(rtb_fkine(robot, q), ours_homogeneous(model, model.nominal, q) @ tool, "franka-panda.yaml")
+    limits = np.array([link.qlim for link in robot.links])
+    np.testing.assert_allclose(model.joint_limits, limits, rtol=0, atol=1e-8)  # Franka's limits, written in deg to 1e-8 rad
+
+
+# The iiwa 14 R820 URDF shipped with the toolbox's data (ROS-Industrial's kuka_experimental): its joint origins
+# put A2 0.43624 mm off the arm's line in -x and A4 as much back in +x (a modelling offset of that description;
+# KUKA's drawing has all axes on one line). Each is a translation in a frame, so neither changes a rotation,
+# and each moves the flange by at most its own length: the positions must agree within the sum.
+IIWA_URDF_OFFSET_M = 2 * 0.00043624
+
+
+def test_shipped_kuka_iiwa14_matches_the_urdf_description():
+    """config/robots/kuka-iiwa14.yaml (KUKA's dimensions as classic DH) against the URDF of the same arm:
+    same joint axes and senses (rotations to 1e-9), same lengths (positions within the URDF's two offsets)."""
+    urdf = getattr(rtb.models.URDF, "LBR", None)
+    if urdf is None:
+        pytest.skip(f"roboticstoolbox {rtb.__version__} has no models.URDF.LBR")
+    robot = urdf()
+    assert robot.n == 7
+    model = load_robot("kuka-iiwa14")
+    q = random_configs(7, seed=14)
+    expected = np.array([np.asarray(robot.fkine(qi, end="tool0").A) for qi in q])
+    ours = ours_homogeneous(model, model.nominal, q)
+    rot_err = np.abs(expected[:, :3, :3] - ours[:, :3, :3]).max()
+    assert rot_err <= ROT_TOL, f"kuka-iiwa14.yaml: rotation entry differs by {rot_err:.3e}"
+    pos_err = np.linalg.norm(expected[:, :3, 3] - ours[:, :3, 3], axis=1).max()
+    assert pos_err <= IIWA_URDF_OFFSET_M + POS_TOL_M, f"kuka-iiwa14.yaml: position differs by {pos_err:.3e} m"
+    # and the offsets are all there is: at A2 = A3 = 0 they cancel (both along the same x), so there it is exact
+    q0 = q.copy()
+    q0[:, 1] = 0.0
+    q0[:, 2] = 0.0
+    expected0 = np.array([np.asarray(robot.fkine(qi, end="tool0").A) for qi in q0])
+    assert_same_poses(expected0, ours_homogeneous(model, model.nominal, q0), "kuka-iiwa14.yaml at A2 = A3 = 0")
+    # The URDF's ranges are KUKA's, written in rad a little inside (2.9668 for 170 deg = 2.96706 rad, 3.0541 for 175 deg):
+    # each lies inside ours by less than 0.03 deg (5e-4 rad), far below any difference between two robot variants (>= 5 deg).
+    urdf_limits = np.array(robot.qlim).T
+    inside = np.concatenate([urdf_limits[:, 0] - model.joint_limits[:, 0], model.joint_limits[:, 1] - urdf_limits[:, 1]])
+    assert np.all((inside >= 0) & (inside < 5e-4)), inside

@@ -31,22 +31,23 @@ SERIAL = sorted(n for n in shipped_robots() if n != "agile-justin")  # the tree 
 
 @pytest.mark.parametrize("name", SERIAL)
 def test_shipped_model_loads(name):
-    """Loads by name and by path to the same model; 6 joints, finite nominal values, limits that
-    contain zero, orthonormal flange frames."""
+    """Loads by name and by path to the same model; 6 or 7 joints, finite nominal values, limits below their
+    highs, orthonormal flange frames."""
     model = load_robot(name)
     by_path = load_robot(shipped_robots()[name])
     np.testing.assert_array_equal(model.nominal, by_path.nominal)
     assert model.param_names == by_path.param_names
-    assert model.n_joints == 6
+    n = model.n_joints
+    assert n in (6, 7)  # the shipped serial arms: 6R industrial arms and 7R (redundant) cobots
     assert model.convention in ("dh", "mdh")
     assert np.all(np.isfinite(model.nominal))
     assert len(model.param_names) == len(model.nominal) == len(model.param_is_angle)
     if model.joint_limits is not None:
-        assert model.joint_limits.shape == (6, 2)
+        assert model.joint_limits.shape == (n, 2)
         assert np.all(model.joint_limits[:, 0] < model.joint_limits[:, 1])
         # limits are converted to rad: no arm turns a joint more than 2 turns either way
         assert np.all(np.abs(model.joint_limits) <= 4 * math.pi + 1e-9)
-    q = np.random.default_rng(0).uniform(-np.pi, np.pi, (20, 6))
+    q = np.random.default_rng(0).uniform(-np.pi, np.pi, (20, n))
     rot, _ = forward(model.chains["flange"], model.nominal, q)
     np.testing.assert_allclose(rot @ np.swapaxes(rot, 1, 2), np.broadcast_to(np.eye(3), rot.shape), atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(rot), 1.0, atol=1e-12)
@@ -59,20 +60,27 @@ def test_shipped_model_loads(name):
     ("epson-c4-a901s", (0.0, 565.0, 720.0)),  # Yan et al. (Sensors 2025): fkine at q = 0 from their Table 6
     ("puma560", (452.1, -150.05, 431.8)),    # Corke's qz pose, base frame at shoulder height
     ("elite-ec66", (816.0, 33.0, -2.0)),      # Elite URDF zero pose (per the file's own note)
+    ("ur5", (-817.25, -191.45, -5.491)),     # CB3: x = a2 + a3, y = -(d4 + d6), z = d1 - d5 as for the e-Series
+    ("ur10", (-1184.3, -256.141, 11.6)),
+    ("franka-panda", (88.0, 0.0, 926.0)),    # x = a7, z = d1 + d3 + d5 - d7 (a4 and a5 cancel; the flange points down)
+    ("kuka-iiwa14", (0.0, 0.0, 1306.0)),     # KUKA's upright arm: 360 + 420 + 400 + 126
 ])
 def test_flange_position_at_zero_joints(name, expected_mm):
     """Flange origin at all-zero joints within 0.1 mm."""
-    _, org = flange(load_robot(name), np.zeros(6))
+    model = load_robot(name)
+    _, org = flange(model, np.zeros(model.n_joints))
     np.testing.assert_allclose(org, expected_mm, rtol=0, atol=0.1)
 
 
 @pytest.mark.parametrize("name, z_axis", [
     ("ur5e", (0, -1, 0)), ("ur10e", (0, -1, 0)), ("abb-irb4600", (1, 0, 0)),
     ("epson-c4-a901s", (0, -1, 0)), ("puma560", (0, 0, 1)), ("elite-ec66", (0, -1, 0)),
+    ("ur5", (0, -1, 0)), ("ur10", (0, -1, 0)), ("franka-panda", (0, 0, -1)), ("kuka-iiwa14", (0, 0, 1)),
 ])
 def test_flange_z_axis_at_zero_joints(name, z_axis):
     """Flange approach direction at all-zero joints, as each file documents it (1e-12)."""
-    rot, _ = flange(load_robot(name), np.zeros(6))
+    model = load_robot(name)
+    rot, _ = flange(model, np.zeros(model.n_joints))
     np.testing.assert_allclose(rot[:, 2], z_axis, rtol=0, atol=1e-12)
 
 
