@@ -128,10 +128,7 @@ def _heavy_sweeps(seed: int, targets: int):
     return model, run
 
 
-@pytest.mark.parametrize("seed,targets", [(1, 1), (3, 1), pytest.param(0, 3, marks=pytest.mark.xfail(
-    strict=False, reason="folds that keep each joint's range give compliance (joints 2, 3) and the elbow's periodic "
-    "error the same held-out score on every fold (0.1179 mm both, 26% over geometry); the naming rule's "
-    "simpler-explanation tie-break then names the periodic error: a naming matter, open"))])
+@pytest.mark.parametrize("seed,targets", [(1, 1), (3, 1), (0, 3)])
 def test_heavy_arm_sweeps_with_compliance_at_two_joints_report_the_tie_not_a_periodic_error(seed, targets):
     """The elbow's compliance and its first-order periodic error explain these data alike (the nested scores
     within the margin, or the periodic error ahead while the models chosen on all rows lie within it, or
@@ -143,7 +140,10 @@ def test_heavy_arm_sweeps_with_compliance_at_two_joints_report_the_tie_not_a_per
     assert finding.undecided is not None
     assert 1.0 - finding.undecided.heldout_mean_mm / finding.baseline.heldout_mean_mm >= MIN_GAIN
     tied = {(t.cause, t.scored.where.get("joint")) for t in finding.indistinguishable}
-    assert tied == {("joint_compliance", 3), ("cyclic_joint_error", 3)}, tied
+    # the elbow's periodic error against compliance at a joint that has it (the elbow, or the shoulder, whose
+    # 30 degree sweep the folds now keep in every training: on three targets it shows its compliance as well)
+    assert ("cyclic_joint_error", 3) in tied and {c for c, _ in tied} == {"joint_compliance", "cyclic_joint_error"}
+    assert all(j in (2, 3) for c, j in tied if c == "joint_compliance"), tied
     assert "tie" in finding.decided_by and "joint_compliance follows the gravity torque" in finding.decide_by
     # whichever rule finds the tie (the nested lead within the margin, the models chosen on all rows within it,
     # or predictions too close to tell apart), it is said
