@@ -27,7 +27,7 @@ tried costs a solve of its own few columns.
 
 Nesting. Every choice that looks at the data is made again inside each fold's training rows
 alone: the search is run with inner folds (the other folds' sub-folds of whole neighbour groups,
-each held out in turn from the training rows; for path-ordered data the other folds, gaps
+each held out in turn from the training rows; for path data the other folds, gaps
 respected: ``FoldFactors.inner``) among the places the fold's own training rows picked
 (``extra["folds"]``: the orders and knot counts of a periodic error). Inside a fold the choice
 may be none: the best single place must itself lower the error by GAIN. The held-out errors reported for the cause are each fold's own selection scored on that

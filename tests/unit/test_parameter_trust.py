@@ -81,10 +81,12 @@ def truth_error(arm, result, obs) -> float:
 
 # (robot, target offset along the flange z axis mm, seed, options): each one a campaign where the
 # fit without bounds reports absurd joint-5 values. The last admits weak directions to plain least
-# squares (a loose --prior-mm), the other way to reach the same situation.
+# squares (a loose --prior-mm), the other way to reach the same situation. With cv the folds decide
+# whether the weak directions are admitted; since every fold's training keeps each joint's range
+# (crossval.range_keeping_deal) that happens on fewer campaigns (seeds 0-11: 2 at 100 mm, 5 at 30 mm)
 CASES = [
-    ("ur10e", 100.0, 0, IdentifyOptions(regularize="cv")),
-    ("ur10e", 30.0, 6, IdentifyOptions(regularize="cv")),
+    ("ur10e", 100.0, 8, IdentifyOptions(regularize="cv")),
+    ("ur10e", 30.0, 1, IdentifyOptions(regularize="cv")),
     ("ur5e", 60.0, 4, IdentifyOptions(regularize="cv")),
     ("ur10e", 100.0, 4, IdentifyOptions(regularize="none", prior_mm=50.0)),
 ]

@@ -6,7 +6,7 @@ B-splines on K knots evenly spaced over the turn (wrapping round at 2 pi). K is 
 effective degrees of freedom; it is chosen from KNOTS (at most twice the joint's order bound:
 knots closer than the sampled angles are not resolved) by grouped cross-validation on the
 joint's own problem: the residual of the geometric fit along the joint's direction of effect,
-folds of neighbouring configurations kept together (path-ordered data: each fold's training also
+folds of neighbouring configurations kept together (path data: each fold's training also
 leaves out the rows next to it, ``crossval.FoldIds.exclude``). Inside the analysis' nested
 selection the count is chosen again on each fold's training rows alone. The analysis then scores the chosen
 spline against the rigid model and every other candidate as it scores them all.
@@ -56,7 +56,7 @@ def choose_knots(qj: np.ndarray, projected: np.ndarray, weight: np.ndarray, fold
     when no count lowers it. projected, weight as for ``cyclic_joint_error.periodogram``; the drop
     on a fold's rows, 2 c.(B^T s) - c.(B^T W B) c with c fitted on the other folds, needs only each
     fold's normal equations."""
-    exclude = getattr(folds, "exclude", None)  # path-ordered data: rows each fold's training also leaves out
+    exclude = getattr(folds, "exclude", None)  # path data: rows each fold's training also leaves out
     best, best_drop = None, 0.0
     for knots in (k for k in KNOTS if k <= max_knots):
         normal, rhs = _fold_normals(qj, projected, weight, folds, knots)
@@ -84,7 +84,7 @@ def choose_knots_nested(qj: np.ndarray, projected: np.ndarray, weight: np.ndarra
     selection sees. Without gaps every inner problem is a sum of the same per-fold normal equations."""
     ids = np.unique(np.asarray(folds))
     exclude = getattr(folds, "exclude", None)
-    if exclude is not None and any(len(e) for e in exclude):  # path-ordered data: each fold's own problem
+    if exclude is not None and any(len(e) for e in exclude):  # path data: each fold's own problem
         return (choose_knots(qj, projected, weight, folds, max_knots),
                 [choose_knots(qj[rows], projected[rows], weight[rows], sub, max_knots)
                  for rows, sub in (inner_fold_ids(folds, k) for k in range(len(ids)))])
