@@ -280,14 +280,17 @@ def _term_at(model, fit, obs_all: Observations, ctx_all: Context, term):
     again by its cause (its basis depends on the configurations and the context alone) and found by
     place and names."""
     if term.cause == CyclicJointError.id:
-        nj, where = model.n_joints, term.where
-        if "spline_knots" in where:
+        nj = model.n_joints
+
+        def single(where):  # one place: a joint's spline, or one order
             j = where["joint"] - 1
-            basis = JointBasis.single(periodic_spline.basis(obs_all.q[:, j], where["spline_knots"]), j, nj)
-        else:
-            pairs = term.extra["harmonics"] if "harmonics" in term.extra else ((where["joint"], where["order"]),)
-            basis = JointBasis.side_by_side([(JointBasis.single(harmonics(obs_all.q[:, j - 1], [n]), j - 1, nj), 2)
-                                             for j, n in pairs], len(obs_all), nj)
+            if "spline_knots" in where:
+                return JointBasis.single(periodic_spline.basis(obs_all.q[:, j], where["spline_knots"]), j, nj)
+            return JointBasis.single(harmonics(obs_all.q[:, j], [where["order"]]), j, nj)
+
+        parts = term.extra.get("parts")
+        basis = single(term.where) if not parts else JointBasis.side_by_side(
+            [(single(p.where), p.size) for p in parts], len(obs_all), nj)
         return dataclasses.replace(term, joint_basis=basis)
     for t in CAUSES[term.cause].terms(model, fit.layout, fit.x, obs_all, ctx_all):
         if t.where == term.where and t.names == term.names:

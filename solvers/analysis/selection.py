@@ -4,9 +4,10 @@ A cause with places (``Cause.search_places``: joint_compliance and backlash at e
 cyclic_joint_error at each (joint, order) and each joint's spline) is offered to the analysis
 as the result of one forward search (``forward``): start from the combinable place with the
 lowest held-out error, then add, one at a time, the place that lowers it most, and stop when the
-best addition lowers it by less than GAIN. A place that only stands alone (a spline: a whole
-periodic function of one joint) is never combined: the best of those competes with the grown
-combination on the same held-out sum of squares. The same search and the same stopping rule for
+best addition lowers it by less than GAIN. Richer places (a joint's spline: a whole periodic
+function of one angle) join a second combination, grown the same way from the best place of all;
+it is taken when it lowers the held-out rms by GAIN below the plain one (``forward``). Places that
+share a ``slot`` (a joint's splines of different knot counts) never combine. The same search and the same stopping rule for
 every cause. Combinations across causes (a second effect) are searched the same way, with the
 first effect in the model (``base``).
 
@@ -165,27 +166,36 @@ def offered(term: Term, fold) -> bool:
     return fold in term.extra.get("folds", (fold,))
 
 
+def _same_slot(a: Term, b: Term) -> bool:
+    """Are two places alternatives for one function (``extra["slot"]``: a joint's splines of different knot
+    counts), of which a combination holds one at most?"""
+    slot = a.extra.get("slot")
+    return slot is not None and slot == b.extra.get("slot")
+
+
 def forward(places, alone, scores: Scores, fold=None, base: tuple[Term, ...] = ()) -> tuple[Term, ...]:
     """The forward search (module docstring) among the places offered for `fold`; () when none is.
-    The best place that stands alone and the best combination grown from the best combinable place
-    compete on the same splits' held-out sum of squares: a joint's spline may lead as a single place
-    while periodic terms at several joints together explain more."""
+
+    `alone` are richer places (a joint's spline: a whole periodic function of one angle, many
+    parameters where an order has two). Two combinations are grown, each from its best place: one
+    of `places` alone and one of `places` and `alone` together (a spline at one joint, orders or
+    splines at others); the richer one is chosen only when it lowers the held-out rms error by GAIN
+    below the plain one, as any addition must. A few sinusoids are so named by their orders, while a
+    real arm's per-joint errors (neither one sinusoid nor at one joint) take splines at several joints."""
     combinable = [t for t in places if offered(t, fold)]
-    single = [t for t in alone if offered(t, fold)]
-    starts = combinable + single
+    richer = [t for t in alone if offered(t, fold)]
+    starts = combinable + richer
     if not starts:
         return ()
     sums = scores.sum_squares(fold, base, [()] + [(t,) for t in starts])
     if fold is not None and np.sqrt(sums[1:].min()) >= (1.0 - GAIN) * np.sqrt(sums[0]):
         return ()  # inside a fold the choice may be none: no place lowers the error by GAIN
-    options = []
-    if single:
-        i = len(combinable) + int(np.argmin(sums[1 + len(combinable):]))
-        options.append(((starts[i],), sums[1 + i]))
-    if combinable:
-        i = int(np.argmin(sums[1: 1 + len(combinable)]))
-        chosen, current = [combinable[i]], sums[1 + i]
-        adds = [t for t in combinable if t is not chosen[0]]
+
+    def grow(pool):
+        at = [starts.index(t) for t in pool]
+        i = at[int(np.argmin(sums[1 + np.array(at)]))]
+        chosen, current = [starts[i]], sums[1 + i]
+        adds = [t for t in pool if t is not chosen[0] and not _same_slot(t, chosen[0])]
         while adds:
             more = scores.sum_squares(fold, base + tuple(chosen), [(t,) for t in adds])
             best = int(np.argmin(more))
@@ -193,8 +203,16 @@ def forward(places, alone, scores: Scores, fold=None, base: tuple[Term, ...] = (
                 break
             chosen.append(adds.pop(best))
             current = more[best]
-        options.append((tuple(chosen), current))
-    return min(options, key=lambda o: o[1])[0]
+            adds = [t for t in adds if not _same_slot(t, chosen[-1])]
+        return tuple(chosen), current
+
+    plain = grow(combinable) if combinable else None
+    if not richer:
+        return plain[0]
+    rich = grow(starts)
+    if plain is None or np.sqrt(rich[1]) < (1.0 - GAIN) * np.sqrt(plain[1]):
+        return rich[0]
+    return plain[0]
 
 
 def select(cause, places, alone, scores: Scores, base: tuple[Term, ...] = ()) -> Selection | None:
@@ -212,7 +230,22 @@ def nested_steps(scores: Scores, selection: Selection, base: tuple[Term, ...] = 
     factors = scores.scorer.factors
     out = np.zeros((1, scores.n_folds, scores.p))
     for k, parts in enumerate(selection.per_fold):
-        cols = scores.cols(base + parts)
+        cols = scores._set_cols(base + parts)
         normal, grad = factors.training(k)
-        out[0, k, cols] = -crossval._solve(normal[np.ix_(cols, cols)], grad[cols])
+        out[0, k, cols] = search_step(normal[np.ix_(cols, cols)], grad[cols])
     return out
+
+
+def search_step(normal: np.ndarray, grad: np.ndarray) -> np.ndarray:
+    """The step the search scored a choice by (``Scores.sum_squares``), from one training's normal
+    equations: columns scaled to unit length, a column without rows in this training left at 0, the
+    vanishing RIDGE. A fold's choice is scored as it was chosen: a plain solve of the same equations
+    steps wild along directions the training barely sees (a spline's knot interval that a fold's
+    training holds a pose or two of), which the search never scored."""
+    d2 = np.diagonal(normal).copy()
+    empty = d2 <= EMPTY_RTOL * d2.max()
+    d = np.sqrt(np.where(empty, 1.0, d2))
+    a = normal / d[:, None] / d[None, :]
+    a = np.where(empty[:, None] | empty[None, :], 0.0, a) + np.diag(RIDGE + empty * 1.0)
+    g = np.where(empty, 0.0, grad / d)
+    return -crossval._solve(a, g) / d

@@ -249,24 +249,28 @@ def from_fit(model: KinematicModel, target_names, x: np.ndarray, terms=(), theta
 
 
 def periodic_errors(effect: Effect) -> list:
-    """A cyclic_joint_error entry as one PeriodicJointError per joint: orders and coefficients from the
-    parameter names s<j>_<n>, c<j>_<n>; covered angles from extra.coverage_rad (else a whole turn).
-    A periodic spline (names k<j>_<i>, one per knot) is one PeriodicSpline."""
+    """A cyclic_joint_error entry as periodic errors per joint: a PeriodicSpline of each joint's spline
+    coefficients (names k<j>_<i>, one per knot) and a PeriodicJointError of its orders (names s<j>_<n>,
+    c<j>_<n>); covered angles from extra.coverage_rad (else a whole turn)."""
     coverage = effect.extra.get("coverage_rad") or {}
-    if effect.names and effect.names[0].startswith("k"):
-        joint = int(effect.names[0][1:].split("_")[0])
-        cover = tuple(tuple(map(float, c)) for c in coverage.get(str(joint), [(-np.inf, np.inf)]))
-        return [PeriodicSpline(joint, tuple(float(v) for v in effect.theta), cover)]
     coef: dict[int, dict[int, list[float]]] = {}
+    knots: dict[int, list[float]] = {}
     for name, value in zip(effect.names, effect.theta):
-        joint, order = (int(v) for v in name[1:].split("_"))
-        coef.setdefault(joint, {}).setdefault(order, [0.0, 0.0])["sc".index(name[0])] = float(value)
+        joint, index = (int(v) for v in name[1:].split("_"))
+        if name[0] == "k":
+            knots.setdefault(joint, []).append(float(value))
+        else:
+            coef.setdefault(joint, {}).setdefault(index, [0.0, 0.0])["sc".index(name[0])] = float(value)
     out = []
-    for joint, by_order in sorted(coef.items()):
-        orders = tuple(sorted(by_order))
+    for joint in sorted(set(coef) | set(knots)):
         cover = tuple(tuple(map(float, c)) for c in coverage.get(str(joint), [(-np.inf, np.inf)]))
-        out.append(PeriodicJointError(joint, orders, tuple(by_order[n][0] for n in orders),
-                                      tuple(by_order[n][1] for n in orders), cover))
+        if joint in knots:
+            out.append(PeriodicSpline(joint, tuple(knots[joint]), cover))
+        if joint in coef:
+            by_order = coef[joint]
+            orders = tuple(sorted(by_order))
+            out.append(PeriodicJointError(joint, orders, tuple(by_order[n][0] for n in orders),
+                                          tuple(by_order[n][1] for n in orders), cover))
     return out
 
 

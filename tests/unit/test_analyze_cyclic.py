@@ -203,3 +203,37 @@ def test_order_pursuit_from_sums_matches_refitting_on_the_rows():
         left = projected - weight * (b @ coef)
     assert pursuit(q, projected, weight, 100, 5) == picked
     assert picked[:3] == [33, 37, 34]
+
+
+@pytest.mark.slow
+def test_periodic_errors_that_are_no_few_sinusoids_at_two_joints_are_fitted_as_splines_together():
+    # a narrow bump on joints 2 and 3 each (thirty orders at once): a spline at one joint alone leaves the
+    # other's; the search combines the two joints' splines
+    model = load_robot("ur10e")
+    effects = [HiddenEffect("cyclic_joint_error", j, harmonics=tuple(
+        (n, float(np.exp(-(n / 8.0) ** 2)), float(np.pi / 2 - n * c)) for n in range(1, 31)))
+        for j, c in ((1, 0.7), (2, -1.1))]
+    case = make_case(model, effects, [4.0, 4.0], n=300, seed=3)
+    finding = analyze(model, case.campaign.obs, case.campaign.ctx)
+    assert finding.cause == "cyclic_joint_error", finding.where
+    assert finding.where.get("joints") is not None and {2, 3} <= set(finding.where["joints"]), finding.where
+    knots = dict(zip(finding.where["joints"], finding.where["spline_knots"]))
+    assert knots[2] and knots[3], finding.where
+    q = case.campaign.obs.q
+    truth = [Term("cyclic_joint_error", {"joint": e.joint + 1}, tuple(f"p{e.joint}_{i}" for i in range(60)),
+                  joint_basis=JointBasis.single(harmonics(q[:, e.joint], range(1, 31)), e.joint, model.n_joints))
+             for e in case.effects]
+    truth_mm = heldout_with_terms(model, case.campaign.obs, truth).mean()
+    assert finding.extended.heldout_mean_mm <= 1.3 * truth_mm, (finding.extended.heldout_mean_mm, truth_mm)
+    errors = fitted_errors(finding.extended.terms[0], finding.extended.theta, q)
+    assert {2, 3} <= {e.joint for e in errors}
+    # a calibrated model made of the fit applies each joint's spline (read back from the parameter names)
+    from cellcal.solvers.compensation.calibrated_model import from_fit
+
+    calibrated = from_fit(model, case.campaign.obs.target_names, finding.extended.x, finding.extended.terms,
+                          finding.extended.theta, q)
+    assert sorted((p.joint, type(p).__name__) for p in calibrated.periodic) == sorted(
+        (e.joint, type(e).__name__) for e in errors)
+    for kept, err in zip(sorted(calibrated.periodic, key=lambda p: (p.joint, type(p).__name__)),
+                         sorted(errors, key=lambda p: (p.joint, type(p).__name__))):
+        assert np.allclose(kept.delta_rad(q[:, err.joint - 1]), err.delta_rad(q[:, err.joint - 1]))

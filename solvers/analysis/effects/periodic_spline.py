@@ -19,7 +19,10 @@ import numpy as np
 
 from cellcal.solvers.estimation.crossval import inner_fold_ids
 
-KNOTS = (8, 12, 16, 24, 32, 48, 64)
+# 96 and 128: on a tracker-measured UR10 (11 911 poses) every moving joint's held-out choice was 64, the
+# grid's edge (a choice at the edge of its grid is no choice); with 128 the search reached 0.109 mm held-out
+# mean instead of 0.129. Twice the joint's order bound still caps the count where the angles are sparse.
+KNOTS = (8, 12, 16, 24, 32, 48, 64, 96, 128)
 RIDGE = 1e-9  # relative: keeps a knot interval without data from making the fit singular
 
 
