@@ -52,6 +52,7 @@ def _write_campaign(path, campaign) -> None:
                        payload_kg=ctx.payload_kg, extra=extra)
 
 
+@pytest.mark.slow  # ten chains of four commands: make test runs them, the quick loop leaves them out
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_every_model_analyze_writes_goes_through_compensate_and_iso9283(case, tmp_path, capsys):
     from support.hidden_cases import make_case  # tests/support/hidden_cases.py
