@@ -18,8 +18,8 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from cellcal.config.model_files import calibration_record, covariance, drawn_targets, load_calibrated, source_model
-from cellcal.config.robot_files import load_robot
+from cellcal.config.model_files import calibration_section, covariance, drawn_targets, load_calibrated
+from cellcal.config.robot_files import ModelError, load_robot
 from cellcal.measurements.table import MAX_JOINT, MAX_POSITION_MM, MAX_PAYLOAD_KG
 from cellcal.solvers.compensation.compensate import (FRAMES, JOINT_LIMITS, NOMINAL_MISMATCH_MM, OK, SINGULAR,
                                                      SINGULAR_MM_PER_RAD, UNREACHABLE, compensate, controller_frame,
@@ -208,10 +208,12 @@ def run(args) -> int:
     model = calibrated.model
     if len(model.chains) != 1:
         raise UsageError(f"{args.robot}: a tree model; compensate works on serial arms")
-    nominal = load_robot(args.nominal or source_model(args.robot) or args.robot)
+    record = calibration_section(args.robot)  # what the file says of its calibration, read once
+    source = record.mapping.get("source_model")
+    nominal = load_robot(args.nominal or source or args.robot)
     if nominal.n_joints != model.n_joints:
         raise UsageError(f"--nominal {args.nominal}: {nominal.n_joints} joints, the calibrated model {model.n_joints}")
-    tools = _tool_map(args, calibrated, nominal)
+    tools = _tool_map(record, calibrated, nominal if args.nominal is None or source is None else load_robot(source))
     if args.tcp_mm is not None:
         tcp = np.array(args.tcp_mm)
     else:
@@ -222,8 +224,8 @@ def run(args) -> int:
         which = calibrated.target_names.index(name)
         tcp = (calibrated.offsets if tools.drawn is None else tools.drawn)[which]
     offset = tools.to_model(tcp)  # the tool point in the calibrated end frame
-    _same_arm(args, calibrated, nominal, offset)
-    _fit_warning(args)
+    _same_arm(args, calibrated, nominal, offset, source)
+    _fit_warning(args, record.mapping)
     if args.program is not None:  # a URScript program in, the same program compensated out
         return run_program(args, calibrated, nominal, tcp, tools)
     t = read_targets(args.targets, model.n_joints)
@@ -300,21 +302,17 @@ def run(args) -> int:
     return 0
 
 
-def _tool_map(args, calibrated, nominal):
-    """The model's ``ToolMap``: its drawn targets, the nominal model it was calibrated from (which tells
-    the held parameters from the estimated ones; --nominal when the file does not say) and its held-out
-    error."""
-    from cellcal.config.robot_files import ModelError
-
+def _tool_map(record, calibrated, source):
+    """The model's ``ToolMap`` from its calibration section ``record``: its drawn targets, covariance and
+    held-out error; ``source`` the nominal model it was calibrated from (which tells the held parameters
+    from the estimated ones; --nominal when the file does not say)."""
     try:
-        drawn = drawn_targets(args.robot, calibrated.target_names)
-        cov = covariance(args.robot, calibrated.layout.names)
+        drawn = drawn_targets(record, calibrated.target_names)
+        cov = covariance(record, calibrated.layout.names)
     except ModelError as exc:
         raise UsageError(str(exc)) from None
-    source = source_model(args.robot)
-    heldout = (calibration_record(args.robot).get("heldout") or {}).get("mean_mm")
-    return tool_map(calibrated, load_robot(source) if source else nominal, drawn,
-                    heldout if isinstance(heldout, (int, float)) else None, cov)
+    heldout = (record.mapping.get("heldout") or {}).get("mean_mm")
+    return tool_map(calibrated, source, drawn, heldout if isinstance(heldout, (int, float)) else None, cov)
 
 
 def _tool_doc(tools, tcp, offset) -> dict:
@@ -344,10 +342,10 @@ def _tool_text(tools, tcp, offset, bound) -> str:
 MISFIT_FACTOR = 5.0
 
 
-def _fit_warning(args) -> None:
-    """Warn of a model that does not fit its own data (its record's training rms far above the noise
-    the data claim: written with --force over a failed fit, or from data with a wrong fixture)."""
-    train = (calibration_record(args.robot).get("train") or {})
+def _fit_warning(args, record: dict) -> None:
+    """Warn of a model that does not fit its own data (its calibration ``record``'s training rms far above
+    the noise the data claim: written with --force over a failed fit, or from data with a wrong fixture)."""
+    train = (record.get("train") or {})
     rms, noise = train.get("rms_mm"), train.get("noise_mm")
     if isinstance(rms, (int, float)) and isinstance(noise, (int, float)) and noise > 0 and rms > MISFIT_FACTOR * noise:
         print_progress(f"{args.robot}: warning: the model leaves its own training rows {rms:.3f} mm rms off, "
@@ -355,13 +353,13 @@ def _fit_warning(args) -> None:
                        "data (a wrong fixture distance?); its corrections may be wrong by as much")
 
 
-def _same_arm(args, calibrated, nominal, offset) -> None:
-    """Refuse a nominal model of another arm than the one calibrated: its targets would move by the
-    difference of two arms (hundreds of mm), not by a calibration's correction."""
+def _same_arm(args, calibrated, nominal, offset, source: str | None) -> None:
+    """Refuse a nominal model of another arm than the one calibrated (``source``: the one the file says
+    it started from): its targets would move by the difference of two arms (hundreds of mm), not by a
+    calibration's correction."""
     off_mm = nominal_mismatch_mm(calibrated, nominal, offset)
     if off_mm <= NOMINAL_MISMATCH_MM:
         return
-    source = source_model(args.robot)
     started = f"the calibration started from {source}" if source else "the model file does not say which model " \
                                                                       "the calibration started from"
     raise UsageError(f"--nominal {args.nominal or nominal.name}: its arm is up to {off_mm:.0f} mm from the calibrated "

@@ -14,6 +14,7 @@ from cellcal.measurements.table import (MeasurementTable, check_joint_limits, ov
                                         repeated_warning)
 from cellcal.reports.identification import identification_json, identification_text
 from cellcal.solvers.identification.identify import LOSSES, REGULARIZE, IdentifyOptions, identify
+from cellcal.solvers.identification.kinematic_fit import register
 
 
 def _split(table: MeasurementTable, validate: MeasurementTable | None, path: str):
@@ -83,13 +84,16 @@ def run(args) -> int:
                                 np.array([index[val.target_names[t]] for t in val.target]),
                                 cal.target_names)
     result = identify(model, obs, options, progress=print_progress)
+    val_x = None  # --new-setup: the validation rows' own frame and target offsets, kinematics as calibrated
+    if val_obs is not None and args.new_setup:
+        val_x = tuple(register(result.layout, x, val_obs).x for x in (result.x, result.x_nominal))
     if args.json:
-        doc = identification_json(result, obs, val_obs, args.new_setup)
+        doc = identification_json(result, obs, val_obs, val_x)
         if "validate" in doc:
             doc["validate"]["overlap_rows"] = overlap
         print(json.dumps(doc))
     else:
-        print(identification_text(result, obs, val_obs, model.name, args.new_setup))
+        print(identification_text(result, obs, val_obs, model.name, val_x))
     if args.write_model:
         model_out.write_identified(args, model, result, len(cal), val_obs, obs)
     return 0

@@ -10,7 +10,7 @@ import numpy as np
 
 from cellcal.config.model_files import covariance_record, write_calibrated
 from cellcal.solvers.compensation.calibrated_model import from_fit
-from cellcal.solvers.compensation.tool_map import fit_covariance
+from cellcal.solvers.compensation.tool_map import fit_covariance, held_at_nominal
 from cellcal.cli.common import UsageError, print_progress, writable_file
 
 
@@ -140,9 +140,7 @@ def write_finding(args, model, obs, finding) -> None:
     cov = None  # the point form's rows are its points' fitted positions: their own uncertainty is not in obs
     if getattr(args, "fixture", None) is None:
         free = np.ones(calibrated.layout.size, bool)  # estimated: what the fit moved from nominal, base and offsets
-        nominal = dict(zip(model.param_names, model.nominal))
-        free[: calibrated.layout.n_kin] = [nominal.get(n) != v
-                                           for n, v in zip(calibrated.model.param_names, calibrated.k)]
+        free[: calibrated.layout.n_kin] = ~held_at_nominal(calibrated, model)
         cov = fit_covariance(calibrated.layout, calibrated.x, obs, scored.residuals, free)
     write_model(args.write_model, calibrated, args.robot, record, magnitudes, drawn_targets(args, obs.target_names),
                 cov)

@@ -67,22 +67,18 @@ def load_calibrated(name_or_path: str | Path) -> CalibratedModel:
     return CalibratedModel(model, k, base, names, offsets, effects)
 
 
-def calibration_record(name_or_path: str | Path) -> dict:
-    """The calibration section a model file records (``written_by``, ``heldout``, ``train`` ...), {} for a
-    model file without one."""
-    doc = read_yaml(resolve_robot(name_or_path), ModelError)
-    record = doc.get("calibration") if isinstance(doc, dict) else None
-    return record if isinstance(record, dict) else {}
-
-
-def drawn_targets(name_or_path: str | Path, target_names) -> np.ndarray | None:
-    """(T, 3) mm: the measured targets as the controller knows them (``calibration.drawn_targets``), in the
-    order of ``target_names``; None when the file records none. A ModelError for a record that does not
-    give every target as three finite numbers."""
+def calibration_section(name_or_path: str | Path) -> Section:
+    """The ``calibration`` section of a model file (``written_by``, ``heldout``, ``train``, ``source_model`` ...;
+    empty for a plain robot file), read once for :func:`drawn_targets` and :func:`covariance` and whatever
+    else a command wants of it. A ModelError for a file that is not a mapping."""
     path = resolve_robot(name_or_path)
-    doc = read_yaml(path, ModelError)
-    top = Section(str(path), None, doc, ModelError)
-    cal = top.section("calibration")
+    return Section(str(path), None, read_yaml(path, ModelError), ModelError).section("calibration")
+
+
+def drawn_targets(cal: Section, target_names) -> np.ndarray | None:
+    """(T, 3) mm: the measured targets as the controller knows them (``drawn_targets`` of the calibration
+    section ``cal``), in the order of ``target_names``; None when the file records none. A ModelError for a
+    record that does not give every target as three finite numbers."""
     if "drawn_targets" not in cal:
         return None
     drawn = cal.section("drawn_targets")
@@ -93,14 +89,11 @@ def drawn_targets(name_or_path: str | Path, target_names) -> np.ndarray | None:
     return np.array([drawn.vector(t, 3) for t in target_names])
 
 
-def covariance(name_or_path: str | Path, names) -> np.ndarray | None:
-    """(len(names), len(names)): the calibration's covariance of what it estimated
-    (``calibration.covariance``: ``unknowns`` and ``matrix``, mm and rad), placed at ``names`` (a
+def covariance(cal: Section, names) -> np.ndarray | None:
+    """(len(names), len(names)): the calibration's covariance of what it estimated (``covariance`` of the
+    calibration section ``cal``: ``unknowns`` and ``matrix``, mm and rad), placed at ``names`` (a
     calibrated model's unknowns, ``Layout.names``); 0 for what it did not estimate. None when the file
     records none; a ModelError for a record that is not a symmetric matrix of known unknowns."""
-    path = resolve_robot(name_or_path)
-    top = Section(str(path), None, read_yaml(path, ModelError), ModelError)
-    cal = top.section("calibration")
     if "covariance" not in cal:
         return None
     record = cal.section("covariance").expect({"unknowns", "matrix"}, ("unknowns", "matrix"))
@@ -131,9 +124,7 @@ def covariance_record(cov: np.ndarray, names) -> dict:
 
 def source_model(name_or_path: str | Path) -> str | None:
     """The robot file a calibrated model started from (its nominal model), as the file records it."""
-    doc = read_yaml(resolve_robot(name_or_path), ModelError)
-    record = doc.get("calibration") if isinstance(doc, dict) else None
-    return record.get("source_model") if isinstance(record, dict) else None
+    return calibration_section(name_or_path).mapping.get("source_model")
 
 
 def _effect(row: Section) -> Effect:

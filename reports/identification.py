@@ -7,7 +7,6 @@ from __future__ import annotations
 import numpy as np
 
 from cellcal.solvers.identification.identify import Identification
-from cellcal.solvers.identification.kinematic_fit import register
 from cellcal.solvers.identification.measurement_model import Observations, predict
 
 
@@ -76,7 +75,7 @@ def fit_diagnostics(result) -> dict:
 
 
 def identification_json(result: Identification, obs: Observations, val: Observations | None,
-                        new_setup: bool = False) -> dict:
+                        val_x: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
     """The JSON of ``cellcal identify``.
 
     "unidentifiable" names every geometric parameter the data cannot determine and that
@@ -97,11 +96,9 @@ def identification_json(result: Identification, obs: Observations, val: Observat
                        "cv_curve": [{"lambda": lam, "heldout_mean_mm": e} for lam, e in result.cv_curve]},
         **fit_diagnostics(result),
     }
-    if val is not None:  # new_setup: the validation rows' own frame and target offsets, fitted on them
-        x_after, x_before = (result.x, result.x_nominal)
-        if new_setup:
-            x_after, x_before = (register(result.layout, x, val).x for x in (x_after, x_before))
-        out["validate"] = {**error_stats(_errors(result, x_after, val)), "setup": "new" if new_setup else "same"}
+    if val is not None:  # val_x: the calibrated and nominal x with the validation rows' own frame and offsets
+        x_after, x_before = (result.x, result.x_nominal) if val_x is None else val_x
+        out["validate"] = {**error_stats(_errors(result, x_after, val)), "setup": "same" if val_x is None else "new"}
         out["before"]["validate_mean_mm"] = float(_errors(result, x_before, val).mean())
     return out
 
@@ -111,10 +108,10 @@ def _value(value: float, unit: str) -> str:
 
 
 def identification_text(result: Identification, obs: Observations, val: Observations | None,
-                        robot: str, new_setup: bool = False) -> str:
-    doc = identification_json(result, obs, val, new_setup)
-    setup = ("its own frame and target offsets fitted on it" if new_setup else
-             "the same setup: frame and target offsets as calibrated")
+                        robot: str, val_x: tuple[np.ndarray, np.ndarray] | None = None) -> str:
+    doc = identification_json(result, obs, val, val_x)
+    setup = ("the same setup: frame and target offsets as calibrated" if val_x is None else
+             "its own frame and target offsets fitted on it")
     lines = [f"cellcal identify: {robot}, {len(obs)} calibration measurements"
              + (f", {len(val)} validation ({setup})" if val is not None else ""), ""]
     lines.append(f"{'':24s}{'before':>10s}{'after':>10s}   (mean error, mm)")

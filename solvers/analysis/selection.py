@@ -121,12 +121,11 @@ class Scores:
         train, held = self._blocks(fold, idx)
         # columns scaled to unit length and a vanishing ridge: a direction some training lacks entirely gets
         # no step instead of an arbitrary one (a fold short of what one place needs must not extrapolate)
-        d2 = np.diagonal(train, axis1=1, axis2=2)[:, :-1]
-        empty = d2 <= EMPTY_RTOL * d2.max(axis=1, keepdims=True)
-        d = np.concatenate([np.sqrt(np.where(empty, 1.0, d2)), np.ones((len(d2), 1))], axis=1)
+        d, empty = _unit_scales(np.diagonal(train, axis1=1, axis2=2)[:, :-1])
+        d = np.concatenate([d, np.ones((len(d), 1))], axis=1)
         train = train / d[:, :, None] / d[:, None, :]
         held = held / d[:, :, None] / d[:, None, :]
-        gone = np.concatenate([empty, np.zeros((len(d2), 1), bool)], axis=1)
+        gone = np.concatenate([empty, np.zeros((len(empty), 1), bool)], axis=1)
         train = np.where(gone[:, :, None] | gone[:, None, :], 0.0, train)
         eye = np.zeros(train.shape[1:])
         eye[np.arange(nc + nq), np.arange(nc + nq)] = 1.0
@@ -236,15 +235,21 @@ def nested_steps(scores: Scores, selection: Selection, base: tuple[Term, ...] = 
     return out
 
 
+def _unit_scales(d2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(scale, empty) of columns with squared lengths d2 (the Gram's diagonal, (..., n)): each column's
+    length, and whether it is EMPTY_RTOL shorter (squared) than the longest of its training (no rows
+    there: scale 1, left out of the solve)."""
+    empty = d2 <= EMPTY_RTOL * d2.max(axis=-1, keepdims=True)
+    return np.sqrt(np.where(empty, 1.0, d2)), empty
+
+
 def search_step(normal: np.ndarray, grad: np.ndarray) -> np.ndarray:
     """The step the search scored a choice by (``Scores.sum_squares``), from one training's normal
     equations: columns scaled to unit length, a column without rows in this training left at 0, the
     vanishing RIDGE. A fold's choice is scored as it was chosen: a plain solve of the same equations
     steps wild along directions the training barely sees (a spline's knot interval that a fold's
     training holds a pose or two of), which the search never scored."""
-    d2 = np.diagonal(normal).copy()
-    empty = d2 <= EMPTY_RTOL * d2.max()
-    d = np.sqrt(np.where(empty, 1.0, d2))
+    d, empty = _unit_scales(np.diagonal(normal))
     a = normal / d[:, None] / d[None, :]
     a = np.where(empty[:, None] | empty[None, :], 0.0, a) + np.diag(RIDGE + empty * 1.0)
     g = np.where(empty, 0.0, grad / d)

@@ -72,13 +72,12 @@ def transfer(model, finding: Finding, obs_a: Observations, obs_b: Observations, 
         if unknown:
             raise TransferError(f"target(s) {', '.join(unknown)} of the second data set are not measured in the "
                                 "first, so a setup shared with it gives them no offset")
-        layout_a = Layout(model, obs_a.target_names)
         which = [obs_a.target_names.index(t) for t in obs_b.target_names]
 
-        def setup_of(x_a):  # A's base and the offsets of B's targets, in B's layout
-            return np.concatenate([x_a[layout_a.base], *(x_a[layout_a.target(i)] for i in which)])
+        def setup_of(x_a, n_kin):  # A's base and the offsets of B's targets (after n_kin kinematic entries)
+            return np.concatenate([x_a[n_kin: n_kin + 6], *(x_a[n_kin + 6 + 3 * i: n_kin + 9 + 3 * i] for i in which)])
 
-        x_geo = np.concatenate([finding.baseline.x[: model.n_params], setup_of(finding.baseline.x)])
+        x_geo = np.concatenate([finding.baseline.x[: model.n_params], setup_of(finding.baseline.x, model.n_params)])
         refit = _as_fitted
     else:
         start = identify(model, obs_b)  # B's own fit: where its frame and targets start from
@@ -99,9 +98,7 @@ def transfer(model, finding: Finding, obs_a: Observations, obs_b: Observations, 
         else:
             x_ext[: model.n_params] = named.x[: model.n_params]
         if same_setup:  # the frame and offsets the extended fit put on A
-            n_kin_a = ext_layout.n_kin
-            x_ext[n_kin_a:] = np.concatenate([named.x[n_kin_a: n_kin_a + 6],
-                                              *(named.x[n_kin_a + 6 + 3 * i: n_kin_a + 9 + 3 * i] for i in which)])
+            x_ext[ext_layout.n_kin:] = setup_of(named.x, ext_layout.n_kin)
         carried = named.label
         try:
             terms = tuple(_term_on_rows(t, model, layout, x_ext, obs_b, ctx_b) for t in named.terms

@@ -118,6 +118,16 @@ class ToolMap:
         return np.sqrt(lever ** 2 + own ** 2)
 
 
+def held_at_nominal(calibrated, source) -> np.ndarray:
+    """(n_kin,) bool: the calibrated model's kinematic parameters held at their value in ``source`` (the
+    nominal model it was calibrated from), not estimated; a parameter ``source`` lacks (a structural
+    effect's) was estimated."""
+    nominal = dict(zip(source.param_names, source.nominal))
+    model = calibrated.model
+    return np.array([name in nominal and abs(value - nominal[name]) <= (HELD_RAD if angle else HELD_MM)
+                     for name, value, angle in zip(model.param_names, calibrated.k, model.param_is_angle)], dtype=bool)
+
+
 def tool_map(calibrated, source, drawn=None, heldout_mean_mm=None, covariance=None,
              samples: int = FRAME_SAMPLES) -> ToolMap:
     """The ``ToolMap`` of a ``CalibratedModel``: ``source`` the nominal model it was calibrated from
@@ -132,8 +142,7 @@ def tool_map(calibrated, source, drawn=None, heldout_mean_mm=None, covariance=No
     layout, x = calibrated.layout, calibrated.x
     model = layout.model
     nominal = dict(zip(source.param_names, source.nominal))
-    held = np.array([name in nominal and abs(value - nominal[name]) <= (HELD_RAD if angle else HELD_MM)
-                     for name, value, angle in zip(model.param_names, calibrated.k, model.param_is_angle)])
+    held = held_at_nominal(calibrated, source)
     deviation = np.array([value - nominal.get(name, value) for name, value in zip(model.param_names, calibrated.k)])
     estimated = ~held & np.array([name in nominal for name in model.param_names])
 

@@ -156,9 +156,10 @@ def range_keeping_deal(q: np.ndarray, group: np.ndarray, n_groups: int, folds: i
     hi = np.full((n_groups, n_joints), -np.inf)
     np.minimum.at(lo, group, q)
     np.maximum.at(hi, group, q)
-    span = hi.max(0) - lo.min(0)
+    lowest, highest = lo.min(0), hi.max(0)
+    span = highest - lowest
     moving = span > 0
-    ids = np.arange(n_groups)
+    joints = np.arange(n_joints)
     # each joint's groups from its lowest (highest) value, ties in the drawn order
     low = np.stack([np.lexsort((position, lo[:, j])) for j in range(n_joints)])
     high = np.stack([np.lexsort((position, -hi[:, j])) for j in range(n_joints)])
@@ -178,9 +179,9 @@ def range_keeping_deal(q: np.ndarray, group: np.ndarray, n_groups: int, folds: i
         """Fraction of each moving joint's range fold k's training would lose, summed."""
         first_low = np.argmax(fold_of_group[low] != k, axis=1)
         first_high = np.argmax(fold_of_group[high] != k, axis=1)
-        train_lo = lo[low[ids[:n_joints], first_low], ids[:n_joints]]
-        train_hi = hi[high[ids[:n_joints], first_high], ids[:n_joints]]
-        return float(np.sum(((train_lo - lo.min(0)) + (hi.max(0) - train_hi))[moving] / span[moving]))
+        train_lo = lo[low[joints, first_low], joints]
+        train_hi = hi[high[joints, first_high], joints]
+        return float(np.sum(((train_lo - lowest) + (highest - train_hi))[moving] / span[moving]))
 
     for g in extremes:
         best = None
