@@ -162,10 +162,15 @@ def analyze(model, obs: Observations, ctx: Context, options: AnalyzeOptions = An
     extended, second, both = baseline, None, None
     if naming.named is not None:
         named = naming.named
-        second = find_second_effect(named, terms, places, scores, options.nested)
+        chosen = next((s for s in searched if named.terms[0] is s.term), None)  # named by a search: its choices
+        second, together = find_second_effect(named, terms, places, scores, options.nested,
+                                              None if chosen is None else chosen.per_fold)
         if second is not None:
             both = _fit_in_full(model, geometric_fit, obs, folds, named.terms + second.terms, options.prior_mm,
                                 f"{named.label} + {second.label}", scorer.robust)
+            if options.nested and (chosen is not None or second.cause in places):
+                # chosen inside the folds: scored as it was found, each fold's own choices on that fold
+                both = dataclasses.replace(both, heldout_errors=together, prior_weights=())
         extended = _fit_in_full(model, geometric_fit, obs, folds, named.terms, options.prior_mm, named.label,
                                 scorer.robust)
         if options.nested and any(named.terms[0] is s.term for s in searched):

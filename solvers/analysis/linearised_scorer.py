@@ -7,12 +7,15 @@ import numpy as np
 
 from cellcal.solvers.estimation import crossval, identifiability
 from cellcal.solvers.analysis.effects import Term
+from cellcal.solvers.analysis.effects.base import ridge_penalty, ridged_parts
 from cellcal.solvers.analysis.extended_model import embed, norm_scale, param_columns, stack_param_bases
 from cellcal.solvers.identification.identify import Identification
 from cellcal.solvers.identification.measurement_model import Layout, Observations, jacobian_chunks
 from cellcal.solvers.analysis.robust_scoring import LINEAR, RobustScoring
 
 NESTED_RTOL = 0.02  # one term's columns lie in another's span to this relative residual (2%)
+RIDGE = 1e-8  # on the normal matrix of unit-length columns, in the steps the search scores (``search_step``)
+EMPTY_RTOL = 1e-12  # a column this much shorter (squared) than the longest has no rows in a training
 
 
 class LinearisedScorer:
@@ -35,12 +38,16 @@ class LinearisedScorer:
         # with the geometry in every fold and eliminated (crossval.PointFoldFactors)
         self._points = getattr(geometric_fit, "point_jacobian", None)  # point_analysis.PointGeometry
         self.n_geometry = int(geometric_fit.free.sum())
-        self.terms = list(terms)
+        # a term with extra["columns_of"] (a spline at another ridge weight) shares that term's columns
+        self.terms = [t for t in terms if "columns_of" not in t.extra]
         self._at: dict[int, slice] = {}
         col = self.n_geometry
         for t in self.terms:
             self._at[id(t)] = slice(col, col + t.size)
             col += t.size
+        for t in terms:
+            if "columns_of" in t.extra:
+                self._at[id(t)] = self._at[id(t.extra["columns_of"])]
         self.n_columns = col
         self._structural: dict[int, np.ndarray] = {}  # columns of terms that change the rigid model, (N, 3, m)
         if self._points is None:
@@ -109,8 +116,29 @@ class LinearisedScorer:
         return self._heldout(np.concatenate([self.factors.steps(self.estimated(tuple(ts))) for ts in term_sets]))
 
     def steps(self, terms: tuple[Term, ...]) -> np.ndarray:
-        """(1, folds, p) each fold's step with geometry and these terms, for ``heldout_errors_of_steps``."""
-        return self.factors.steps(self.estimated(tuple(terms)))
+        """(1, folds, p) each fold's step with geometry and these terms, for ``heldout_errors_of_steps``.
+        Terms with a ridge (``base.ridged_parts``) are stepped as the search scores them (``search_step``)."""
+        cols = self.estimated(tuple(terms))
+        if not ridged_parts(terms):
+            return self.factors.steps(cols)
+        out = np.zeros((1, len(self.factors.ids), self.factors.p))
+        for k in range(len(self.factors.ids)):
+            normal, grad = self.factors.training(k)
+            normal = normal[np.ix_(cols, cols)]
+            out[0, k, cols] = search_step(normal, grad[cols], self.penalty(terms, cols, np.diagonal(normal)))
+        return out
+
+    def penalty(self, terms, cols: np.ndarray, diagonal: np.ndarray) -> np.ndarray | None:
+        """(..., len(cols)) the ridges of these terms' parts on the columns cols (``base.ridge_penalty`` of the
+        normal matrices' diagonals over cols, (..., len(cols))), or None when no part carries one."""
+        parts = ridged_parts(terms)
+        if not parts:
+            return None
+        out = np.zeros(np.shape(diagonal))
+        for part, lam in parts:
+            at = np.flatnonzero(np.isin(cols, self._term_cols(part)))
+            out[..., at] = ridge_penalty(np.asarray(diagonal)[..., at], lam)
+        return out
 
     def heldout_errors_of_steps(self, steps: np.ndarray) -> np.ndarray:
         """(len(steps), N) held-out error of each measurement for each set of fold steps (folds, p)."""
@@ -145,6 +173,29 @@ class LinearisedScorer:
         # relative to inner's own size over the rows (with points: before they are projected out)
         size = np.linalg.norm(b) if self._points is None else np.sqrt(np.sum(self._norms[cols] ** 2))
         return bool(np.linalg.norm(a @ coef - b) <= NESTED_RTOL * size)
+
+
+def unit_scales(d2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(scale, empty) of columns with squared lengths d2 (the Gram's diagonal, (..., n)): each column's
+    length, and whether it is EMPTY_RTOL shorter (squared) than the longest of its training (no rows
+    there: scale 1, left out of the solve)."""
+    empty = d2 <= EMPTY_RTOL * d2.max(axis=-1, keepdims=True)
+    return np.sqrt(np.where(empty, 1.0, d2)), empty
+
+
+def search_step(normal: np.ndarray, grad: np.ndarray, penalty: np.ndarray | None = None) -> np.ndarray:
+    """The step the search scores a choice by (``selection.Scores.sum_squares``), from one training's normal
+    equations: columns scaled to unit length, a column without rows in this training left at 0, the
+    vanishing RIDGE, and the terms' own ridges (penalty, on the diagonal; None: none). A fold's choice is
+    scored as it was chosen: a plain solve of the same equations steps wild along directions the training
+    barely sees (a spline's knot interval that a fold's training holds a pose or two of), which the
+    search never scored."""
+    d, empty = unit_scales(np.diagonal(normal))
+    a = normal / d[:, None] / d[None, :]
+    own = 0.0 if penalty is None else penalty / d**2
+    a = np.where(empty[:, None] | empty[None, :], 0.0, a) + np.diag(RIDGE + empty * 1.0 + own)
+    g = np.where(empty, 0.0, grad / d)
+    return -crossval._solve(a, g) / d
 
 
 def term_columns(model, fit: Identification, obs: Observations, term: Term, rows, jacobian_x, jacobian_q,

@@ -212,29 +212,40 @@ def _settle_tie(best: Scored, runner_up: Scored, candidates: Sequence[Scored], b
 
 
 def find_second_effect(named: Scored, terms: Sequence[Term], places: dict, scores: selection.Scores,
-                       nested: bool = True) -> Scored | None:
+                       nested: bool = True, named_per_fold: tuple | None = None
+                       ) -> tuple[Scored | None, np.ndarray | None]:
     """With the named effect in the model, the candidate of another cause that lowers the
-    held-out mean by MIN_GAIN more, or None; scored alone. A cause with places is searched
-    again with the named effect in the model (the same forward search, nested as the first)."""
+    held-out mean by MIN_GAIN more: (it scored alone, the held-out errors of both together), or (None, None).
+    A cause with places is searched again with the named effect in the model (the same forward search,
+    nested as the first). named_per_fold: the named effect's own choice in each fold (its
+    ``selection.Selection.per_fold``) when it was chosen by a search: each fold's search and score then
+    hold that fold's choice, as the named effect's own score did (nested); the all-rows choice there
+    would score the pair on rows that chose it."""
     scorer = scores.scorer
-    others = [t for t in terms if t.cause != named.cause and t.extra.get("all", True)]
-    searched = [s for s in (selection.select(CAUSES[cause], *p, scores, base=named.terms)
+    bases = named_per_fold if nested and named_per_fold is not None else (named.terms,) * scores.n_folds
+    # a cause with places competes by its search with the named effect in the model, not by its first choice
+    others = [t for t in terms if t.cause != named.cause and t.cause not in places and t.extra.get("all", True)]
+    searched = [s for s in (selection.select(CAUSES[cause], *p, scores, base=named.terms,
+                                             fold_bases=bases if nested else None)
                             for cause, p in places.items() if cause != named.cause) if s]
     if not others and not searched:
-        return None
-    steps = ([scorer.steps(named.terms + (t,)) for t in others]
-             + [selection.nested_steps(scores, s, named.terms) if nested else scorer.steps(named.terms + (s.term,))
-                for s in searched])
+        return None, None
+    if nested:
+        steps = ([selection.nested_steps(scores, None, tuple(b + (t,) for b in bases)) for t in others]
+                 + [selection.nested_steps(scores, s, bases) for s in searched])
+    else:
+        steps = ([scorer.steps(named.terms + (t,)) for t in others]
+                 + [scorer.steps(named.terms + (s.term,)) for s in searched])
     candidates = others + [s.term for s in searched]
     errors = scorer.heldout_errors_of_steps(np.concatenate(steps + [scorer.steps((t,)) for t in candidates]))
-    with_named = [(float(trimmed_mean(e, named.trim)), t, alone)
+    with_named = [(float(trimmed_mean(e, named.trim)), t, alone, e)
                   for e, t, alone in zip(errors, candidates, errors[len(candidates):])]
     with_named.sort(key=lambda entry: entry[0])
     _prefer_single_place(with_named, lambda entry: entry[0], lambda entry: entry[1])
     if not with_named or with_named[0][0] >= (1.0 - MIN_GAIN) * named.heldout_mean_mm:
-        return None
-    _, term, alone = with_named[0]
-    return score_candidates([term], scorer, [alone])[0]
+        return None, None
+    _, term, alone, together = with_named[0]
+    return score_candidates([term], scorer, [alone])[0], together
 
 
 def _prefer_single_place(ranked: list, error, term) -> None:

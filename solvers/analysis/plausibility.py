@@ -54,6 +54,8 @@ import numpy as np
 
 from cellcal.solvers.geometry.chain import forward
 from cellcal.solvers.analysis.effects import CAUSES
+from cellcal.solvers.analysis.effects.base import ridged_parts
+from cellcal.solvers.analysis.linearised_scorer import search_step
 
 CLASSES = {
     "collaborative": "collaborative and other light arms, rated payload up to 16 kg",
@@ -187,8 +189,12 @@ def linearised_size(scorer, term, stacked=None) -> dict:
     cols = scorer.estimated((term,))
     factors = scorer.factors.factors if stacked is None else stacked
     # the R factors of [J | r] of the folds, one under the other: the same normal equations as all rows
-    coef = np.linalg.lstsq(np.vstack([f[:, cols] for f in factors]),
-                           np.concatenate([f[:, scorer.n_columns] for f in factors]), rcond=None)[0]
+    a, b = np.vstack([f[:, cols] for f in factors]), np.concatenate([f[:, scorer.n_columns] for f in factors])
+    if ridged_parts((term,)):  # with its own ridge (a spline's), as every fit of it is made
+        normal = a.T @ a
+        coef = -search_step(normal, a.T @ b, scorer.penalty((term,), cols, np.diagonal(normal)))
+    else:
+        coef = np.linalg.lstsq(a, b, rcond=None)[0]
     theta = np.zeros(term.size)
     theta[scorer.term_estimated(term)] = -coef[scorer.n_geometry:]
     delta = term.joint_basis.delta(theta) if term.joint_basis is not None else None

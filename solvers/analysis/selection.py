@@ -42,12 +42,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cellcal.solvers.estimation import crossval
 from cellcal.solvers.analysis.effects import Term
+from cellcal.solvers.analysis.linearised_scorer import RIDGE, search_step, unit_scales
 
 GAIN = 0.07  # a place joins (inside a fold: starts) a combination only if it lowers the held-out rms error 7%
-RIDGE = 1e-8  # on the normal matrix of unit-length columns, in the inner fits
-EMPTY_RTOL = 1e-12  # a column this much shorter (squared) than the longest has no rows in a training
 
 
 @dataclass(frozen=True)
@@ -120,8 +118,11 @@ class Scores:
         idx = np.concatenate([c, q, [self.p]])
         train, held = self._blocks(fold, idx)
         # columns scaled to unit length and a vanishing ridge: a direction some training lacks entirely gets
-        # no step instead of an arbitrary one (a fold short of what one place needs must not extrapolate)
-        d, empty = _unit_scales(np.diagonal(train, axis1=1, axis2=2)[:, :-1])
+        # no step instead of an arbitrary one (a fold short of what one place needs must not extrapolate);
+        # the terms' own ridges (a spline's, ``base.ridge_penalty``) from each split's training, as scaled
+        d2 = np.diagonal(train, axis1=1, axis2=2)[:, :-1]
+        d, empty = unit_scales(d2)
+        own_ridge = self._ridges(common, extras, c, q, d2, own)
         d = np.concatenate([d, np.ones((len(d), 1))], axis=1)
         train = train / d[:, :, None] / d[:, None, :]
         held = held / d[:, :, None] / d[:, None, :]
@@ -130,6 +131,9 @@ class Scores:
         eye = np.zeros(train.shape[1:])
         eye[np.arange(nc + nq), np.arange(nc + nq)] = 1.0
         train = train + (RIDGE + gone[:, :, None] * 1.0) * eye
+        if own_ridge[0] is not None:  # the common terms' ridges, before they are eliminated
+            at = np.arange(nc)
+            train[:, at, at] += own_ridge[0] / d[:, :nc] ** 2
         # common columns eliminated: x_C = w - X x_P for the extra columns' step x_P
         x = np.linalg.solve(train[:, :nc, :nc], train[:, :nc, nc:])  # (splits, nc, nq + 1)
         reduced = train[:, nc:, nc:] - train[:, nc:, :nc] @ x  # (splits, nq + 1, nq + 1)
@@ -152,10 +156,27 @@ class Scores:
                 continue
             at = np.array([pos[i] for i in which])  # (sets, m)
             a = reduced[:, at[:, :, None], at[:, None, :]]  # (splits, sets, m, m)
+            ridged = [i for i in which if own_ridge[1][i] is not None]
+            if ridged:  # each extra's own ridges (its columns are not eliminated: added here)
+                extra_ridge = np.zeros((len(train), len(which), m))
+                for i in ridged:
+                    extra_ridge[:, which.index(i)] = own_ridge[1][i] / d[:, nc + pos[i]] ** 2
+                a = a + extra_ridge[..., None] * np.eye(m)
             step = -np.linalg.solve(a, reduced[:, at, nq][..., None])[..., 0]  # (splits, sets, m)
             quad = np.einsum("smi,smij,smj->sm", step, g[:, at[:, :, None], at[:, None, :]], step)
             out[which] = (base[:, None] + 2.0 * np.einsum("smi,smi->sm", step, h[:, at]) + quad).sum(axis=0)
         return np.where(out >= 0.0, out, np.inf)  # < 0: rounding of a step gone wild, never the best
+
+
+    def _ridges(self, common, extras, c, q, d2, own):
+        """(the common terms' ridges over their columns c, (splits, nc), and each extra's over its own columns,
+        (splits, len(own[i])); None where no part carries one): ``LinearisedScorer.penalty`` of each split's
+        training diagonal d2 (over c then q)."""
+        penalty = self.scorer.penalty
+        nc = len(c)
+        common_ridge = penalty(common, c, d2[:, :nc])
+        extra_ridges = [penalty(tuple(e), o, d2[:, nc + np.searchsorted(q, o)]) for e, o in zip(extras, own)]
+        return common_ridge, extra_ridges
 
 
 def offered(term: Term, fold) -> bool:
@@ -214,43 +235,30 @@ def forward(places, alone, scores: Scores, fold=None, base: tuple[Term, ...] = (
     return plain[0]
 
 
-def select(cause, places, alone, scores: Scores, base: tuple[Term, ...] = ()) -> Selection | None:
-    """The cause's forward search on all rows and inside every fold; None when no place is offered."""
+def select(cause, places, alone, scores: Scores, base: tuple[Term, ...] = (),
+           fold_bases: tuple[tuple[Term, ...], ...] | None = None) -> Selection | None:
+    """The cause's forward search on all rows and inside every fold; None when no place is offered.
+    base: terms in the model throughout (a first effect); fold_bases: each fold's own base, when the base
+    was itself chosen inside each fold (a first effect's ``Selection.per_fold``): a fold's search, and its
+    score, then hold what that fold's training rows chose, never the all-rows choice."""
     parts = forward(places, alone, scores, None, base)
     if not parts:
         return None
-    per_fold = tuple(forward(places, alone, scores, k, base) for k in range(scores.n_folds))
+    bases = fold_bases if fold_bases is not None else (base,) * scores.n_folds
+    per_fold = tuple(forward(places, alone, scores, k, bases[k]) for k in range(scores.n_folds))
     obs, model = scores.scorer.obs, scores.scorer.model
     return Selection(cause.id, cause.combine(parts, len(obs), model.n_joints), parts, per_fold)
 
 
-def nested_steps(scores: Scores, selection: Selection, base: tuple[Term, ...] = ()) -> np.ndarray:
-    """(1, folds, p) each fold's step with its own selection (and base), fitted on its training rows."""
-    factors = scores.scorer.factors
+def nested_steps(scores: Scores, selection: Selection | None, bases: tuple[tuple[Term, ...], ...] = ()) -> np.ndarray:
+    """(1, folds, p) each fold's step with its own selection (None: nothing) and its base (bases[k]; (): none),
+    fitted on its training rows as the search scored it (``search_step``, with the terms' ridges)."""
+    factors, scorer = scores.scorer.factors, scores.scorer
     out = np.zeros((1, scores.n_folds, scores.p))
-    for k, parts in enumerate(selection.per_fold):
-        cols = scores._set_cols(base + parts)
+    for k in range(scores.n_folds):
+        terms = (bases[k] if bases else ()) + (selection.per_fold[k] if selection is not None else ())
+        cols = scores._set_cols(terms)
         normal, grad = factors.training(k)
-        out[0, k, cols] = search_step(normal[np.ix_(cols, cols)], grad[cols])
+        normal = normal[np.ix_(cols, cols)]
+        out[0, k, cols] = search_step(normal, grad[cols], scorer.penalty(terms, cols, np.diagonal(normal)))
     return out
-
-
-def _unit_scales(d2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(scale, empty) of columns with squared lengths d2 (the Gram's diagonal, (..., n)): each column's
-    length, and whether it is EMPTY_RTOL shorter (squared) than the longest of its training (no rows
-    there: scale 1, left out of the solve)."""
-    empty = d2 <= EMPTY_RTOL * d2.max(axis=-1, keepdims=True)
-    return np.sqrt(np.where(empty, 1.0, d2)), empty
-
-
-def search_step(normal: np.ndarray, grad: np.ndarray) -> np.ndarray:
-    """The step the search scored a choice by (``Scores.sum_squares``), from one training's normal
-    equations: columns scaled to unit length, a column without rows in this training left at 0, the
-    vanishing RIDGE. A fold's choice is scored as it was chosen: a plain solve of the same equations
-    steps wild along directions the training barely sees (a spline's knot interval that a fold's
-    training holds a pose or two of), which the search never scored."""
-    d, empty = _unit_scales(np.diagonal(normal))
-    a = normal / d[:, None] / d[None, :]
-    a = np.where(empty[:, None] | empty[None, :], 0.0, a) + np.diag(RIDGE + empty * 1.0)
-    g = np.where(empty, 0.0, grad / d)
-    return -crossval._solve(a, g) / d

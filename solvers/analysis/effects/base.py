@@ -188,6 +188,23 @@ class Term:
         return f"{self.cause} ({where})" if where else self.cause
 
 
+def ridged_parts(terms) -> list[tuple["Term", float]]:
+    """(part, lam) of every part of these terms (a combined term's ``extra["parts"]``) that carries a ridge
+    (``extra["ridge"]``: a periodic spline, ``periodic_spline``), in the terms' order."""
+    return [(part, float(part.extra["ridge"])) for t in terms for part in t.extra.get("parts", (t,))
+            if "ridge" in part.extra]
+
+
+def ridge_penalty(diagonal: np.ndarray, lam: float) -> np.ndarray:
+    """The ridge on a part's coefficients: lam times the mean of the normal matrix's diagonal over its columns
+    (their mean squared length over the fit's rows; the last axis), on each. A coefficient the rows see as well as the average
+    one is barely moved; one they see lam times less is held near 0."""
+    diagonal = np.asarray(diagonal, dtype=float)
+    if not diagonal.shape[-1]:
+        return np.zeros_like(diagonal)
+    return np.broadcast_to(lam * diagonal.mean(axis=-1, keepdims=True), diagonal.shape).copy()
+
+
 class Cause:
     """A named cause: builds its candidate terms for a data set and sizes a fit."""
 

@@ -242,17 +242,24 @@ class CyclicJointError(Cause):
                                 joint_basis=basis, units=("rad", "rad"),
                                 extra={"part": True, "all": n in picked,
                                        "folds": frozenset(k for k, p in enumerate(by_fold) if n in p)}))
-            # the same cause as a smooth function of the angle, not a few sinusoids
-            chosen, by_fold = periodic_spline.choose_knots_nested(qj, projected[:, j], weight[:, j], folds,
-                                                                  2 * bounds[j])
-            for knots in dict.fromkeys(k for k in [chosen, *by_fold] if k is not None):
-                out.append(Term(self.id, {"joint": j + 1, "spline_knots": knots},
-                                tuple(f"k{j + 1}_{i}" for i in range(knots)),
-                                joint_basis=JointBasis.of_angle(qj, partial(periodic_spline.basis, knots=knots), j,
-                                                                nj, knots),
-                                units=("rad",) * knots,
-                                extra={"spline": True, "slot": ("spline", j + 1), "all": knots == chosen,
-                                       "folds": frozenset(k for k, c in enumerate(by_fold) if c == knots)}))
+            # the same cause as a smooth function of the angle, not a few sinusoids: the finest spline the
+            # angles resolve, at each ridge weight (one slot; the variants share the first's columns)
+            knots = periodic_spline.knots_for(bounds[j])
+            if knots is None:
+                continue
+            offered, inside = periodic_spline.screen_nested(qj, projected[:, j], weight[:, j], folds, knots)
+            if not offered and not inside:
+                continue
+            basis = JointBasis.of_angle(qj, partial(periodic_spline.basis, knots=knots), j, nj, knots)
+            names = tuple(f"k{j + 1}_{i}" for i in range(knots))
+            first = None
+            for lam in periodic_spline.SMOOTHING:
+                spline = Term(self.id, {"joint": j + 1, "spline_knots": knots}, names, joint_basis=basis,
+                              units=("rad",) * knots,
+                              extra={"spline": True, "slot": ("spline", j + 1), "ridge": lam, "all": offered,
+                                     "folds": inside, **({"columns_of": first} if first is not None else {})})
+                first = first or spline
+                out.append(spline)
         for t in out:
             t.extra["spectra"] = spectra
         return out
