@@ -7,7 +7,7 @@ lowest held-out error, then add, one at a time, the place that lowers it most, a
 best addition lowers it by less than GAIN. Richer places (a joint's spline: a whole periodic
 function of one angle) join a second combination, grown the same way from the best place of all;
 it is taken when it lowers the held-out rms by GAIN below the plain one (``forward``). Places that
-share a ``slot`` (a joint's splines of different knot counts) never combine. The same search and the same stopping rule for
+share a ``slot`` (a joint's spline at its different ridge weights) never combine. The same search and the same stopping rule for
 every cause. Combinations across causes (a second effect) are searched the same way, with the
 first effect in the model (``base``).
 
@@ -30,7 +30,7 @@ Nesting. Every choice that looks at the data is made again inside each fold's tr
 alone: the search is run with inner folds (the other folds' sub-folds of whole neighbour groups,
 each held out in turn from the training rows; for path data the other folds, gaps
 respected: ``FoldFactors.inner``) among the places the fold's own training rows picked
-(``extra["folds"]``: the orders and knot counts of a periodic error). Inside a fold the choice
+(``extra["folds"]``: the orders of a periodic error, the joints whose spline is offered). Inside a fold the choice
 may be none: the best single place must itself lower the error by GAIN. The held-out errors reported for the cause are each fold's own selection scored on that
 fold (``nested_steps``): what the procedure, not the one model it picked from all rows, reaches
 on poses it has not seen. The term offered, named and fitted in full is the search on all rows

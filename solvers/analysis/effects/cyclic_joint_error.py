@@ -206,9 +206,10 @@ class CyclicJointError(Cause):
     id = "cyclic_joint_error"
 
     def terms(self, model, layout, x, obs, ctx):
-        """The strongest orders of every joint that moves enough, one term each, and its spline; picked
-        on every row and again on each fold's training rows alone (the analysis' nested selection
-        chooses among a fold's own picks: ``extra["all"]``, ``extra["folds"]``)."""
+        """The strongest orders of every joint that moves enough, one term each, and its spline at each ridge
+        weight (``periodic_spline``); the orders picked, and the spline offered or not, on every row and again on
+        each fold's training rows alone (the analysis' nested selection chooses among a fold's own picks:
+        ``extra["all"]``, ``extra["folds"]``)."""
         nj = model.n_joints
         bounds = [order_bound(obs.q[:, j]) for j in range(nj)]
         joints = [j for j in range(nj) if bounds[j] > 0]
@@ -268,7 +269,7 @@ class CyclicJointError(Cause):
         """Each (joint, order) combines with any other; a joint's spline is a richer place: the search
         also grows a combination that may hold splines (at several joints, and orders beside them) and
         takes it when it beats the orders' by the search's GAIN (``selection.forward``). A joint's splines
-        of different knot counts are alternatives (one ``slot``): a combination holds one of them at most.
+        at its different ridge weights are alternatives (one ``slot``): a combination holds one of them at most.
 
         A joint's spline once stood alone, never combined. On a measured UR10 (tracker, 1 495 and 11 911
         poses) the search's fold scores showed what that cost: the best spline (joint 2) left 0.344 and
