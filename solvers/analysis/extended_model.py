@@ -16,7 +16,7 @@ from scipy.linalg import solve_triangular
 
 from cellcal.solvers.estimation import identifiability, lsq
 from cellcal.solvers.analysis.effects import JointBasis, Term
-from cellcal.solvers.analysis.effects.base import ridge_penalty, ridged_parts
+from cellcal.solvers.analysis.effects.base import part_penalty, ridged_parts
 from cellcal.solvers.estimation.fit_result import FitResult, from_solver
 from cellcal.solvers.identification.measurement_model import Layout, Observations, jacobian, predict
 
@@ -211,11 +211,13 @@ def fit_extended(layout, obs, x, free, terms, prior_mm, loss: str = "linear", f_
     estimated = identifiability.analyse(r / scale, geometry, ~geometry, noise_mm=None, prior_mm=prior_mm,
                                         n_rows=3 * len(obs)).keep
     estimated[: model.n_free] = True
-    # the terms' own ridges (a spline's: ``base.ridge_penalty`` of the columns' squared lengths over the rows),
-    # and the unknowns' scales with them (a coefficient the rows barely see is scaled by its ridge: else its
+    # the terms' own penalties (a spline's: ``base.part_penalty`` of the columns' squared lengths over the rows),
+    # and the unknowns' scales with them (a coefficient the rows barely see is scaled by its penalty: else its
     # tiny scale makes the solver's first damping, from the largest scaled diagonal, stall every step)
-    ridge = _ridges(terms, model.n_free, np.sum(r * r, axis=0))
-    scale = norm_scale(np.sqrt(np.sum(r * r, axis=0) + ridge), len(obs)) if ridge.any() else scale
+    penalty = _penalties(terms, model.n_free, np.sum(r * r, axis=0), estimated)
+    if penalty.any():
+        scale = norm_scale(np.sqrt(np.sum(r * r, axis=0) + np.diagonal(penalty)), len(obs))
+    own_penalty = penalty[np.ix_(estimated, estimated)]
 
     def with_estimated(z_estimated):
         z = z_start.copy()
@@ -230,12 +232,12 @@ def fit_extended(layout, obs, x, free, terms, prior_mm, loss: str = "linear", f_
                 ne.add(j[:, :, estimated].reshape(-1, ne.g.size), residuals.ravel())
         else:
             ne.add(None, model.residuals_mm(z).ravel())
-        _add_ridge(ne, ridge[estimated], z_estimated, jac)
+        _add_penalty(ne, own_penalty, z_estimated, jac)
         return ne
 
     constant = estimated & np.r_[np.zeros(model.n_free, bool), model.constant_columns()]
     if loss == "linear" and constant.any():  # the best constant columns are solved for at every step
-        sol, z = _fit_projected(model, z_start, estimated, constant, scale, ridge)
+        sol, z = _fit_projected(model, z_start, estimated, constant, scale, penalty)
     else:
         sol = lsq.levenberg_marquardt(evaluate, z_start[estimated], 1.0 / scale[estimated], ftol=1e-10,
                                       xtol=1e-10, gtol=1e-8)
@@ -245,30 +247,33 @@ def fit_extended(layout, obs, x, free, terms, prior_mm, loss: str = "linear", f_
     return ExtendedFit(x_fit, theta, estimated, z, model.residuals_mm(z), model, **from_solver(sol))
 
 
-def _ridges(terms, n_free: int, squared_lengths: np.ndarray) -> np.ndarray:
-    """(len(z),) each unknown's ridge weight: ``base.ridge_penalty`` of its part's columns (squared_lengths over
-    z) where a term's part carries one, else 0."""
-    out, col = np.zeros(len(squared_lengths)), n_free
+def _penalties(terms, n_free: int, squared_lengths: np.ndarray, estimated: np.ndarray) -> np.ndarray:
+    """(len(z), len(z)) the penalty on the unknowns: ``base.part_penalty`` of each term's part that carries one,
+    over its estimated coefficients (squared_lengths: the columns' over the rows, over z), 0 elsewhere."""
+    n = len(squared_lengths)
+    out, col = np.zeros((n, n)), n_free
     for t in terms:
         for part, lam in ridged_parts((t,)):
             at = col + np.flatnonzero(np.isin(t.names, part.names))
-            out[at] = ridge_penalty(squared_lengths[at], lam)
+            kept = np.flatnonzero(estimated[at])
+            out[np.ix_(at[kept], at[kept])] += part_penalty(part, lam, squared_lengths[at[kept]], kept)
         col += t.size
     return out
 
 
-def _add_ridge(ne, ridge: np.ndarray, z: np.ndarray, jac: bool) -> None:
-    """The ridge 0.5 sum ridge z^2 added to a NormalEquations' cost (and gradient and matrix with jac)."""
-    if not ridge.any():
+def _add_penalty(ne, penalty: np.ndarray, z: np.ndarray, jac: bool) -> None:
+    """The penalty 0.5 z^T penalty z added to a NormalEquations' cost (and gradient and matrix with jac)."""
+    if not penalty.any():
         return
-    ne.cost += 0.5 * float(ridge @ (z * z))
+    moved = penalty @ z
+    ne.cost += 0.5 * float(z @ moved)
     if jac:
-        ne.a[np.diag_indices_from(ne.a)] += ridge
-        ne.g += ridge * z
+        ne.a += penalty
+        ne.g += moved
 
 
 def _fit_projected(model: ExtendedModel, z_start: np.ndarray, estimated: np.ndarray, constant: np.ndarray,
-                   scale: np.ndarray, ridge: np.ndarray):
+                   scale: np.ndarray, penalty: np.ndarray):
     """The fit with the constant columns C (Cartesian columns of theta, the same at every z) eliminated:
     for the other unknowns u the best theta_C is a linear solve, and the residual left is f(u) projected off
     C's span, with Jacobian P J exactly (variable projection, Golub and Pereyra, "The differentiation of
@@ -277,6 +282,7 @@ def _fit_projected(model: ExtendedModel, z_start: np.ndarray, estimated: np.ndar
     With C = Q R over all rows, only R, C^T J and C^T f are accumulated (a block of rows at a time).
     Returns (solver solution over u, z with theta_C solved)."""
     outer = estimated & ~constant
+    outer_penalty = penalty[np.ix_(outer, outer)]
     cols = np.flatnonzero(constant[model.n_free:])
     n_c, n_u = len(cols), int(outer.sum())
     c_scale = scale[constant]
@@ -317,7 +323,7 @@ def _fit_projected(model: ExtendedModel, z_start: np.ndarray, estimated: np.ndar
             qtj = q_t(ctj)
             ne.a -= qtj.T @ qtj
             ne.g -= qtj.T @ qtf
-        _add_ridge(ne, ridge[outer], u, jac)  # the ridged parts are joint-space: never among the constant columns
+        _add_penalty(ne, outer_penalty, u, jac)  # penalised parts are joint-space: never constant
         return ne, qtf
 
     # ftol: a step that lowers the cost by less than 1e-6 of it changes the mean error by ~5e-7 of it, far

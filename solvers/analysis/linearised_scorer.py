@@ -7,7 +7,7 @@ import numpy as np
 
 from cellcal.solvers.estimation import crossval, identifiability
 from cellcal.solvers.analysis.effects import Term
-from cellcal.solvers.analysis.effects.base import ridge_penalty, ridged_parts
+from cellcal.solvers.analysis.effects.base import part_penalty, ridged_parts
 from cellcal.solvers.analysis.extended_model import embed, norm_scale, param_columns, stack_param_bases
 from cellcal.solvers.identification.identify import Identification
 from cellcal.solvers.identification.measurement_model import Layout, Observations, jacobian_chunks
@@ -129,15 +129,19 @@ class LinearisedScorer:
         return out
 
     def penalty(self, terms, cols: np.ndarray, diagonal: np.ndarray) -> np.ndarray | None:
-        """(..., len(cols)) the ridges of these terms' parts on the columns cols (``base.ridge_penalty`` of the
-        normal matrices' diagonals over cols, (..., len(cols))), or None when no part carries one."""
+        """(..., len(cols), len(cols)) the penalties of these terms' parts on the columns cols
+        (``base.part_penalty`` of the normal matrices' diagonals over cols, (..., len(cols))), or None when no
+        part carries one."""
         parts = ridged_parts(terms)
         if not parts:
             return None
-        out = np.zeros(np.shape(diagonal))
+        diagonal = np.asarray(diagonal, dtype=float)
+        out = np.zeros(diagonal.shape + (len(cols),))
         for part, lam in parts:
-            at = np.flatnonzero(np.isin(cols, self._term_cols(part)))
-            out[..., at] = ridge_penalty(np.asarray(diagonal)[..., at], lam)
+            own = self._term_cols(part)
+            at = np.flatnonzero(np.isin(cols, own))
+            out[..., at[:, None], at[None, :]] += part_penalty(part, lam, diagonal[..., at],
+                                                               np.searchsorted(own, cols[at]))
         return out
 
     def heldout_errors_of_steps(self, steps: np.ndarray) -> np.ndarray:
@@ -186,14 +190,15 @@ def unit_scales(d2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def search_step(normal: np.ndarray, grad: np.ndarray, penalty: np.ndarray | None = None) -> np.ndarray:
     """The step the search scores a choice by (``selection.Scores.sum_squares``), from one training's normal
     equations: columns scaled to unit length, a column without rows in this training left at 0, the
-    vanishing RIDGE, and the terms' own ridges (penalty, on the diagonal; None: none). A fold's choice is
+    vanishing RIDGE, and the terms' own penalties (penalty (n, n); None: none). A fold's choice is
     scored as it was chosen: a plain solve of the same equations steps wild along directions the training
     barely sees (a spline's knot interval that a fold's training holds a pose or two of), which the
     search never scored."""
     d, empty = unit_scales(np.diagonal(normal))
     a = normal / d[:, None] / d[None, :]
-    own = 0.0 if penalty is None else penalty / d**2
-    a = np.where(empty[:, None] | empty[None, :], 0.0, a) + np.diag(RIDGE + empty * 1.0 + own)
+    a = np.where(empty[:, None] | empty[None, :], 0.0, a) + np.diag(RIDGE + empty * 1.0)
+    if penalty is not None:
+        a = a + penalty / d[:, None] / d[None, :]
     g = np.where(empty, 0.0, grad / d)
     return -crossval._solve(a, g) / d
 

@@ -119,7 +119,7 @@ class Scores:
         train, held = self._blocks(fold, idx)
         # columns scaled to unit length and a vanishing ridge: a direction some training lacks entirely gets
         # no step instead of an arbitrary one (a fold short of what one place needs must not extrapolate);
-        # the terms' own ridges (a spline's, ``base.ridge_penalty``) from each split's training, as scaled
+        # the terms' own penalties (a spline's, ``base.part_penalty``) from each split's training, as scaled
         d2 = np.diagonal(train, axis1=1, axis2=2)[:, :-1]
         d, empty = unit_scales(d2)
         own_ridge = self._ridges(common, extras, c, q, d2, own)
@@ -131,9 +131,8 @@ class Scores:
         eye = np.zeros(train.shape[1:])
         eye[np.arange(nc + nq), np.arange(nc + nq)] = 1.0
         train = train + (RIDGE + gone[:, :, None] * 1.0) * eye
-        if own_ridge[0] is not None:  # the common terms' ridges, before they are eliminated
-            at = np.arange(nc)
-            train[:, at, at] += own_ridge[0] / d[:, :nc] ** 2
+        if own_ridge[0] is not None:  # the common terms' penalties, before they are eliminated
+            train[:, :nc, :nc] += own_ridge[0] / d[:, :nc, None] / d[:, None, :nc]
         # common columns eliminated: x_C = w - X x_P for the extra columns' step x_P
         x = np.linalg.solve(train[:, :nc, :nc], train[:, :nc, nc:])  # (splits, nc, nq + 1)
         reduced = train[:, nc:, nc:] - train[:, nc:, :nc] @ x  # (splits, nq + 1, nq + 1)
@@ -157,11 +156,11 @@ class Scores:
             at = np.array([pos[i] for i in which])  # (sets, m)
             a = reduced[:, at[:, :, None], at[:, None, :]]  # (splits, sets, m, m)
             ridged = [i for i in which if own_ridge[1][i] is not None]
-            if ridged:  # each extra's own ridges (its columns are not eliminated: added here)
-                extra_ridge = np.zeros((len(train), len(which), m))
+            if ridged:  # each extra's own penalties (its columns are not eliminated: added here)
+                a = a.copy()
                 for i in ridged:
-                    extra_ridge[:, which.index(i)] = own_ridge[1][i] / d[:, nc + pos[i]] ** 2
-                a = a + extra_ridge[..., None] * np.eye(m)
+                    scale = d[:, nc + pos[i]]
+                    a[:, which.index(i)] += own_ridge[1][i] / scale[:, :, None] / scale[:, None, :]
             step = -np.linalg.solve(a, reduced[:, at, nq][..., None])[..., 0]  # (splits, sets, m)
             quad = np.einsum("smi,smij,smj->sm", step, g[:, at[:, :, None], at[:, None, :]], step)
             out[which] = (base[:, None] + 2.0 * np.einsum("smi,smi->sm", step, h[:, at]) + quad).sum(axis=0)
@@ -169,9 +168,9 @@ class Scores:
 
 
     def _ridges(self, common, extras, c, q, d2, own):
-        """(the common terms' ridges over their columns c, (splits, nc), and each extra's over its own columns,
-        (splits, len(own[i])); None where no part carries one): ``LinearisedScorer.penalty`` of each split's
-        training diagonal d2 (over c then q)."""
+        """(the common terms' penalties over their columns c, (splits, nc, nc), and each extra's over its own
+        columns, (splits, len(own[i]), len(own[i])); None where no part carries one): ``LinearisedScorer.penalty``
+        of each split's training diagonal d2 (over c then q)."""
         penalty = self.scorer.penalty
         nc = len(c)
         common_ridge = penalty(common, c, d2[:, :nc])

@@ -189,20 +189,24 @@ class Term:
 
 
 def ridged_parts(terms) -> list[tuple["Term", float]]:
-    """(part, lam) of every part of these terms (a combined term's ``extra["parts"]``) that carries a ridge
-    (``extra["ridge"]``: a periodic spline, ``periodic_spline``), in the terms' order."""
+    """(part, lam) of every part of these terms (a combined term's ``extra["parts"]``) that carries a penalty
+    of its own (``extra["ridge"]``: a periodic spline, ``periodic_spline``), in the terms' order."""
     return [(part, float(part.extra["ridge"])) for t in terms for part in t.extra.get("parts", (t,))
             if "ridge" in part.extra]
 
 
-def ridge_penalty(diagonal: np.ndarray, lam: float) -> np.ndarray:
-    """The ridge on a part's coefficients: lam times the mean of the normal matrix's diagonal over its columns
-    (their mean squared length over the fit's rows; the last axis), on each. A coefficient the rows see as well as the average
-    one is barely moved; one they see lam times less is held near 0."""
+def part_penalty(part: "Term", lam: float, diagonal: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """(..., n, n) the penalty on a part's coefficients `kept` (indices into its own: those a fit estimates, the
+    rest held at 0) from the normal matrices' diagonals over them (..., n): lam times their mean (the
+    coefficients' mean squared column length over the fit's rows) times the part's roughness at kept
+    (``extra["roughness"]``: the quadratic form of its coefficients that the penalty weighs; none: a ridge)."""
     diagonal = np.asarray(diagonal, dtype=float)
-    if not diagonal.shape[-1]:
-        return np.zeros_like(diagonal)
-    return np.broadcast_to(lam * diagonal.mean(axis=-1, keepdims=True), diagonal.shape).copy()
+    kept = np.asarray(kept, dtype=int)
+    rough = part.extra.get("roughness")
+    form = np.eye(len(kept)) if rough is None else rough[np.ix_(kept, kept)]
+    if not len(kept):
+        return np.zeros(diagonal.shape + (0,))
+    return (lam * diagonal.mean(axis=-1))[..., None, None] * form
 
 
 class Cause:

@@ -253,11 +253,12 @@ class CyclicJointError(Cause):
                 continue
             basis = JointBasis.of_angle(qj, partial(periodic_spline.basis, knots=knots), j, nj, knots)
             names = tuple(f"k{j + 1}_{i}" for i in range(knots))
-            first = None
+            first, rough = None, periodic_spline.roughness(knots)
             for lam in periodic_spline.SMOOTHING:
                 spline = Term(self.id, {"joint": j + 1, "spline_knots": knots}, names, joint_basis=basis,
                               units=("rad",) * knots,
-                              extra={"spline": True, "slot": ("spline", j + 1), "ridge": lam, "all": offered,
+                              extra={"spline": True, "slot": ("spline", j + 1), "ridge": lam, "roughness": rough,
+                                     "all": offered,
                                      "folds": inside, **({"columns_of": first} if first is not None else {})})
                 first = first or spline
                 out.append(spline)

@@ -36,7 +36,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cellcal.solvers.analysis.effects.base import ridge_penalty
 from cellcal.solvers.estimation.crossval import _solve, inner_fold_ids
 
 # the knot counts a spline may have: the finest the joint's order bound allows is taken (``knots_for``)
@@ -69,10 +68,19 @@ def _fold_normals(qj, projected, weight, folds, knots, block_rows: int = 8192):
     return normal, rhs
 
 
-def _drop(train, train_rhs, held, held_rhs, lam) -> float:
+def roughness(knots: int) -> np.ndarray:
+    """(knots, knots) the sum of squared second differences of a periodic spline's coefficients, as a quadratic
+    form (D^T D, D the circulant second difference): 0 for a constant, small for a smooth function."""
+    d = np.eye(knots) - 2.0 * np.roll(np.eye(knots), 1, axis=1) + np.roll(np.eye(knots), 2, axis=1)
+    return d.T @ d
+
+
+def _drop(train, train_rhs, held, held_rhs, lam, rough) -> float:
     """Held-out drop of the joint's residual sum of squares, 2 c.(B^T s) - c.(B^T W B) c, with c fitted on the
-    training's normal equations under the ridge lam (``base.ridge_penalty``)."""
-    c = _solve(train + np.diag(ridge_penalty(np.diagonal(train), lam)), train_rhs)
+    training's normal equations under the penalty of weight lam (``base.part_penalty``: lam times the mean
+    diagonal times the roughness), and a vanishing ridge (the roughness leaves a constant free)."""
+    m = float(np.mean(np.diagonal(train)))
+    c = _solve(train + lam * m * rough + 1e-12 * m * np.eye(len(train)), train_rhs)
     return float(2.0 * c @ held_rhs - c @ held @ c)
 
 
@@ -85,6 +93,7 @@ def screen(qj: np.ndarray, projected: np.ndarray, weight: np.ndarray, folds: np.
     exclude = getattr(folds, "exclude", None)  # path data: rows each fold's training also leaves out
     normal, rhs = _fold_normals(qj, projected, weight, folds, knots)
     all_normal, all_rhs = normal.sum(axis=0), rhs.sum(axis=0)
+    rough = roughness(knots)
     drop = np.zeros(len(SMOOTHING))
     for k in range(len(normal)):
         train, train_rhs = all_normal - normal[k], all_rhs - rhs[k]
@@ -93,7 +102,7 @@ def screen(qj: np.ndarray, projected: np.ndarray, weight: np.ndarray, folds: np.
             b = basis(qj[gap], knots)
             train = train - b.T @ (b * weight[gap, None])
             train_rhs = train_rhs - b.T @ projected[gap]
-        drop += [_drop(train, train_rhs, normal[k], rhs[k], lam) for lam in SMOOTHING]
+        drop += [_drop(train, train_rhs, normal[k], rhs[k], lam, rough) for lam in SMOOTHING]
     return bool(drop.max() > 0.0)
 
 
@@ -109,6 +118,7 @@ def screen_nested(qj: np.ndarray, projected: np.ndarray, weight: np.ndarray, fol
         return screen(qj, projected, weight, folds, knots), frozenset(inside)
     normal, rhs = _fold_normals(qj, projected, weight, folds, knots)
     all_normal, all_rhs = normal.sum(axis=0), rhs.sum(axis=0)
+    rough = roughness(knots)
     n = len(ids)
     drop = np.zeros((n + 1, len(SMOOTHING)))  # [outer fold or all]
     for k in range(n + 1):
@@ -117,7 +127,7 @@ def screen_nested(qj: np.ndarray, projected: np.ndarray, weight: np.ndarray, fol
                 continue
             train = all_normal - normal[j] - (normal[k] if k < n else 0.0)
             train_rhs = all_rhs - rhs[j] - (rhs[k] if k < n else 0.0)
-            drop[k] += [_drop(train, train_rhs, normal[j], rhs[j], lam) for lam in SMOOTHING]
+            drop[k] += [_drop(train, train_rhs, normal[j], rhs[j], lam, rough) for lam in SMOOTHING]
     passed = drop.max(axis=1) > 0.0
     return bool(passed[n]), frozenset(int(k) for k in np.flatnonzero(passed[:n]))
 
