@@ -245,23 +245,24 @@ class CyclicJointError(Cause):
                                        "folds": frozenset(k for k, p in enumerate(by_fold) if n in p)}))
             # the same cause as a smooth function of the angle, not a few sinusoids: the finest spline the
             # angles resolve, at each ridge weight (one slot; the variants share the first's columns)
-            knots = periodic_spline.knots_for(bounds[j])
-            if knots is None:
+            counts = periodic_spline.knot_counts(bounds[j])
+            if not counts:
                 continue
-            offered, inside = periodic_spline.screen_nested(qj, projected[:, j], weight[:, j], folds, knots)
+            offered, inside = periodic_spline.screen_nested(qj, projected[:, j], weight[:, j], folds, counts[0])
             if not offered and not inside:
                 continue
-            basis = JointBasis.of_angle(qj, partial(periodic_spline.basis, knots=knots), j, nj, knots)
-            names = tuple(f"k{j + 1}_{i}" for i in range(knots))
-            first, rough = None, periodic_spline.roughness(knots)
-            for lam in periodic_spline.SMOOTHING:
-                spline = Term(self.id, {"joint": j + 1, "spline_knots": knots}, names, joint_basis=basis,
-                              units=("rad",) * knots,
-                              extra={"spline": True, "slot": ("spline", j + 1), "ridge": lam, "roughness": rough,
-                                     "all": offered,
-                                     "folds": inside, **({"columns_of": first} if first is not None else {})})
-                first = first or spline
-                out.append(spline)
+            for knots in counts:  # each count at each weight: one slot; a count's weights share its columns
+                basis = JointBasis.of_angle(qj, partial(periodic_spline.basis, knots=knots), j, nj, knots)
+                names = tuple(f"k{j + 1}_{i}" for i in range(knots))
+                first, rough = None, periodic_spline.roughness(knots)
+                for lam in periodic_spline.SMOOTHING:
+                    spline = Term(self.id, {"joint": j + 1, "spline_knots": knots}, names, joint_basis=basis,
+                                  units=("rad",) * knots,
+                                  extra={"spline": True, "slot": ("spline", j + 1), "ridge": lam,
+                                         "roughness": rough, "all": offered, "folds": inside,
+                                         **({"columns_of": first} if first is not None else {})})
+                    first = first or spline
+                    out.append(spline)
         for t in out:
             t.extra["spectra"] = spectra
         return out

@@ -43,14 +43,15 @@ KNOTS = (8, 12, 16, 24, 32, 48, 64, 96, 128)
 MAX_KNOTS = KNOTS[-1]  # 2.8 deg apart: finer than the cyclic content measured on real arms (orders to ~40)
 # the ridge weights a spline is offered at, relative to its mean squared column length (module docstring):
 # from a coefficient the rows see 1e5 times less than the average one (barely shrunk) to 10 times less
-SMOOTHING = (1e-5, 1e-4, 1e-3, 1e-2, 1e-1)
+SMOOTHING = (1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0)
 
 
-def knots_for(order_bound: int) -> int | None:
-    """The spline's knot count for a joint whose angles resolve orders up to order_bound: the largest of
-    KNOTS up to twice it (knots closer than the sampled angles are not resolved); None below the smallest."""
+def knot_counts(order_bound: int) -> tuple[int, ...]:
+    """The knot counts a joint's spline is offered at, finest first: the largest of KNOTS up to twice the joint's
+    order bound (knots closer than the sampled angles are not resolved), and every fourth count below it
+    (a quarter as many knots each), down to KNOTS[0]; () when the bound allows none."""
     fits = [k for k in KNOTS if k <= 2 * order_bound]
-    return fits[-1] if fits else None
+    return tuple(fits[::-1][::4]) if fits else ()
 
 
 def _fold_normals(qj, projected, weight, folds, knots, block_rows: int = 8192):
