@@ -48,6 +48,7 @@ class LinearisedScorer:
         for t in terms:
             if "columns_of" in t.extra:
                 self._at[id(t)] = self._at[id(t.extra["columns_of"])]
+        self._estimated: dict[bytes, np.ndarray] = {}
         self.n_columns = col
         self._structural: dict[int, np.ndarray] = {}  # columns of terms that change the rigid model, (N, 3, m)
         if self._points is None:
@@ -102,8 +103,15 @@ class LinearisedScorer:
         return np.concatenate([np.arange(self.n_geometry)] + [self._term_cols(t) for t in terms]).astype(int)
 
     def estimated(self, terms: tuple[Term, ...]) -> np.ndarray:
-        """Columns (into all columns) of geometry and of the terms' parameters this data separates from it."""
+        """Columns (into all columns) of geometry and of the terms' parameters this data separates from it
+        (decided once for a set of columns: a spline's weights share theirs)."""
         cols = self._cols(terms)
+        key = cols.tobytes()
+        if key not in self._estimated:
+            self._estimated[key] = self._separated(cols)
+        return self._estimated[key]
+
+    def _separated(self, cols: np.ndarray) -> np.ndarray:
         r = np.linalg.qr(self.r[:, cols], mode="r")  # R factor of these columns alone
         geometry = np.arange(len(cols)) < self.n_geometry
         keep = identifiability.analyse(r / self.scale[cols], geometry, ~geometry, noise_mm=None,

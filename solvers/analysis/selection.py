@@ -46,6 +46,7 @@ from cellcal.solvers.analysis.effects import Term
 from cellcal.solvers.analysis.linearised_scorer import RIDGE, search_step, unit_scales
 
 GAIN = 0.07  # a place joins (inside a fold: starts) a combination only if it lowers the held-out rms error 7%
+BATCH_COLUMNS = 384  # the places of one step scored a batch at a time, their own columns together this many at most
 
 
 @dataclass(frozen=True)
@@ -113,6 +114,16 @@ class Scores:
         solve of its own few columns."""
         c = self._set_cols(common)
         own = [np.setdiff1d(self._set_cols(common + tuple(e)), c) for e in extras]
+        batches = _batches(own, BATCH_COLUMNS)
+        if len(batches) == 1:
+            return self._sum_squares(fold, common, extras, c, own)
+        out = np.empty(len(extras))
+        for b in batches:
+            out[b] = self._sum_squares(fold, common, [extras[i] for i in b], c, [own[i] for i in b])
+        return out
+
+    def _sum_squares(self, fold, common, extras, c, own) -> np.ndarray:
+        """``sum_squares`` of extras whose own columns (beyond the common columns c) are own."""
         q = np.unique(np.concatenate(own)).astype(int) if own else np.zeros(0, int)
         nc, nq = len(c), len(q)
         idx = np.concatenate([c, q, [self.p]])
@@ -176,6 +187,21 @@ class Scores:
         common_ridge = penalty(common, c, d2[:, :nc])
         extra_ridges = [penalty(tuple(e), o, d2[:, nc + np.searchsorted(q, o)]) for e, o in zip(extras, own)]
         return common_ridge, extra_ridges
+
+
+def _batches(own, limit: int) -> list[list[int]]:
+    """The extras (their own columns: own) in batches, in order, whose columns together stay within limit (an
+    extra beyond it alone): each extra's score is the same in any batch, the Grams a batch needs stay small."""
+    out, cols = [], set()
+    for i, o in enumerate(own):
+        more = cols | set(o.tolist())
+        if out and len(more) > limit:
+            out.append([i])
+            cols = set(o.tolist())
+        else:
+            out[-1:] = [(out[-1] if out else []) + [i]]
+            cols = more
+    return out or [[]]
 
 
 def offered(term: Term, fold) -> bool:

@@ -282,6 +282,7 @@ class FoldFactors:
             self._sub_grams = np.zeros((len(self.ids), self._n_sub, p + 1, p + 1))
         self._grams = None
         self._all_grams = None
+        self._r_all = None
 
     def add(self, rows, j: np.ndarray, r: np.ndarray) -> None:
         """Rows (a slice or indices of the measurements): j (n, 3, p), r (n, 3)."""
@@ -304,21 +305,23 @@ class FoldFactors:
                     self._sub_grams[k, s] += mine.T @ mine
         self._grams = None
         self._all_grams = None
+        self._r_all = None
 
     @property
     def factors(self) -> list[np.ndarray]:
         return [acc.r for acc in self._acc]
 
     def r_all(self) -> np.ndarray:
-        """R factor of [J | r] over every row."""
-        return stacked_r(self.factors)
+        """R factor of [J | r] over every row (made once after the last ``add``)."""
+        if self._r_all is None:
+            self._r_all = stacked_r(self.factors)
+        return self._r_all
 
     def training(self, k: int):
         """Normal matrix J^T J and J^T r of every row outside fold k (k indexes self.ids) and outside
         its gap (the rows of other folds too close to it, path data)."""
         if self._grams is None:  # every fold's training Gram matrix, once: the total less the fold's own
-            grams = [f.T @ f for f in self.factors]
-            total = np.sum(grams, axis=0)
+            grams, total, _ = self._fold_grams()
             self._grams = [total - g for g in grams]
             if self._gap is not None:
                 self._grams = [g - a.r.T @ a.r for g, a in zip(self._grams, self._gap_acc)]

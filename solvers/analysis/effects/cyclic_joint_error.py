@@ -245,13 +245,12 @@ class CyclicJointError(Cause):
                                        "folds": frozenset(k for k, p in enumerate(by_fold) if n in p)}))
             # the same cause as a smooth function of the angle, not a few sinusoids: the finest spline the
             # angles resolve, at each ridge weight (one slot; the variants share the first's columns)
-            counts = periodic_spline.knot_counts(bounds[j])
-            if not counts:
-                continue
-            offered, inside = periodic_spline.screen_nested(qj, projected[:, j], weight[:, j], folds, counts[0])
-            if not offered and not inside:
-                continue
-            for knots in counts:  # each count at each weight: one slot; a count's weights share its columns
+            for knots in periodic_spline.knot_counts(bounds[j]):
+                # each count offered where it lowers the joint's own held-out residual, at each weight: one slot
+                # for the joint; a count's weights share its columns
+                offered, inside = periodic_spline.screen_nested(qj, projected[:, j], weight[:, j], folds, knots)
+                if not offered and not inside:
+                    continue
                 basis = JointBasis.of_angle(qj, partial(periodic_spline.basis, knots=knots), j, nj, knots)
                 names = tuple(f"k{j + 1}_{i}" for i in range(knots))
                 first, rough = None, periodic_spline.roughness(knots)

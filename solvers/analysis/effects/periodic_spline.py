@@ -44,6 +44,8 @@ MAX_KNOTS = KNOTS[-1]  # 2.8 deg apart: finer than the cyclic content measured o
 # the ridge weights a spline is offered at, relative to its mean squared column length (module docstring):
 # from a coefficient the rows see 1e5 times less than the average one (barely shrunk) to 10 times less
 SMOOTHING = (1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0)
+SCREEN_GAIN = 0.07  # the search's GAIN (``selection.GAIN``: a test holds them equal), which a spline must reach
+#                     on its joint's own problem to be offered (``screen``)
 
 
 def knot_counts(order_bound: int) -> tuple[int, ...]:
@@ -55,7 +57,8 @@ def knot_counts(order_bound: int) -> tuple[int, ...]:
 
 
 def _fold_normals(qj, projected, weight, folds, knots, block_rows: int = 8192):
-    """Per fold: B^T W B and B^T s over its rows, a block of rows at a time."""
+    """Per fold: B^T W B and B^T s over its rows, a block of rows at a time, and the residual sum of squares
+    of the joint's problem with no spline, s^2 / w."""
     ids = np.unique(folds)
     normal, rhs = np.zeros((len(ids), knots, knots)), np.zeros((len(ids), knots))
     index = np.searchsorted(ids, folds)
@@ -66,7 +69,9 @@ def _fold_normals(qj, projected, weight, folds, knots, block_rows: int = 8192):
             mine = index[rows] == k
             normal[k] += b[mine].T @ (b[mine] * weight[rows][mine, None])
             rhs[k] += b[mine].T @ projected[rows][mine]
-    return normal, rhs
+    moved = weight > 0.0
+    plain = np.bincount(index[moved], projected[moved] ** 2 / weight[moved], minlength=len(ids))
+    return normal, rhs, plain
 
 
 def roughness(knots: int) -> np.ndarray:
@@ -85,14 +90,20 @@ def _drop(train, train_rhs, held, held_rhs, lam, rough) -> float:
     return float(2.0 * c @ held_rhs - c @ held @ c)
 
 
+def _enough(drop: float, plain: float) -> bool:
+    """Does a held-out drop of the residual sum of squares from plain lower the rms by SCREEN_GAIN?"""
+    return drop > 0.0 and drop >= (1.0 - (1.0 - SCREEN_GAIN) ** 2) * plain
+
+
 def screen(qj: np.ndarray, projected: np.ndarray, weight: np.ndarray, folds: np.ndarray, knots: int) -> bool:
-    """Does the joint's spline lower its own problem's held-out residual at any ridge weight? The joint's own
-    problem: the geometric fit's residual along the joint's direction of effect (projected, weight as for
-    ``cyclic_joint_error.periodogram``), the other joints' errors part of its noise. A joint whose spline
-    lowers nothing there is not offered (a spline of many coefficients at every joint of a many-joint arm
-    costs the search what it cannot gain). The drop on a fold's rows needs only each fold's normal equations."""
+    """Does the joint's spline lower its own problem's held-out rms residual by SCREEN_GAIN at some weight? The
+    joint's own problem: the geometric fit's residual along the joint's direction of effect (projected, weight
+    as for ``cyclic_joint_error.periodogram``), the other joints' errors part of its noise. A spline that gains
+    less there is not offered: of all it can explain, the search would take it only for what it gains beside
+    the others, by the same GAIN; and a spline of many coefficients at every joint of a many-joint arm costs
+    the search what it cannot gain. The drop on a fold's rows needs only each fold's normal equations."""
     exclude = getattr(folds, "exclude", None)  # path data: rows each fold's training also leaves out
-    normal, rhs = _fold_normals(qj, projected, weight, folds, knots)
+    normal, rhs, plain = _fold_normals(qj, projected, weight, folds, knots)
     all_normal, all_rhs = normal.sum(axis=0), rhs.sum(axis=0)
     rough = roughness(knots)
     drop = np.zeros(len(SMOOTHING))
@@ -104,7 +115,7 @@ def screen(qj: np.ndarray, projected: np.ndarray, weight: np.ndarray, folds: np.
             train = train - b.T @ (b * weight[gap, None])
             train_rhs = train_rhs - b.T @ projected[gap]
         drop += [_drop(train, train_rhs, normal[k], rhs[k], lam, rough) for lam in SMOOTHING]
-    return bool(drop.max() > 0.0)
+    return _enough(float(drop.max()), float(plain.sum()))
 
 
 def screen_nested(qj: np.ndarray, projected: np.ndarray, weight: np.ndarray, folds: np.ndarray,
@@ -117,7 +128,7 @@ def screen_nested(qj: np.ndarray, projected: np.ndarray, weight: np.ndarray, fol
         inside = [k for k, (rows, sub) in enumerate(inner_fold_ids(folds, k) for k in range(len(ids)))
                   if screen(qj[rows], projected[rows], weight[rows], sub, knots)]
         return screen(qj, projected, weight, folds, knots), frozenset(inside)
-    normal, rhs = _fold_normals(qj, projected, weight, folds, knots)
+    normal, rhs, plain = _fold_normals(qj, projected, weight, folds, knots)
     all_normal, all_rhs = normal.sum(axis=0), rhs.sum(axis=0)
     rough = roughness(knots)
     n = len(ids)
@@ -129,8 +140,9 @@ def screen_nested(qj: np.ndarray, projected: np.ndarray, weight: np.ndarray, fol
             train = all_normal - normal[j] - (normal[k] if k < n else 0.0)
             train_rhs = all_rhs - rhs[j] - (rhs[k] if k < n else 0.0)
             drop[k] += [_drop(train, train_rhs, normal[j], rhs[j], lam, rough) for lam in SMOOTHING]
-    passed = drop.max(axis=1) > 0.0
-    return bool(passed[n]), frozenset(int(k) for k in np.flatnonzero(passed[:n]))
+    held = [plain.sum() - (plain[k] if k < n else 0.0) for k in range(n + 1)]  # what each held out, in all
+    passed = [_enough(float(d), float(h)) for d, h in zip(drop.max(axis=1), held)]
+    return passed[n], frozenset(k for k in range(n) if passed[k])
 
 
 def basis(qj: np.ndarray, knots: int) -> np.ndarray:
