@@ -16,7 +16,7 @@ from scipy.linalg import solve_triangular
 
 from cellcal.solvers.estimation import identifiability, lsq
 from cellcal.solvers.analysis.effects import JointBasis, Term
-from cellcal.solvers.analysis.effects.base import part_penalty, ridged_parts
+from cellcal.solvers.analysis.effects.base import part_penalty, penalised_parts
 from cellcal.solvers.estimation.fit_result import FitResult, from_solver
 from cellcal.solvers.identification.measurement_model import Layout, Observations, jacobian, predict
 
@@ -253,7 +253,7 @@ def _penalties(terms, n_free: int, squared_lengths: np.ndarray, estimated: np.nd
     n = len(squared_lengths)
     out, col = np.zeros((n, n)), n_free
     for t in terms:
-        for part, lam in ridged_parts((t,)):
+        for part, lam in penalised_parts((t,)):
             at = col + np.flatnonzero(np.isin(t.names, part.names))
             kept = np.flatnonzero(estimated[at])
             out[np.ix_(at[kept], at[kept])] += part_penalty(part, lam, squared_lengths[at[kept]], kept)

@@ -7,7 +7,7 @@ import numpy as np
 
 from cellcal.solvers.estimation import crossval, identifiability
 from cellcal.solvers.analysis.effects import Term
-from cellcal.solvers.analysis.effects.base import part_penalty, ridged_parts
+from cellcal.solvers.analysis.effects.base import part_penalty, penalised_parts
 from cellcal.solvers.analysis.extended_model import embed, norm_scale, param_columns, stack_param_bases
 from cellcal.solvers.identification.identify import Identification
 from cellcal.solvers.identification.measurement_model import Layout, Observations, jacobian_chunks
@@ -38,7 +38,7 @@ class LinearisedScorer:
         # with the geometry in every fold and eliminated (crossval.PointFoldFactors)
         self._points = getattr(geometric_fit, "point_jacobian", None)  # point_analysis.PointGeometry
         self.n_geometry = int(geometric_fit.free.sum())
-        # a term with extra["columns_of"] (a spline at another ridge weight) shares that term's columns
+        # a term with extra["columns_of"] (a spline at another penalty weight) shares that term's columns
         self.terms = [t for t in terms if "columns_of" not in t.extra]
         self._at: dict[int, slice] = {}
         col = self.n_geometry
@@ -125,9 +125,10 @@ class LinearisedScorer:
 
     def steps(self, terms: tuple[Term, ...]) -> np.ndarray:
         """(1, folds, p) each fold's step with geometry and these terms, for ``heldout_errors_of_steps``.
-        Terms with a ridge (``base.ridged_parts``) are stepped as the search scores them (``search_step``)."""
+        Terms with a penalty of their own (``base.penalised_parts``) are stepped as the search scores them
+        (``search_step``)."""
         cols = self.estimated(tuple(terms))
-        if not ridged_parts(terms):
+        if not penalised_parts(terms):
             return self.factors.steps(cols)
         out = np.zeros((1, len(self.factors.ids), self.factors.p))
         for k in range(len(self.factors.ids)):
@@ -140,7 +141,7 @@ class LinearisedScorer:
         """(..., len(cols), len(cols)) the penalties of these terms' parts on the columns cols
         (``base.part_penalty`` of the normal matrices' diagonals over cols, (..., len(cols))), or None when no
         part carries one."""
-        parts = ridged_parts(terms)
+        parts = penalised_parts(terms)
         if not parts:
             return None
         diagonal = np.asarray(diagonal, dtype=float)

@@ -54,7 +54,7 @@ import numpy as np
 
 from cellcal.solvers.geometry.chain import forward
 from cellcal.solvers.analysis.effects import CAUSES
-from cellcal.solvers.analysis.effects.base import ridged_parts
+from cellcal.solvers.analysis.effects.base import penalised_parts
 from cellcal.solvers.analysis.linearised_scorer import search_step
 
 CLASSES = {
@@ -190,7 +190,7 @@ def linearised_size(scorer, term, stacked=None) -> dict:
     factors = scorer.factors.factors if stacked is None else stacked
     # the R factors of [J | r] of the folds, one under the other: the same normal equations as all rows
     a, b = np.vstack([f[:, cols] for f in factors]), np.concatenate([f[:, scorer.n_columns] for f in factors])
-    if ridged_parts((term,)):  # with its own ridge (a spline's), as every fit of it is made
+    if penalised_parts((term,)):  # with its own ridge (a spline's), as every fit of it is made
         normal = a.T @ a
         coef = -search_step(normal, a.T @ b, scorer.penalty((term,), cols, np.diagonal(normal)))
     else:

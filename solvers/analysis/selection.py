@@ -7,9 +7,10 @@ lowest held-out error, then add, one at a time, the place that lowers it most, a
 best addition lowers it by less than GAIN. Richer places (a joint's spline: a whole periodic
 function of one angle) join a second combination, grown the same way from the best place of all;
 it is taken when it lowers the held-out rms by GAIN below the plain one (``forward``). Places that
-share a ``slot`` (a joint's spline at its different ridge weights) never combine. The same search and the same stopping rule for
-every cause. Combinations across causes (a second effect) are searched the same way, with the
-first effect in the model (``base``).
+share a ``slot`` (a joint's spline at its different knot counts and penalty weights) never combine.
+The same search and the same stopping rule for every cause. Combinations across causes (a second
+effect) are searched the same way, with the first effect in the model (``base``; where it was
+itself chosen inside the folds, each fold's own choice: ``select``'s fold_bases).
 
 GAIN is a parsimony rule, not the guard against false alarms (that is the nested score and the
 naming rule's 10 % over geometry alone). An effect spread over many places, periodic errors of

@@ -188,11 +188,11 @@ class Term:
         return f"{self.cause} ({where})" if where else self.cause
 
 
-def ridged_parts(terms) -> list[tuple["Term", float]]:
+def penalised_parts(terms) -> list[tuple["Term", float]]:
     """(part, lam) of every part of these terms (a combined term's ``extra["parts"]``) that carries a penalty
-    of its own (``extra["ridge"]``: a periodic spline, ``periodic_spline``), in the terms' order."""
-    return [(part, float(part.extra["ridge"])) for t in terms for part in t.extra.get("parts", (t,))
-            if "ridge" in part.extra]
+    of its own (``extra["penalty_weight"]``: a periodic spline, ``periodic_spline``), in the terms' order."""
+    return [(part, float(part.extra["penalty_weight"])) for t in terms for part in t.extra.get("parts", (t,))
+            if "penalty_weight" in part.extra]
 
 
 def part_penalty(part: "Term", lam: float, diagonal: np.ndarray, kept: np.ndarray) -> np.ndarray:

@@ -206,9 +206,9 @@ class CyclicJointError(Cause):
     id = "cyclic_joint_error"
 
     def terms(self, model, layout, x, obs, ctx):
-        """The strongest orders of every joint that moves enough, one term each, and its spline at each ridge
-        weight (``periodic_spline``); the orders picked, and the spline offered or not, on every row and again on
-        each fold's training rows alone (the analysis' nested selection chooses among a fold's own picks:
+        """The strongest orders of every joint that moves enough, one term each, and its spline at each knot count
+        and penalty weight (``periodic_spline``); the orders picked, and each count offered or not, on every row
+        and again on each fold's training rows alone (the analysis' nested selection chooses among a fold's own picks:
         ``extra["all"]``, ``extra["folds"]``)."""
         nj = model.n_joints
         bounds = [order_bound(obs.q[:, j]) for j in range(nj)]
@@ -244,7 +244,7 @@ class CyclicJointError(Cause):
                                 extra={"part": True, "all": n in picked,
                                        "folds": frozenset(k for k, p in enumerate(by_fold) if n in p)}))
             # the same cause as a smooth function of the angle, not a few sinusoids: the finest spline the
-            # angles resolve, at each ridge weight (one slot; the variants share the first's columns)
+            # angles resolve and coarser ones, each at every penalty weight (periodic_spline)
             for knots in periodic_spline.knot_counts(bounds[j]):
                 # each count offered where it lowers the joint's own held-out residual, at each weight: one slot
                 # for the joint; a count's weights share its columns
@@ -257,7 +257,7 @@ class CyclicJointError(Cause):
                 for lam in periodic_spline.SMOOTHING:
                     spline = Term(self.id, {"joint": j + 1, "spline_knots": knots}, names, joint_basis=basis,
                                   units=("rad",) * knots,
-                                  extra={"spline": True, "slot": ("spline", j + 1), "ridge": lam,
+                                  extra={"spline": True, "slot": ("spline", j + 1), "penalty_weight": lam,
                                          "roughness": rough, "all": offered, "folds": inside,
                                          **({"columns_of": first} if first is not None else {})})
                     first = first or spline
@@ -270,7 +270,8 @@ class CyclicJointError(Cause):
         """Each (joint, order) combines with any other; a joint's spline is a richer place: the search
         also grows a combination that may hold splines (at several joints, and orders beside them) and
         takes it when it beats the orders' by the search's GAIN (``selection.forward``). A joint's splines
-        at its different ridge weights are alternatives (one ``slot``): a combination holds one of them at most.
+        at its different knot counts and penalty weights are alternatives (one ``slot``): a combination holds one
+        of them at most.
 
         A joint's spline once stood alone, never combined. On a measured UR10 (tracker, 1 495 and 11 911
         poses) the search's fold scores showed what that cost: the best spline (joint 2) left 0.344 and

@@ -2,33 +2,28 @@
 
 For errors that are periodic but not a few sinusoids (a worn tooth, an encoder's bump), the
 ``cyclic_joint_error`` cause offers, per joint, Delta q_j = sum_k c_k B_k(q_j) with K cubic
-B-splines on K knots evenly spaced over the turn (wrapping round at 2 pi). K is the finest count
-the joint's sampled angles resolve (``knots_for``: at most twice the joint's order bound, at most
-MAX_KNOTS); how much of it the data carry is set by a ridge on the coefficients, not by the count
-(penalised splines, Eilers and Marx, "Flexible smoothing with B-splines and penalties", with the
-zeroth-order penalty: where the rows thin out the function falls to "no effect" rather than
-carrying a trend beyond them, and coefficients the data cannot separate from the geometry, held
-at 0, leave the others' penalty as it was).
+B-splines on K knots evenly spaced over the turn (wrapping round at 2 pi), penalised (Eilers and
+Marx, "Flexible smoothing with B-splines and penalties"): a fit adds lam * m * |D c|^2, D the
+second differences of the coefficients round the turn (``roughness``), m the mean squared length
+of the spline's columns over the fit's rows (``base.part_penalty``). Where the rows are dense the
+data decide the shape; where they thin out (a knot interval at the edge of the angles a training
+holds, or inside a gap of them) the function is carried smoothly across instead of resting on one
+or two poses at the tail of a basis function.
 
-The ridge: a fit adds lam * m * |c|^2, m the mean squared length of the spline's columns over the
-fit's rows (``base.ridge_penalty``). A coefficient whose basis function the rows see as well as the
-average one is barely touched; one the rows see lam times less than that (a knot interval at the
-edge of the angles a training holds, or inside a gap of them) is held near 0 instead of stepping
-wild. lam is one of SMOOTHING, chosen where every data-driven choice is: by the analysis' forward
-search, on all rows and again inside each fold's training rows (a joint's spline at each lam is a
-place; the places of one joint share a slot and their columns).
+K and lam are chosen where every data-driven choice is: by the analysis' forward search, on all
+rows and again inside each fold's training rows. K is offered at the finest count the joint's
+sampled angles resolve and at a quarter and a sixteenth of it (``knot_counts``), each at every lam
+of SMOOTHING: each (K, lam) is a place, the places of one joint alternatives (one slot), a count's
+weights sharing its columns. A count is offered only where it lowers the held-out rms residual of
+the joint's own problem by SCREEN_GAIN at some weight (``screen``), decided on all rows and again on
+each fold's training rows.
 
-A joint's spline is offered to the search only where, at some weight, it lowers the held-out residual
-of the joint's own problem (``screen``), decided on all rows and again on each fold's training rows.
-
-Why. A spline whose knot count was chosen per joint, its coefficients unpenalised, was fitted in each
-fold as the search scored it; on a tracker-measured UR10 (1 495 poses) the held-out errors of the
-folds' choices were 0.196 mm mean against a median of 0.150: three poses (a straight elbow no
-training pose came within 12 deg of, a shoulder angle at the edge of its range) were predicted 23 to
-41 mm off, from coefficients the training determined by one or two poses at the tail of their basis
-function, and the folds, on fewer rows, chose coarser splines than all rows did. Penalised at the
-finest count, each fold choosing its own lam: 0.114 mm (0.078 on the 11 911-pose series). The content is
-fine: with the joints held at the three chosen there, 64 knots reached 0.143 mm and 32 knots 0.255.
+Why (measured in docs/causes.md). A spline whose knot count was chosen per joint, its coefficients
+free, was fitted in each fold as the search scored it; on a tracker-measured UR10 (1 495 poses)
+the held-out errors of the folds' choices were 0.196 mm mean against a median of 0.150: three poses
+(a straight elbow no training pose came within 12 deg of, a shoulder angle at the edge of its range)
+were predicted 23 to 41 mm off, and the folds, on fewer rows, chose coarser splines than all rows
+did. Penalised: 0.119 mm (0.078 on the 11 911-pose series).
 """
 from __future__ import annotations
 
@@ -38,11 +33,11 @@ import numpy as np
 
 from cellcal.solvers.estimation.crossval import _solve, inner_fold_ids
 
-# the knot counts a spline may have: the finest the joint's order bound allows is taken (``knots_for``)
+# the knot counts a spline may have (``knot_counts``); 128: 2.8 deg apart, finer than the cyclic content measured
+# on real arms (orders to ~40)
 KNOTS = (8, 12, 16, 24, 32, 48, 64, 96, 128)
-MAX_KNOTS = KNOTS[-1]  # 2.8 deg apart: finer than the cyclic content measured on real arms (orders to ~40)
-# the ridge weights a spline is offered at, relative to its mean squared column length (module docstring):
-# from a coefficient the rows see 1e5 times less than the average one (barely shrunk) to 10 times less
+# the penalty weights lam a spline is offered at (module docstring), relative to its mean squared column length:
+# from barely bending the data's shape to a function nearly as smooth as its count allows
 SMOOTHING = (1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0)
 SCREEN_GAIN = 0.07  # the search's GAIN (``selection.GAIN``: a test holds them equal), which a spline must reach
 #                     on its joint's own problem to be offered (``screen``)
