@@ -95,7 +95,7 @@ def run(args) -> int:
     else:
         print(identification_text(result, obs, val_obs, model.name, val_x))
     if args.write_model:
-        model_out.write_identified(args, model, result, len(cal), val_obs, obs)
+        model_out.write_identified(args, model, result, len(cal), val_obs, obs, None if val_x is None else val_x[0])
     return 0
 
 

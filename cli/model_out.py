@@ -11,6 +11,7 @@ import numpy as np
 from cellcal.config.model_files import covariance_record, write_calibrated
 from cellcal.solvers.compensation.calibrated_model import from_fit
 from cellcal.solvers.compensation.tool_map import fit_covariance, held_at_nominal
+from cellcal.solvers.identification.measurement_model import predict
 from cellcal.cli.common import UsageError, print_progress, writable_file
 
 
@@ -114,9 +115,13 @@ def add_argument(parser, analyze: bool = False) -> None:
                              "target's error bound (docs/programs.md)")
 
 
-def write_identified(args, model, result, rows: int, val_obs, obs=None) -> None:
-    """identify's result as a model file; held-out error from --validate, else from the CV curve."""
-    if val_obs is not None:
+def write_identified(args, model, result, rows: int, val_obs, obs=None, val_x=None) -> None:
+    """identify's result as a model file; held-out error from --validate (val_x: the calibrated x with the validation
+    rows' own frame and target offsets, --new-setup: the error printed), else from the CV curve."""
+    if val_obs is not None and val_x is not None:
+        heldout = float(np.linalg.norm(predict(result.layout, val_x, val_obs) - val_obs.xyz_mm, axis=1).mean())
+        how = f"validation rows ({len(val_obs)}), another setup: their frame and target offsets fitted on them"
+    elif val_obs is not None:
         heldout, how = float(result.errors(val_obs).mean()), f"validation rows ({len(val_obs)})"
     elif result.cv_curve:
         heldout = dict(result.cv_curve)[result.lam]

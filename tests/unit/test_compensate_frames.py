@@ -217,11 +217,15 @@ def test_the_default_frame_is_the_controllers_base(files, capsys):
     assert main(["compensate", "--robot", str(files / "cal.yaml"), "--targets", str(files / "base.csv"),
                  "-o", str(files / "default.csv")]) == 0
     assert "(base frame)" in capsys.readouterr().out
+    # the same targets told --frame base, made here (not another test's file: each test stands alone)
+    assert main(["compensate", "--robot", str(files / "cal.yaml"), "--targets", str(files / "base.csv"),
+                 "-o", str(files / "told-base.csv"), "--frame", "base"]) == 0
+    capsys.readouterr()
     def without_date(path):  # compensated_with names the run's date: the rest is the same to the byte
         rows = list(csv.DictReader(open(path)))
         return [{k: v for k, v in r.items() if k != "compensated_with"} for r in rows]
 
-    assert without_date(files / "default.csv") == without_date(files / "out-base.csv")
+    assert without_date(files / "default.csv") == without_date(files / "told-base.csv")
 
 
 def test_max_correction_deg_now_warns_and_compensates(files, capsys):

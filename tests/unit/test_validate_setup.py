@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import yaml
 import pytest
 
 from cellcal.cli.analyze import _context
@@ -76,6 +77,13 @@ def test_identify_fits_the_validation_rows_own_frame_only_when_told_they_are_ano
     # B's own frame and offset are the least-squares minimum of B's errors: its rms is at most the calibration's
     assert new["validate"]["rms_mm"] <= same["validate"]["rms_mm"] * (1 + 1e-9), (new["validate"], same["validate"])
     assert new["before"]["validate_mean_mm"] != same["before"]["validate_mean_mm"]  # the nominal model refit too
+    # a model file written with either records the held-out error that run printed, and how it was scored
+    for flag, printed in (("--same-setup", same), ("--new-setup", new)):
+        path = folder / f"model{flag}.yaml"
+        _json(capsys, "identify", "--robot", ROBOT, "--data", a, "--validate", b, flag, "--write-model", str(path))
+        heldout = yaml.safe_load(path.read_text())["calibration"]["heldout"]
+        assert heldout["mean_mm"] == pytest.approx(printed["validate"]["mean_mm"], rel=1e-9), flag
+        assert ("another setup" in heldout["how"]) == (flag == "--new-setup"), heldout["how"]
 
 
 @pytest.mark.parametrize("argv, words", [
