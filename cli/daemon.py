@@ -48,6 +48,8 @@ def cmd_daemon(args) -> int:
     # lock at that moment (inside stopping.wait), and setting it there would deadlock
     previous = {sig: signal.signal(sig, lambda *_: threading.Thread(target=stopping.set).start())
                 for sig in (signal.SIGTERM, signal.SIGINT)}
+    if cell.plant.mqtt is not None:  # finished runs queued for the broker with their end (Store.finish_run)
+        store.outbox_limit = cell.plant.mqtt.outbox_limit
     try:
         interrupted = store.mark_interrupted(int(ResultCode.INTERRUPTED))
         for run_id in interrupted:
@@ -79,6 +81,7 @@ def cmd_daemon(args) -> int:
             service.resume_owed_frame()
             service.announce_tool_blocks()
             page = _serve_status_page(cell, service, folder)
+            plant = _publish_to_plant(cell, service, folder)
             log.info("ready: cell %s, robot %s; the panel offers %s", cell.name, state.value,
                      ", ".join(f"{k} {v}" for k, v in service.routines.items()
                                if registry.unavailable(v, cell) is None))
@@ -95,6 +98,8 @@ def cmd_daemon(args) -> int:
                 service.wait(STOP_WAIT_S)  # the run's end, and its last words to the panel and the store
                 store.event("stop", None)
             finally:
+                for part in plant:
+                    part.stop()
                 if page is not None:
                     page.stop()
                 if service.drivers is not drivers:  # reconnected after a lost robot
@@ -133,6 +138,20 @@ def _serve_status_page(cell, service: Service, folder):
     if beyond is not None:
         log.warning("%s: anyone on that network can read it (read-only; status_page.host in %s)", beyond, cell.path)
     return server
+
+
+def _publish_to_plant(cell, service: Service, folder) -> list:
+    """The publishers of the cell file's ``plant`` section, started (none when it has none): the MQTT sender
+    (finished runs from the store's outbox, the state retained); each part that cannot start is said once and
+    left out, and the service runs on (the panel runs the cell, the plant only watches it)."""
+    parts = []
+    spec = cell.plant.mqtt
+    if spec is not None:
+        from cellcal.daemon.plant_mqtt import MqttPublisher  # only a daemon publishing needs paho
+
+        parts.append(MqttPublisher(spec, folder, cell.name, status=service.status).start())
+        log.info("plant: publishing to the MQTT broker %s:%d under %s", spec.host, spec.port, spec.topic)
+    return parts
 
 
 def add_parser(sub) -> None:

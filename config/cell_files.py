@@ -44,6 +44,13 @@ Sections (all lengths in metres, base frame unless said otherwise)::
     status_page: the daemon's read-only status page and JSON API: enabled (true), host
                 (127.0.0.1: loopback only), port (8037), max_connections (8), rate_per_s (20,
                 requests per second per client)
+    plant:      what the service publishes to the plant (off when absent; docs/plant.md):
+                mqtt {host, port (1883), topic, client_id (the cell's name), username,
+                password_file, tls {ca, cert, key}, keepalive_s (30), outbox_limit (10000)} and
+                opcua {endpoint (opc.tcp://HOST:PORT/PATH), security (none or
+                Basic256Sha256_SignAndEncrypt), certificate, private_key}. File paths are taken
+                from the cell file's folder; every file must be there and readable, a password
+                file readable by its owner alone; a password written in the cell file is refused
     sim_truth:  what a simulated cell really has (see :class:`SimTruthSpec`); real cells
                 have none. Its tool_tcp_m / tool_axis state tool 1's real frame; every other
                 tool of a table is drawn, from the seed and its id
@@ -60,8 +67,9 @@ from pathlib import Path
 import numpy as np
 
 from cellcal.config.cells import (CELL_SECTIONS, DEVICE_KINDS, PLAUSIBLE_DEG, PLAUSIBLE_MM, TOOL_IDS, Bands,
-                                  BeamSpec, Cell, CellFileError, DriverSpec, MountedSource, RobotSpec,
-                                  SimTruthSpec, StatusPageSpec, ToolSpec, merged_sections, tool_blocks)
+                                  BeamSpec, Cell, CellFileError, DriverSpec, MountedSource, MqttSpec, OpcuaSpec,
+                                  PlantSpec, RobotSpec, SimTruthSpec, StatusPageSpec, ToolSpec, merged_sections,
+                                  tool_blocks)
 from cellcal.config.reader import Section, read_yaml, resolve, shipped
 from cellcal.config.robot_files import ModelError, load_robot
 
@@ -93,6 +101,86 @@ def _read_status_page(top: Section) -> StatusPageSpec:
 
 
 WILDCARD_HOSTS = ("0.0.0.0", "::", "")
+OPCUA_SECURITY = ("none", "Basic256Sha256_SignAndEncrypt")
+_TOPIC_BAD = ("+", "#", "\0")  # MQTT wildcards and NUL: a topic to publish under holds none
+
+
+def _plant_file(s: Section, key: str, cell_path: Path, *, private: bool = False) -> str | None:
+    """An absolute path from a file name in ``plant:`` (relative: to the cell file's folder), or None when
+    the key is absent; the file must be there and readable (private: by its owner alone)."""
+    if key not in s:
+        return None
+    path = Path(s.text(key, required=True))
+    path = path if path.is_absolute() else cell_path.parent / path
+    if not path.is_file():
+        s.fail(key, f"{path}: no such file")
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as exc:
+        s.fail(key, f"{path}: cannot be read ({exc.strerror or exc})")
+    if private and path.stat().st_mode & 0o077:
+        s.fail(key, f"{path}: readable by others than its owner (mode {path.stat().st_mode & 0o777:o}); a secret "
+                    f"goes in a file only the service user can read: chmod 600 {path}")
+    return str(path.resolve())
+
+
+def _read_plant(top: Section, cell_name: str, cell_path: Path) -> PlantSpec:
+    """``plant:``: the MQTT broker and the OPC UA server the service publishes to (each off when absent)."""
+    plant = top.section("plant")
+    plant.expect(("mqtt", "opcua"))
+    mqtt = opcua = None
+    if "mqtt" in plant:
+        s = plant.section("mqtt")
+        if "password" in s:
+            s.fail("password", "a password is not written in the cell file: put it in a file only the service user "
+                               "can read (chmod 600) and give its path as password_file")
+        s.expect(("host", "port", "topic", "client_id", "username", "password_file", "tls", "keepalive_s",
+                  "outbox_limit"), required=("host", "topic"))
+        topic = s.text("topic", required=True).strip()
+        if not topic or topic.startswith("/") or topic.endswith("/") or len(topic) > 200 or any(
+                c in topic for c in _TOPIC_BAD):
+            s.fail("topic", f"{topic!r} is no topic to publish under: levels separated by '/', no leading or "
+                            "trailing '/', no wildcard ('+', '#'), at most 200 characters")
+        client_id = s.text("client_id", cell_name).strip()
+        if not client_id or len(client_id) > 64:
+            s.fail("client_id", "1 to 64 characters")
+        username = s.text("username") if "username" in s else None
+        password_file = _plant_file(s, "password_file", cell_path, private=True)
+        if password_file is not None and username is None:
+            s.fail("password_file", "a password needs a username: give username as well")
+        tls = {"ca": None, "cert": None, "key": None}
+        if "tls" in s:
+            t = s.section("tls")
+            t.expect(("ca", "cert", "key"))
+            tls = {key: _plant_file(t, key, cell_path, private=key == "key") for key in tls}
+            if (tls["cert"] is None) != (tls["key"] is None):
+                t.fail("cert" if tls["cert"] is None else "key", "a client certificate needs its key, and the key "
+                                                                  "its certificate: give cert and key together")
+            t.done()
+        mqtt = MqttSpec(host=s.text("host", required=True), topic=topic, client_id=client_id,
+                        port=s.integer("port", 1883, low=1, high=65535), username=username,
+                        password_file=password_file, tls_ca=tls["ca"], tls_cert=tls["cert"], tls_key=tls["key"],
+                        keepalive_s=s.integer("keepalive_s", 30, low=5, high=3600),
+                        outbox_limit=s.integer("outbox_limit", 10000, low=1, high=1000000))
+        s.done()
+    if "opcua" in plant:
+        s = plant.section("opcua")
+        s.expect(("endpoint", "security", "certificate", "private_key"), required=("endpoint",))
+        endpoint = s.text("endpoint", required=True)
+        rest = endpoint[len("opc.tcp://"):] if endpoint.startswith("opc.tcp://") else None
+        host, _, port = (rest or "").split("/", 1)[0].rpartition(":")
+        if rest is None or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+            s.fail("endpoint", f"{endpoint!r}: expected opc.tcp://HOST:PORT/PATH")
+        security = s.choice("security", OPCUA_SECURITY, "none")
+        certificate = _plant_file(s, "certificate", cell_path)
+        private_key = _plant_file(s, "private_key", cell_path, private=True)
+        if security != "none" and (certificate is None or private_key is None):
+            s.fail("certificate" if certificate is None else "private_key",
+                   f"security {security} needs the server's certificate and private_key")
+        opcua = OpcuaSpec(endpoint=endpoint, security=security, certificate=certificate, private_key=private_key)
+        s.done()
+    return PlantSpec(mqtt=mqtt, opcua=opcua)
 
 
 def _check_status_port(top: Section, page: StatusPageSpec, drivers: dict) -> None:
@@ -374,8 +462,9 @@ def read_cell(name_or_path: str | Path, routine_sections: Iterable[str] | None =
     a = robots["a"]
     status_page = _read_status_page(top)
     _check_status_port(top, status_page, drivers)
+    plant = _read_plant(top, name, path) if "plant" in doc else PlantSpec()
     return Cell(where, name, a.robot, a.home_q_rad, drivers, low, high, limits, tool, beams, stylus,
-                pivot, truth, merged_sections(routines, tool), robots, tools, routines, mounted, status_page)
+                pivot, truth, merged_sections(routines, tool), robots, tools, routines, mounted, status_page, plant)
 
 
 def _read_tool_table(top: Section, doc: dict, routine_sections) -> tuple[dict[int, ToolSpec], ToolSpec | None]:

@@ -17,7 +17,7 @@ from cellcal.config.reader import ConfigError, Section
 DEVICE_KINDS = ("robot", "trigger", "tracker", "panel")
 # the cell file's own sections; every other one is a routine's
 CELL_SECTIONS = frozenset({"cell", "drivers", "robots", "workspace", "limits", "tool", "tools", "mounted", "beams",
-                           "stylus", "pivot", "sim_truth", "status_page"})
+                           "stylus", "pivot", "sim_truth", "status_page", "plant"})
 TOOL_IDS = (1, 255)  # a tool table's ids (the panel's tool register holds one)
 
 
@@ -135,6 +135,43 @@ class StatusPageSpec:
 
 
 @dataclass(frozen=True)
+class MqttSpec:
+    """Where the service publishes to the plant's MQTT broker (``plant: mqtt:``): the broker, the cell's
+    topic (``TOPIC/state``, retained, and ``TOPIC/runs/<run id>``), and the credentials and TLS files
+    (absolute paths; a password only in a file readable by the service user alone)."""
+
+    host: str
+    topic: str
+    client_id: str
+    port: int = 1883
+    username: str | None = None
+    password_file: str | None = None
+    tls_ca: str | None = None
+    tls_cert: str | None = None
+    tls_key: str | None = None
+    keepalive_s: int = 30
+    outbox_limit: int = 10000  # finished runs kept for the broker, oldest dropped from the outbox beyond
+
+
+@dataclass(frozen=True)
+class OpcuaSpec:
+    """The service's read-only OPC UA server (``plant: opcua:``)."""
+
+    endpoint: str
+    security: str = "none"  # or "Basic256Sha256_SignAndEncrypt"
+    certificate: str | None = None
+    private_key: str | None = None
+
+
+@dataclass(frozen=True)
+class PlantSpec:
+    """What the service publishes to the plant (``plant:``); each part off when absent."""
+
+    mqtt: MqttSpec | None = None
+    opcua: OpcuaSpec | None = None
+
+
+@dataclass(frozen=True)
 class MountedSource:
     """Where the service learns which tool of the table is on the flange: ``file`` (``tool``,
     fixed by the cell file's ``mounted``), ``panel`` (the panel's mounted-tool register, written
@@ -176,6 +213,7 @@ class Cell:
     file_routines: dict = field(default_factory=dict)  # the routine sections as written, no tool's merged in
     mounted_source: "MountedSource" = None  # where the service learns which tool is mounted
     status_page: StatusPageSpec = field(default_factory=StatusPageSpec)  # the daemon's read-only page and API
+    plant: PlantSpec = field(default_factory=PlantSpec)  # what the service publishes to the plant (off: none)
 
     def __post_init__(self):
         if self.mounted_source is None:

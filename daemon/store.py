@@ -220,11 +220,47 @@ class Store:
             db.execute("UPDATE runs SET report_path = ? WHERE id = ?", (report_path, run_id))
 
     def finish_run(self, run_id: int, state: str, result_code: int, reason: str | None = None) -> None:
+        """The run's end; with an outbox (``outbox_limit``), the run queued for the plant in the same transaction."""
         now = time.time()
         with self._tx() as db:
             db.execute("UPDATE runs SET state = ?, result_code = ?, reason = ?, finished_at = ? WHERE id = ?",
                        (state, result_code, reason, now, run_id))
             db.execute("INSERT INTO states VALUES (?, ?, ?, ?)", (run_id, now, state, reason))
+            if self.outbox_limit:
+                self._queue(db, run_id, now)
+
+    # -- the plant's outbox (daemon/plant_mqtt.py) ------------------------------------------
+
+    outbox_limit: int | None = None  # set when the cell publishes to a broker: finished runs are queued, this many
+
+    def _queue(self, db, run_id: int, now: float) -> None:
+        """Queue a finished run (once: a run id has one row), and leave the oldest unpublished beyond the limit."""
+        db.execute("INSERT OR IGNORE INTO outbox (run_id, queued_at) VALUES (?, ?)", (run_id, now))
+        over = db.execute("SELECT COUNT(*) FROM outbox WHERE sent_at IS NULL AND dropped_at IS NULL").fetchone()[0] \
+            - int(self.outbox_limit)
+        if over > 0:
+            db.execute("UPDATE outbox SET dropped_at = ? WHERE seq IN (SELECT seq FROM outbox WHERE sent_at IS NULL "
+                       "AND dropped_at IS NULL ORDER BY seq LIMIT ?)", (now, over))
+
+    def pending(self, limit: int = 100) -> list[tuple[int, int]]:
+        """(seq, run id) of the runs queued and not yet delivered, oldest first, at most `limit`."""
+        return [(int(a), int(b)) for a, b in self.db.execute(
+            "SELECT seq, run_id FROM outbox WHERE sent_at IS NULL AND dropped_at IS NULL ORDER BY seq LIMIT ?",
+            (int(limit),))]
+
+    def delivered(self, seqs) -> None:
+        """Mark queued runs sent (the broker acknowledged them)."""
+        now = time.time()
+        with self._tx() as db:
+            db.executemany("UPDATE outbox SET sent_at = ? WHERE seq = ? AND sent_at IS NULL",
+                           [(now, int(s)) for s in seqs])
+
+    def outbox_counts(self) -> dict:
+        """{"pending", "sent", "dropped"}: the outbox's runs by what became of them."""
+        row = self.db.execute("SELECT COALESCE(SUM(sent_at IS NULL AND dropped_at IS NULL), 0), "
+                              "COALESCE(SUM(sent_at IS NOT NULL), 0), COALESCE(SUM(dropped_at IS NOT NULL), 0) "
+                              "FROM outbox").fetchone()
+        return {"pending": int(row[0]), "sent": int(row[1]), "dropped": int(row[2])}
 
     def record_frame_before(self, run_id: int, frame) -> None:
         with self._tx() as db:

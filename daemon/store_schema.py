@@ -122,6 +122,19 @@ MIGRATIONS = (
         CASE json_type(result_json, '$.verdict') WHEN 'text' THEN json_extract(result_json, '$.verdict') END END
         WHERE result_json IS NOT NULL;
     """,
+    # 10: the plant's outbox (docs/plant.md): a finished run queued for the MQTT broker in the transaction that
+    # finishes it, delivered in seq order and marked sent on the broker's acknowledgement; one row a run at most;
+    # dropped_at: left unpublished when the outbox was full (the run itself stays in runs)
+    """
+    CREATE TABLE outbox (
+        seq INTEGER PRIMARY KEY AUTOINCREMENT,
+        run_id INTEGER NOT NULL UNIQUE REFERENCES runs(id),
+        queued_at REAL NOT NULL,
+        sent_at REAL,
+        dropped_at REAL
+    );
+    CREATE INDEX outbox_pending ON outbox(seq) WHERE sent_at IS NULL AND dropped_at IS NULL;
+    """,
 )
 
 SCHEMA_VERSION = len(MIGRATIONS)

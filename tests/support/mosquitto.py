@@ -1,0 +1,121 @@
+"""A real Mosquitto broker for the plant tests: Debian's ``mosquitto`` package, started on a free loopback port
+with a configuration of the test's own (``make test`` installs the package when root; elsewhere the tests skip
+and say what is missing)."""
+from __future__ import annotations
+
+import getpass
+import json
+import shutil
+import socket
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import paho.mqtt.client as mqtt
+import pytest
+
+
+def mosquitto_or_skip() -> str:
+    path = shutil.which("mosquitto") or ("/usr/sbin/mosquitto" if Path("/usr/sbin/mosquitto").exists() else None)
+    if path is None:
+        pytest.skip("no `mosquitto`: the plant tests need Debian's mosquitto package "
+                    "(`apt-get install --no-install-recommends mosquitto`, which `make test` does as root)")
+    return path
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Broker:
+    """One broker process on 127.0.0.1:port; ``stop`` and ``start`` again keep the port and the persistence file
+    (a broker restarted), ``users`` {name: password} turns anonymous access off."""
+
+    def __init__(self, folder: Path, users: dict | None = None):
+        self.exe = mosquitto_or_skip()
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.port = free_port()
+        # run as this user (started as root, mosquitto would turn into user "mosquitto", who cannot read the
+        # test's private folder)
+        lines = [f"listener {self.port} 127.0.0.1", f"user {getpass.getuser()}", "persistence true",
+                 f"persistence_location {self.folder}/", "autosave_interval 1", "max_queued_messages 100000",
+                 "log_dest none"]
+        if users:
+            passwd = self.folder / "passwd"
+            passwd.write_text("")
+            for name, password in users.items():
+                subprocess.run([shutil.which("mosquitto_passwd") or "mosquitto_passwd", "-b", str(passwd), name,
+                                password], check=True, capture_output=True)
+            lines += ["allow_anonymous false", f"password_file {passwd}"]
+        else:
+            lines += ["allow_anonymous true"]
+        self.conf = self.folder / "mosquitto.conf"
+        self.conf.write_text("\n".join(lines) + "\n")
+        self.process: subprocess.Popen | None = None
+
+    def start(self, timeout_s: float = 10.0) -> "Broker":
+        self.process = subprocess.Popen([self.exe, "-c", str(self.conf)], stdout=subprocess.DEVNULL,
+                                        stderr=subprocess.PIPE)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"mosquitto exited: {self.process.stderr.read().decode(errors='replace')}")
+            try:
+                with socket.create_connection(("127.0.0.1", self.port), timeout=0.2):
+                    return self
+            except OSError:
+                time.sleep(0.05)
+        raise RuntimeError(f"mosquitto did not listen on {self.port} within {timeout_s} s")
+
+    def stop(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(10)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self.process = None
+
+
+class Subscriber:
+    """A plant consumer: a persistent session (the broker keeps its messages while it is away), QoS 1."""
+
+    def __init__(self, port: int, topic: str, name: str = "consumer"):
+        self.topic = topic
+        self.messages: list[tuple[str, dict]] = []
+        self.lock = threading.Lock()
+        self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=name, clean_session=False)
+        self.client.on_connect = lambda c, u, f, rc, p=None: c.subscribe(topic + "/#", qos=1)
+        self.client.on_message = self._on_message
+        self.client.reconnect_delay_set(1, 2)
+        self.client.connect("127.0.0.1", port)
+        self.client.loop_start()
+
+    def _on_message(self, client, userdata, msg) -> None:
+        with self.lock:
+            self.messages.append((msg.topic, json.loads(msg.payload)))
+
+    def runs(self) -> list[dict]:
+        with self.lock:
+            return [doc for topic, doc in self.messages if "/runs/" in topic]
+
+    def states(self) -> list[dict]:
+        with self.lock:
+            return [doc for topic, doc in self.messages if topic == self.topic + "/state"]
+
+    def wait(self, until, timeout_s: float = 20.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if until():
+                return
+            time.sleep(0.05)
+        raise AssertionError(f"not within {timeout_s} s: runs {[r['id'] for r in self.runs()]}")
+
+    def close(self) -> None:
+        self.client.disconnect()
+        self.client.loop_stop()
