@@ -10,7 +10,7 @@ LOCK := requirements.lock
 # exist, and pip warns about each one on every call; a failing install still says why.
 PIP := $(BIN)/python -m pip -qq
 
-.PHONY: demo demo-identify test test-fast bench wheel lock clean chromium
+.PHONY: demo demo-identify test test-fast bench wheel lock clean chromium mosquitto
 
 $(STAMP): pyproject.toml $(LOCK)
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -30,7 +30,7 @@ demo-identify: $(STAMP)
 # in one worker): the end-to-end cases run the networked fakes on a clock 3x the wall's
 # (tests/support/daemon_harness.py), the in-process cell as fast as it computes; the slowest
 # cases are listed at the end (the suite is to stay under 6 minutes on 2 cores)
-test: $(STAMP) chromium
+test: $(STAMP) chromium mosquitto
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15
 
 # Debian's headless-capable Chromium for the status page's browser test
@@ -48,6 +48,22 @@ chromium:
 	    echo "chromium could not be installed (apt-get failed): the browser test will skip"; \
 	  else \
 	    echo "chromium is not installed (needs root and apt-get to install it): the browser test will skip"; \
+	  fi; }
+
+# Debian's Mosquitto for the plant tests (tests/e2e/test_plant_*.py: a real MQTT broker, started by the
+# tests on a loopback port with their own configuration), installed as chromium is; where it cannot be,
+# those tests skip and say what is missing. The package's own broker service, where one starts, is not used.
+mosquitto:
+	@command -v mosquitto >/dev/null 2>&1 || test -x /usr/sbin/mosquitto || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	    echo "installing Debian's mosquitto for the plant tests (apt-get)"; \
+	    export DEBIAN_FRONTEND=noninteractive; \
+	    { apt-get install -y -qq --no-install-recommends mosquitto >/dev/null 2>&1 || \
+	      { apt-get update -qq >/dev/null 2>&1 && \
+	        apt-get install -y -qq --no-install-recommends mosquitto >/dev/null 2>&1; }; } || \
+	    echo "mosquitto could not be installed (apt-get failed): the plant tests will skip"; \
+	  else \
+	    echo "mosquitto is not installed (needs root and apt-get to install it): the plant tests will skip"; \
 	  fi; }
 
 test-fast: $(STAMP)

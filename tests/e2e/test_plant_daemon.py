@@ -1,0 +1,64 @@
+"""The chain to the plant: ``cellcal daemon`` on the networked simulated cell, its cell file publishing to a real
+Mosquitto, runs started from the panel; a plant consumer receives each finished run (what the JSON API serves
+for it) and the service's state, and a broker that goes away meanwhile loses nothing."""
+from __future__ import annotations
+
+import time
+
+from support.daemon_harness import SUITE_TIME_SCALE, Daemon, Net, one_run, short_cell
+from support.cell_edits import edited_cell
+from support.mosquitto import Broker, Subscriber
+
+TOPIC = "plant/line1/sim-net"
+
+
+def _publishing_cell(port: int):
+    def cell_file(folder, host):
+        path = short_cell(folder, host)
+        return edited_cell(folder, path, {"plant": {"mqtt": {"host": "127.0.0.1", "port": port, "topic": TOPIC,
+                                                             "keepalive_s": 5}}},
+                           name="sim-net-plant.yaml")
+    return cell_file
+
+
+def test_the_daemon_publishes_every_finished_run_and_its_state_through_a_broker_that_goes_away(tmp_path):
+    broker = Broker(tmp_path / "broker").start()
+    consumer = Subscriber(broker.port, TOPIC)
+    net = Net(tmp_path, cell_file=_publishing_cell(broker.port), time_scale=SUITE_TIME_SCALE)
+    daemon = None
+    try:
+        daemon = Daemon(net, tmp_path)
+        one_run(net, "complete")
+        consumer.wait(lambda: len(consumer.runs()) >= 1, timeout_s=30.0)
+        broker.stop()  # the plant's network away: the next runs wait in the outbox
+        one_run(net, "refused")
+        one_run(net, "aborted")
+        broker.start()
+        consumer.wait(lambda: {r["id"] for r in consumer.runs()} >= {1, 2, 3}, timeout_s=60.0)
+        first = {}
+        for r in consumer.runs():  # repeats of (topic, run id) dropped, as a consumer does
+            first.setdefault((r["topic"], r["id"]), r)
+        runs = [first[(TOPIC, i)] for i in (1, 2, 3)]
+        # each what `cellcal runs show` reads from the store for it: one store, one serializer
+        for r in runs:
+            shown = daemon.cli("runs", "show", str(r["id"]))
+            assert (r["state"], r["result_code"]) == (shown["state"], shown["result_code"]), (r, shown)
+        # the harness' short tcp-laser reaches its solve and fails its gates (too few poses), the next is refused
+        # (a selector no routine has), the last aborted: none wrote a frame
+        assert [r["state"] for r in runs] == ["fault", "refused", "aborted"], [(r["state"], r["reason"]) for r in runs]
+        assert not any(r["written_back"] for r in runs)
+        # the state: online, and idle after the last run (the retained copy is the newest)
+        consumer.wait(lambda: consumer.states() and consumer.states()[-1]["state"] == "idle", timeout_s=20.0)
+        assert consumer.states()[-1]["online"] is True
+        assert consumer.states()[-1]["outbox"] == {"pending": 0, "sent": 3, "dropped": 0}
+        assert daemon.stop() == 0
+        daemon = None
+        # a clean stop says offline itself (retained)
+        consumer.wait(lambda: consumer.states()[-1]["online"] is False, timeout_s=20.0)
+    finally:
+        if daemon is not None:
+            daemon.stop()
+        net.close()
+        consumer.close()
+        broker.stop()
+        time.sleep(0)
