@@ -35,6 +35,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "runs": ("cellcal.cli.runs", "the runs recorded in the store"),
     "tool": ("cellcal.cli.tool", "tool frames written to the controller"),
     "service": ("cellcal.cli.service", "install the daemon as a systemd service on this machine"),
+    "plant": ("cellcal.cli.plant", "the cells publishing to one MQTT broker: their state and last result"),
     "demo": ("cellcal.cli.sim.demo", "the whole product on the simulated network cell (make demo)"),
     "sim-campaign": ("cellcal.cli.sim.campaign", "simulated tracker campaign: plan, measure, identify, validate"),
     "sim-data": ("cellcal.cli.sim.data", "write a measurement CSV from the simulated cell, with hidden effects"),

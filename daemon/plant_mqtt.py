@@ -34,9 +34,9 @@ from pathlib import Path
 import paho.mqtt.client as mqtt
 
 from cellcal.config.cells import MqttSpec
-from cellcal.daemon.status_api import ReadOnlyStore, finite, run_detail
+from cellcal.daemon.status_api import ReadOnlyStore, finite, run_detail, run_summary
 from cellcal.daemon.store import Store, StoreError
-from cellcal.daemon.store_schema import STORE_FILE
+from cellcal.daemon.store_schema import RUN_COLUMNS, STORE_FILE, run_row
 
 log = logging.getLogger("cellcal.plant")
 
@@ -57,16 +57,28 @@ def run_message(store: ReadOnlyStore, run_id: int, state_dir, cell_name: str, to
     return {**doc, "cell_name": cell_name, "topic": topic, "published_at": time.time(), "schema": SCHEMA}
 
 
-def state_message(status: dict, cell_name: str, outbox: dict | None, online: bool = True) -> dict:
+def state_message(status: dict, cell_name: str, outbox: dict | None, online: bool = True,
+                  last_run: dict | None = None) -> dict:
     """``T/state``: what the status page's headline says (state, health, mounted tool, run under way, the
-    devices), whether the service is online, and what became of the outbox's runs."""
+    devices), whether the service is online, what became of the outbox's runs, and the last finished run's
+    summary (``status_api.run_summary``: a consumer that subscribes late sees the last result at once)."""
     status = status or {}
     health = status.get("health")
     return finite({"cell_name": cell_name, "online": online, "state": status.get("state"),
                    "health": health.get("level") if isinstance(health, dict) else health,
                    "mounted_tool": status.get("mounted_tool"), "run": status.get("run_id"),
-                   "devices": status.get("devices"), "outbox": outbox, "published_at": time.time(),
-                   "schema": STATE_SCHEMA})
+                   "devices": status.get("devices"), "outbox": outbox, "last_run": last_run,
+                   "published_at": time.time(), "schema": STATE_SCHEMA})
+
+
+def last_finished(store: ReadOnlyStore, state_dir) -> dict | None:
+    """The newest finished run's summary (what ``/api/v1/runs`` lists for it), None before any."""
+    row = store.db.execute(f"SELECT {RUN_COLUMNS} FROM runs WHERE finished_at IS NOT NULL "
+                           "ORDER BY id DESC LIMIT 1").fetchone()
+    if row is None:
+        return None
+    row = run_row(row)
+    return run_summary(row, store.written_runs([row.id]), state_dir)
 
 
 class MqttPublisher:
@@ -187,7 +199,7 @@ class MqttPublisher:
                     if store is None:
                         store = Store(self.state_dir / STORE_FILE, create=False)
                         reader = ReadOnlyStore(self.state_dir / STORE_FILE)
-                    self._publish_state(store)
+                    self._publish_state(store, reader)
                     while self._connected.is_set() and not self._stop.is_set() and self._deliver(store, reader):
                         pass
                 except StoreError as exc:
@@ -198,8 +210,9 @@ class MqttPublisher:
                 if s is not None:
                     s.close()
 
-    def _publish_state(self, store: Store) -> None:
-        doc = state_message(self.status(), self.cell_name, store.outbox_counts())
+    def _publish_state(self, store: Store, reader: ReadOnlyStore) -> None:
+        doc = state_message(self.status(), self.cell_name, store.outbox_counts(),
+                            last_run=last_finished(reader, self.state_dir))
         key = json.dumps({k: v for k, v in doc.items() if k != "published_at"}, sort_keys=True, default=str)
         if key == self._last_state:
             return

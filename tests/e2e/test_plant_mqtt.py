@@ -159,3 +159,42 @@ def test_refused_credentials_are_one_log_line_and_the_publisher_retries(tmp_path
     finally:
         publisher.stop()
         broker.stop()
+
+
+def test_cellcal_plant_shows_every_cell_on_one_broker(tmp_path, capsys):
+    # three cells, each its own store and sender, under one plant topic; `cellcal plant` subscribes to the lot
+    from support.cli_run import run_cli
+
+    broker = Broker(tmp_path / "broker").start()
+    consumer = Subscriber(broker.port, "plant")  # before the runs: run messages are not retained
+    cells, stores = [], []
+    try:
+        for k in range(3):
+            folder = tmp_path / f"cell{k}"
+            s = Store.open(folder)
+            s.outbox_limit = 100
+            stores.append(s)
+            spec = MqttSpec(host="127.0.0.1", port=broker.port, topic=f"plant/line1/cell{k}", client_id=f"cell{k}")
+            cells.append(MqttPublisher(spec, folder, f"cell{k}", status=lambda k=k: {
+                "state": "idle", "health": {"level": "ok"}, "mounted_tool": {"id": k + 1}}).start())
+            _finish(s, k + 1)  # cell k has finished k + 1 runs
+        consumer.wait(lambda: len(consumer.runs()) >= 6)
+        code, out, err = run_cli(capsys, "plant", "--mqtt", f"127.0.0.1:{broker.port}", "--topic", "plant/#",
+                                 "--json", "--for", "1")
+        assert code == 0, err
+        doc = json.loads(out)
+        assert [c["topic"] for c in doc["cells"]] == [f"plant/line1/cell{k}" for k in range(3)]
+        for k, c in enumerate(doc["cells"]):
+            assert c["online"] is True and c["state"] == "idle" and c["health"] == "ok"
+            assert c["last_run"]["id"] == k + 1 and c["last_run"]["state"] == "done"  # each store numbers its own
+        # nothing there: one message, status 1
+        stopped = Broker(tmp_path / "none")
+        code, out, err = run_cli(capsys, "plant", "--mqtt", f"127.0.0.1:{stopped.port}", "--json")
+        assert code == 1 and "cannot reach the broker" in err and not out
+    finally:
+        consumer.close()
+        for c in cells:
+            c.stop()
+        for s in stores:
+            s.close()
+        broker.stop()
