@@ -14,7 +14,7 @@ from cellcal.daemon.plant_mqtt import SCHEMA, MqttPublisher
 from cellcal.daemon.status_api import ReadOnlyStore, run_detail
 from cellcal.daemon.store import Store
 from cellcal.daemon.store_schema import STORE_FILE
-from support.mosquitto import Broker, Subscriber
+from support.mosquitto import Broker, DropProxy, Subscriber
 
 TOPIC = "plant/line1/cell7"
 
@@ -197,4 +197,27 @@ def test_cellcal_plant_shows_every_cell_on_one_broker(tmp_path, capsys):
             c.stop()
         for s in stores:
             s.close()
+        broker.stop()
+
+
+def test_a_connection_the_broker_loses_mid_publish_loses_nothing(tmp_path, store):
+    # three hundred runs waiting (the cell was cut off), the connection cut while they stream out, twice
+    broker = Broker(tmp_path / "broker").start()
+    relay = DropProxy(broker.port)
+    consumer = Subscriber(broker.port, TOPIC)
+    ids = _finish(store, 300)
+    publisher = MqttPublisher(_spec(relay.port), tmp_path / "state", "cell7").start()
+    try:
+        for reached in (20, 120):
+            consumer.wait(lambda: len(consumer.runs()) >= reached)
+            relay.drop()
+            assert store.outbox_counts()["pending"] > 0  # cut off mid-stream
+        consumer.wait(lambda: {r["id"] for r in consumer.runs()} >= set(ids), timeout_s=60.0)
+        order = list(dict.fromkeys(r["id"] for r in consumer.runs()))  # repeats dropped, first arrival kept
+        assert order == ids
+        consumer.wait(lambda: store.outbox_counts()["pending"] == 0)
+    finally:
+        publisher.stop()
+        consumer.close()
+        relay.close()
         broker.stop()
