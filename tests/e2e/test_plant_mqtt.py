@@ -4,6 +4,7 @@ full outbox keeps its newest runs, and refused credentials are one log line whil
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 import logging
 import time
 
@@ -220,4 +221,36 @@ def test_a_connection_the_broker_loses_mid_publish_loses_nothing(tmp_path, store
         publisher.stop()
         consumer.close()
         relay.close()
+        broker.stop()
+
+
+def test_tls_with_a_client_certificate(tmp_path, store):
+    # the broker's listener verifies the cell's certificate; the cell verifies the broker's against the CA
+    from support.mosquitto import certificates
+
+    pki = certificates(tmp_path / "pki")
+    broker = Broker(tmp_path / "broker", tls={"ca": pki["ca"], "cert": pki["server_cert"],
+                                              "key": pki["server_key"]}).start()
+    received = []
+    spec = _spec(broker.port, tls_ca=pki["ca"], tls_cert=pki["client_cert"], tls_key=pki["client_key"])
+    publisher = MqttPublisher(spec, tmp_path / "state", "cell7").start()
+    listener = MqttPublisher(replace(spec, client_id="listener"), tmp_path / "state", "x")  # a TLS client to read with
+    client = listener.client
+    client.on_connect = lambda c, u, f, rc, p=None: c.subscribe(TOPIC + "/runs/#", qos=1)
+    client.on_message = lambda c, u, msg: received.append(json.loads(msg.payload)["id"])
+    client.will_clear()
+    client.connect("127.0.0.1", broker.port)
+    client.loop_start()
+    try:
+        time.sleep(0.5)
+        ids = _finish(store, 3)
+        publisher.notify()
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline and received[:3] != ids:
+            time.sleep(0.05)
+        assert received[:3] == ids
+    finally:
+        client.disconnect()
+        client.loop_stop()
+        publisher.stop()
         broker.stop()

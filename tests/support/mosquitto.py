@@ -34,7 +34,8 @@ class Broker:
     """One broker process on 127.0.0.1:port; ``stop`` and ``start`` again keep the port and the persistence file
     (a broker restarted), ``users`` {name: password} turns anonymous access off."""
 
-    def __init__(self, folder: Path, users: dict | None = None):
+    def __init__(self, folder: Path, users: dict | None = None, tls: dict | None = None):
+        """tls: {"ca", "cert", "key"} of the broker's listener (files), clients' certificates required."""
         self.exe = mosquitto_or_skip()
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
@@ -53,6 +54,9 @@ class Broker:
             lines += ["allow_anonymous false", f"password_file {passwd}"]
         else:
             lines += ["allow_anonymous true"]
+        if tls:
+            lines += [f"cafile {tls['ca']}", f"certfile {tls['cert']}", f"keyfile {tls['key']}",
+                      "require_certificate true"]
         self.conf = self.folder / "mosquitto.conf"
         self.conf.write_text("\n".join(lines) + "\n")
         self.process: subprocess.Popen | None = None
@@ -182,3 +186,28 @@ class DropProxy:
         self.closed = True
         self.server.close()
         self.drop()
+
+
+def certificates(folder: Path) -> dict:
+    """A test CA, and a server (CN 127.0.0.1, also as IP) and a client certificate it signed, made with Debian's
+    ``openssl``: {"ca", "server_cert", "server_key", "client_cert", "client_key"} (paths; keys mode 600)."""
+    openssl = shutil.which("openssl")
+    if openssl is None:
+        pytest.skip("no `openssl` to make the test's certificates (Debian's openssl package)")
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+
+    def run(*args):
+        subprocess.run([openssl, *args], check=True, capture_output=True, cwd=folder)
+
+    run("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-keyout", "ca.key", "-out", "ca.pem",
+        "-subj", "/CN=cellcal test CA")
+    for name, cn in (("server", "127.0.0.1"), ("client", "cell7")):
+        run("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}.key", "-out", f"{name}.csr", "-subj", f"/CN={cn}")
+        (folder / f"{name}.ext").write_text("subjectAltName=IP:127.0.0.1\n" if name == "server" else "\n")
+        run("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial", "-days",
+            "2", "-out", f"{name}.pem", "-extfile", f"{name}.ext")
+        (folder / f"{name}.key").chmod(0o600)
+    return {"ca": str(folder / "ca.pem"), "server_cert": str(folder / "server.pem"),
+            "server_key": str(folder / "server.key"), "client_cert": str(folder / "client.pem"),
+            "client_key": str(folder / "client.key")}
