@@ -30,12 +30,12 @@ quality gate with result code 0, and ``NOK`` otherwise.
 Read-only by construction, as the status page is: every variable's access level is
 CurrentRead alone, so a client's write fails (``BadUserAccessDenied``); there are no methods;
 every session is an anonymous reader (the library's built-in remote administrator is turned
-off, no user name or certificate logs in as more). ``security="none"`` serves without
+off, and no user name or certificate logs in as more). ``security="none"`` serves without
 signing or encryption: anyone who can reach the port reads the cell, which is logged as a
 warning when the endpoint is not a loopback address. ``Basic256Sha256_SignAndEncrypt`` signs
 and encrypts every message with the given certificate and private key (DER or PEM, an RSA
-key without a password); it does not restrict which clients connect, since reading is all
-any of them can do.
+key without a password), and refuses a session over any other channel; it does not check
+the client's certificate against a trust list, since reading is all any client can do.
 
 The server is asyncua's, on an asyncio event loop in a daemon thread of its own, because the
 rest of the service is threaded. ``update_state`` and ``publish_result`` may be called from
@@ -288,9 +288,19 @@ def is_loopback(host: str) -> bool:
 
 class _Readers:
     """Every session a reader, whatever it logs in with: nobody is the library's administrator,
-    who could write any node and add or delete nodes."""
+    who could write any node and add or delete nodes. With `secured`, a session only over a
+    channel that carried a client certificate, that is the signed and encrypted one: asyncua
+    also lets a session be activated over an unsecured channel when the client ignores the
+    endpoints on offer, which would serve in the clear what was meant to be encrypted."""
 
-    def get_user(self, iserver, username=None, password=None, certificate=None) -> User:
+    def __init__(self, secured: bool):
+        self.secured = secured
+
+    def get_user(self, iserver, username=None, password=None, certificate=None) -> User | None:
+        if self.secured and not certificate:
+            log.warning("OPC UA server: a session over an unsecured channel refused (only %s is served)",
+                        "Basic256Sha256_SignAndEncrypt")
+            return None
         return User(role=UserRole.User)
 
 
@@ -431,10 +441,10 @@ class OpcuaServer:
 
     async def _serve(self, plan: _Plan, ready: threading.Event, outcome: dict) -> None:
         outcome.update(loop=asyncio.get_running_loop(), wake=asyncio.Event(), stop=asyncio.Event())
-        server = Server(user_manager=_Readers())
+        server = Server(user_manager=_Readers(secured=plan.policy != ua.SecurityPolicyType.NoSecurity))
         try:
-            space = await self._build(server, plan)
             await _probe(plan)
+            space = await self._build(server, plan)
             await server.start()
         except Exception as exc:
             outcome["error"] = exc.args[0] if isinstance(exc, PlantError) else \
