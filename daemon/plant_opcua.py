@@ -350,7 +350,8 @@ class OpcuaServer:
                                   daemon=True)
         thread.start()
         if not ready.wait(timeout_s):
-            self._signal_stop(outcome.get("loop"), outcome.get("stop"))
+            outcome["abandoned"] = True  # should it come up after all, it stops at once
+            self._signal(outcome.get("loop"), outcome.get("stop"))
             thread.join(STOP_TIMEOUT_S)
             raise PlantError(f"OPC UA server: cannot listen on {self.endpoint}: not up within {timeout_s:g} s")
         if "error" in outcome:
@@ -359,6 +360,9 @@ class OpcuaServer:
         with self._lock:
             self._loop, self._wake, self._stop = outcome["loop"], outcome["wake"], outcome["stop"]
             self._thread = thread
+            # what was given while the server came up, after it had taken its first values
+            self._pending.extend([("state", self._state, False), ("result", self._result, False)])
+        self._signal(self._loop, self._wake)
         log.info("OPC UA server for the plant on %s (security %s)", self.endpoint, self.security)
 
     def stop(self) -> None:
@@ -369,18 +373,18 @@ class OpcuaServer:
             self._pending.clear()
         if thread is None:
             return
-        self._signal_stop(loop, stop)
+        self._signal(loop, stop)
         thread.join(STOP_TIMEOUT_S)
         if thread.is_alive():
             log.warning("OPC UA server on %s did not stop within %g s (its thread is left to end with the "
                         "service)", self.endpoint, STOP_TIMEOUT_S)
 
     @staticmethod
-    def _signal_stop(loop, stop) -> None:
-        if loop is None or stop is None:
+    def _signal(loop, event) -> None:
+        if loop is None or event is None:
             return
         try:
-            loop.call_soon_threadsafe(stop.set)
+            loop.call_soon_threadsafe(event.set)
         except RuntimeError:  # the loop has closed already
             pass
 
@@ -415,14 +419,11 @@ class OpcuaServer:
             loop, wake = self._loop, self._wake
             if loop is None:
                 return
-            self._pending.append((kind, values))
+            self._pending.append((kind, values, kind == "result"))
             if len(self._pending) > PENDING_LIMIT:
                 self._pending.popleft()
                 self._dropped += 1
-        try:
-            loop.call_soon_threadsafe(wake.set)
-        except RuntimeError:  # stopping: the loop has closed
-            pass
+        self._signal(loop, wake)
 
     # -- the loop's side ----------------------------------------------------------------------------------
 
@@ -458,6 +459,8 @@ class OpcuaServer:
         await space.apply_result(result, fire=False)
         ready.set()
         wake, stop = outcome["wake"], outcome["stop"]
+        if outcome.get("abandoned"):
+            stop.set()
         stopping = asyncio.ensure_future(stop.wait())
         try:
             while not stop.is_set():
@@ -476,12 +479,12 @@ class OpcuaServer:
             dropped, self._dropped = self._dropped, 0
         if dropped:
             log.warning("OPC UA server: %d updates dropped (the server fell behind)", dropped)
-        for kind, values in pending:
+        for kind, values, fire in pending:
             try:
                 if kind == "state":
                     await space.apply_state(values)
                 else:
-                    await space.apply_result(values, fire=True)
+                    await space.apply_result(values, fire=fire)
             except Exception:
                 log.exception("OPC UA server: %s not published", kind)
 
