@@ -39,8 +39,9 @@ the client's certificate against a trust list, since reading is all any client c
 
 The server is asyncua's, on an asyncio event loop in a daemon thread of its own, because the
 rest of the service is threaded. ``update_state`` and ``publish_result`` may be called from
-any thread and never block on the network: they turn the dicts into values at once and hand
-them to the loop, which applies them in order. A plant interface must never slow a run or
+any thread and never block on the network: they turn the dicts into values at once
+(:mod:`.plant_values`, which knows no protocol) and hand them to the loop, which applies
+them in order. A plant interface must never slow a run or
 take the service down, so nothing here raises into the caller after ``start``; ``start``
 raises :class:`PlantError` with one message for a configuration that cannot be served.
 """
@@ -51,8 +52,6 @@ import collections
 import errno
 import ipaddress
 import logging
-import math
-import re
 import socket
 import threading
 from dataclasses import dataclass
@@ -67,6 +66,9 @@ from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import rsa
 
+from cellcal.daemon.plant_values import (CELL_NAMES, EMPTY_RESULT, FRAME_VARIABLES, RESULT_NAMES, browse_name,
+                                         result_values, state_values, text)
+
 log = logging.getLogger("cellcal.plant")
 
 NAMESPACE_URI = "urn:cellcal:plant"
@@ -74,112 +76,22 @@ SECURITY = {"none": ua.SecurityPolicyType.NoSecurity,
             "Basic256Sha256_SignAndEncrypt": ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt}
 PENDING_LIMIT = 200  # updates waiting for the server's loop; past this the oldest are dropped (a stalled loop)
 DEVICES_LIMIT = 32  # device variables under Cell/Devices: the service has four kinds
-TEXT_LIMIT = 256  # characters of any text published
 STOP_TIMEOUT_S = 5.0
 
 V = ua.VariantType
-CELL_VARIABLES = (("CellName", V.String), ("State", V.String), ("Health", V.String), ("MountedTool", V.Int32),
-                  ("RunUnderWay", V.Int64))
-FRAME_VARIABLES = (("X_mm", "x_mm"), ("Y_mm", "y_mm"), ("Z_mm", "z_mm"), ("Rx_deg", "rx_deg"),
-                   ("Ry_deg", "ry_deg"), ("Rz_deg", "rz_deg"))
-RESULT_VARIABLES = (("RunId", V.Int64), ("Routine", V.String), ("ToolId", V.Int32), ("Verdict", V.String),
-                    ("Evaluation", V.String), ("ResultCode", V.Int32), ("ResultName", V.String),
-                    *((name, V.Double) for name, _ in FRAME_VARIABLES),
-                    ("PassedGates", V.Boolean), ("WrittenBack", V.Boolean), ("FinishedAt", V.DateTime))
+# each variable's OPC UA type (plant_values says what each holds)
+TYPES = {"CellName": V.String, "State": V.String, "Health": V.String, "MountedTool": V.Int32, "RunUnderWay": V.Int64,
+         "RunId": V.Int64, "Routine": V.String, "ToolId": V.Int32, "Verdict": V.String, "Evaluation": V.String,
+         "ResultCode": V.Int32, "ResultName": V.String, **{name: V.Double for name, _ in FRAME_VARIABLES},
+         "PassedGates": V.Boolean, "WrittenBack": V.Boolean, "FinishedAt": V.DateTime}
+CELL_VARIABLES = ("CellName", *CELL_NAMES)
 EVENT_FIELDS = ("RunId", "Routine", "ToolId", "Verdict", "Evaluation", "ResultCode", "WrittenBack")
-OK_VERDICTS = ("ok", "corrected")
 LOOPBACK_NAMES = ("localhost",)
 
 
 class PlantError(Exception):
     """The plant server cannot be served as configured (address taken or invalid, certificate or
     key unreadable): one message naming what and why. The service logs it and runs on."""
-
-
-# -- values: the service's dicts as the address space holds them --------------------------------------
-
-
-def _int(value, bits: int = 64) -> int | None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return None
-    if isinstance(value, float) and not (math.isfinite(value) and value.is_integer()):
-        return None
-    value = int(value)
-    return value if -(1 << (bits - 1)) <= value < (1 << (bits - 1)) else None
-
-
-def _float(value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return math.nan
-    return float(value)
-
-
-def _text(value) -> str | None:
-    if value is None or isinstance(value, (dict, list, tuple, set)):
-        return None
-    return str(value)[:TEXT_LIMIT]
-
-
-def _bool(value) -> bool | None:
-    return value if isinstance(value, bool) else None
-
-
-def _time(epoch_s) -> datetime | None:
-    seconds = _float(epoch_s)
-    try:
-        return datetime.fromtimestamp(seconds, timezone.utc) if math.isfinite(seconds) else None
-    except (OverflowError, OSError, ValueError):
-        return None
-
-
-def evaluation(run: dict) -> str:
-    """``OK`` or ``NOK`` for a run that has been published: OK when a check's verdict is ok or
-    corrected, or when a calibration (no verdict) passed every gate with result code 0."""
-    verdict = _text(run.get("verdict"))
-    if verdict is not None:
-        return "OK" if verdict in OK_VERDICTS else "NOK"
-    return "OK" if run.get("passed_gates") is True and _int(run.get("result_code")) == 0 else "NOK"
-
-
-def state_values(state: dict) -> tuple[dict, dict]:
-    """The Cell variables of a state dict (``state``, ``health``, ``mounted_tool``, ``run``,
-    ``devices``) and its devices {name: text}; what is missing or of another type is None. The
-    service's own status shapes are taken too: health as {"level", ...}, the mounted tool as
-    {"id", ...}."""
-    state = state if isinstance(state, dict) else {}
-    health, tool = state.get("health"), state.get("mounted_tool")
-    health = health.get("level") if isinstance(health, dict) else health
-    tool = tool.get("id") if isinstance(tool, dict) else tool
-    values = {"State": _text(state.get("state")), "Health": _text(health), "MountedTool": _int(tool, 32),
-              "RunUnderWay": _int(state.get("run"))}
-    devices = state.get("devices")
-    devices = {} if not isinstance(devices, dict) else {
-        _device_name(name): _text(text) for name, text in devices.items() if _device_name(name)}
-    return values, devices
-
-
-def _device_name(name) -> str:
-    """A device's name as a browse name: letters, digits, ``_.-`` (anything else dropped)."""
-    return re.sub(r"[^A-Za-z0-9_.\-]", "", str(name))[:64]
-
-
-def result_values(run: dict) -> dict:
-    """The LastResult variables of a run dict (the JSON API's /api/v1/runs/<id>); what is missing
-    or of another type is None, a missing coordinate NaN."""
-    run = run if isinstance(run, dict) else {}
-    result = run.get("result")
-    frame = result.get("tool_frame") if isinstance(result, dict) else None
-    frame = frame if isinstance(frame, dict) else {}
-    return {"RunId": _int(run.get("id")), "Routine": _text(run.get("routine")), "ToolId": _int(run.get("tool_id"), 32),
-            "Verdict": _text(run.get("verdict")), "Evaluation": evaluation(run),
-            "ResultCode": _int(run.get("result_code"), 32), "ResultName": _text(run.get("result_name")),
-            **{name: _float(frame.get(key)) for name, key in FRAME_VARIABLES},
-            "PassedGates": _bool(run.get("passed_gates")), "WrittenBack": _bool(run.get("written_back")),
-            "FinishedAt": _time(run.get("finished_at"))}
-
-
-EMPTY_RESULT = {**{name: None for name, _ in RESULT_VARIABLES}, "Evaluation": "",
-                **{name: math.nan for name, _ in FRAME_VARIABLES}}
 
 
 def _data_value(value, vtype: ua.VariantType) -> ua.DataValue:
@@ -221,7 +133,7 @@ def _plan(endpoint: str, cell: str, security: str, certificate: str | None, priv
     if security not in SECURITY:
         raise PlantError(f"OPC UA server: unknown security {security!r}: one of {', '.join(SECURITY)}")
     cert = key = None
-    application_uri = f"urn:{socket.gethostname()}:cellcal:{_device_name(cell) or 'cell'}"
+    application_uri = f"urn:{socket.gethostname()}:cellcal:{browse_name(cell) or 'cell'}"
     if security != "none":
         if not certificate or not private_key:
             raise PlantError(f"OPC UA server: security {security} needs a certificate and a private key file")
@@ -549,21 +461,20 @@ class _AddressSpace:
         self.idx = idx = await self.server.register_namespace(NAMESPACE_URI)
         objects = self.server.nodes.objects
         self.cell_node = await objects.add_object(ua.NodeId("Cell", idx), ua.QualifiedName("Cell", idx))
-        for name, vtype in CELL_VARIABLES:
-            await self._variable(self.cell_node, "Cell", name, vtype)
-        await self._write("CellName", _text(cell))
+        for name in CELL_VARIABLES:
+            await self._variable(self.cell_node, "Cell", name, TYPES[name])
+        await self._write("CellName", text(cell))
         self.devices_node = await self.cell_node.add_object(ua.NodeId("Cell.Devices", idx),
                                                             ua.QualifiedName("Devices", idx))
         last = await self.cell_node.add_object(ua.NodeId("Cell.LastResult", idx), ua.QualifiedName("LastResult", idx))
-        for name, vtype in RESULT_VARIABLES:
-            await self._variable(last, "Cell.LastResult", name, vtype, key=f"LastResult.{name}")
-        types = dict(RESULT_VARIABLES)
+        for name in RESULT_NAMES:
+            await self._variable(last, "Cell.LastResult", name, TYPES[name], key=f"LastResult.{name}")
         base = self.server.get_node(ua.ObjectIds.BaseEventType)
         event_type = await base.add_object_type(ua.NodeId("ResultReadyEventType", idx),
                                                 ua.QualifiedName("ResultReadyEventType", idx))
         for name in EVENT_FIELDS:
             await event_type.add_property(ua.NodeId(f"ResultReadyEventType.{name}", idx), ua.QualifiedName(name, idx),
-                                          ua.get_default_value(types[name]), varianttype=types[name])
+                                          ua.get_default_value(TYPES[name]), varianttype=TYPES[name])
         self.events = await self.server.get_event_generator(event_type, self.cell_node)
 
     async def _variable(self, parent, parent_path: str, name: str, vtype: ua.VariantType, key: str | None = None):

@@ -21,7 +21,8 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import rsa
 from cryptography.x509.oid import NameOID
 
-from cellcal.daemon.plant_opcua import NAMESPACE_URI, OpcuaServer, PlantError, evaluation
+from cellcal.daemon.plant_opcua import NAMESPACE_URI, OpcuaServer, PlantError
+from cellcal.daemon.plant_values import evaluation
 from support import loopback
 
 WAIT_S = 5.0  # the longest a value or an event may take to reach a client on loopback
