@@ -142,8 +142,9 @@ def _serve_status_page(cell, service: Service, folder):
 
 def _publish_to_plant(cell, service: Service, folder) -> list:
     """The publishers of the cell file's ``plant`` section, started (none when it has none): the MQTT sender
-    (finished runs from the store's outbox, the state retained); each part that cannot start is said once and
-    left out, and the service runs on (the panel runs the cell, the plant only watches it)."""
+    (finished runs from the store's outbox, the state retained) and the read-only OPC UA server with its feed;
+    each part that cannot start is said once and left out, and the service runs on (the panel runs the cell,
+    the plant only watches it)."""
     parts = []
     spec = cell.plant.mqtt
     if spec is not None:
@@ -151,6 +152,21 @@ def _publish_to_plant(cell, service: Service, folder) -> list:
 
         parts.append(MqttPublisher(spec, folder, cell.name, status=service.status).start())
         log.info("plant: publishing to the MQTT broker %s:%d under %s", spec.host, spec.port, spec.topic)
+    ua = cell.plant.opcua
+    if ua is not None:
+        from cellcal.daemon.plant_feed import OpcuaFeed  # only a daemon serving OPC UA needs asyncua
+        from cellcal.daemon.plant_opcua import OpcuaServer, PlantError
+
+        server = OpcuaServer(ua.endpoint, cell.name, security=ua.security, certificate=ua.certificate,
+                             private_key=ua.private_key)
+        try:
+            server.start()
+        except PlantError as exc:
+            log.error("%s (plant.opcua in %s: another port, or leave it out); the service runs on without it",
+                      exc, cell.path)
+        else:
+            parts.append(OpcuaFeed(server, folder, service.status).start())
+            log.info("plant: OPC UA server (read-only) on %s, security %s", ua.endpoint, ua.security)
     return parts
 
 
