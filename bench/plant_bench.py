@@ -5,8 +5,9 @@ to its arrival at a plant consumer.
     python -m bench.plant_bench --cells 50 --runs 20
 
 Each cell is what ``cellcal daemon`` runs for the plant (cli/daemon.py ``_publish_to_plant``): its own results
-store with the outbox, and its own ``MqttPublisher`` (a paho client and a sender thread), all in this process
-as threads. The runs' ends are written to each store the way the service writes them (``Store.finish_run``,
+store with the outbox, and its own ``MqttPublisher`` (a paho client and a sender thread); the cells live in
+worker processes of GROUP cells each, as threads there (one process per cell is what a plant has; paho's
+network loop takes only file descriptors below 1024, which a few hundred stores in one process pass). The runs' ends are written to each store the way the service writes them (``Store.finish_run``,
 which queues the run in the same transaction), ``--runs`` per cell, the cells' ends spread evenly over
 ``--spread`` seconds. A consumer (a persistent QoS 1 subscription to ``plant/#``) takes the time each run
 arrives; latency is arrival minus ``finished_at`` (the same clock: one machine). Messages per second: the runs
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import statistics
 import sys
 import tempfile
@@ -62,28 +64,47 @@ class Consumer:
         self.client.loop_stop()
 
 
+GROUP = 25  # cells a worker process holds (each cell's store and socket: paho's select() takes fds below 1024)
+
+
+def _cells_worker(port: int, folder: str, cells: list[int], n_cells: int, runs: int, t0: float, step: float,
+                  done) -> None:
+    """One process' share of the fleet: its cells' stores and publishers, their runs ended on the schedule."""
+    stores, publishers = {}, []
+    for k in cells:
+        store = Store.open(Path(folder) / f"cell{k:03d}")
+        store.outbox_limit = 10000
+        stores[k] = store
+        spec = MqttSpec(host="127.0.0.1", port=port, topic=f"plant/line1/cell{k:03d}", client_id=f"c{k}")
+        publishers.append(MqttPublisher(spec, Path(folder) / f"cell{k:03d}", f"cell{k:03d}").start())
+    for i in range(n_cells * runs):
+        if i % n_cells not in stores:
+            continue
+        delay = t0 + (i + 1) * step - time.time()
+        if delay > 0:
+            time.sleep(delay)
+        store = stores[i % n_cells]
+        store.finish_run(store.begin_run("tcp-check", "bench.yaml"), "done", 0, "bench")
+    done.wait(180.0)
+    for p in publishers:
+        p.stop(timeout_s=1.0)
+    for s in stores.values():
+        s.close()
+
+
 def fleet(broker: Broker, folder: Path, cells: int, runs: int, spread_s: float) -> dict:
+    total = cells * runs
+    step = spread_s / total
+    t0 = time.time() + 3.0  # every worker up and connected by then
+    done = mp.Event()
+    workers = [mp.Process(target=_cells_worker, args=(broker.port, str(folder), list(range(g, min(g + GROUP, cells))),
+                                                      cells, runs, t0, step, done))
+               for g in range(0, cells, GROUP)]
+    for w in workers:
+        w.start()
     consumer = Consumer(broker.port)
-    stores, publishers = [], []
     try:
-        for k in range(cells):
-            store = Store.open(folder / f"cell{k:03d}")
-            store.outbox_limit = 10000
-            stores.append(store)
-            spec = MqttSpec(host="127.0.0.1", port=broker.port, topic=f"plant/line1/cell{k:03d}", client_id=f"c{k}")
-            publishers.append(MqttPublisher(spec, folder / f"cell{k:03d}", f"cell{k:03d}").start())
-        time.sleep(1.0)  # every client connected
-        total = cells * runs
-        step = spread_s / total
-        t0 = time.time()
-        for i in range(total):
-            store = stores[i % cells]
-            run_id = store.begin_run("tcp-check", "bench.yaml")
-            store.finish_run(run_id, "done", 0, "bench")
-            delay = t0 + (i + 1) * step - time.time()
-            if delay > 0:
-                time.sleep(delay)
-        deadline = time.time() + 120.0
+        deadline = t0 + spread_s + 120.0
         while time.time() < deadline and len(consumer.arrived) < total:
             time.sleep(0.02)
         t_end = time.time()
@@ -93,10 +114,9 @@ def fleet(broker: Broker, folder: Path, cells: int, runs: int, spread_s: float) 
                 "latency_median_s": statistics.median(latencies),
                 "latency_p95_s": latencies[int(0.95 * (len(latencies) - 1))], "latency_max_s": latencies[-1]}
     finally:
-        for p in publishers:
-            p.stop(timeout_s=1.0)
-        for s in stores:
-            s.close()
+        done.set()
+        for w in workers:
+            w.join(30.0)
         consumer.close()
 
 
