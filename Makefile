@@ -33,38 +33,33 @@ demo-identify: $(STAMP)
 test: $(STAMP) chromium mosquitto
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15
 
-# Debian's headless-capable Chromium for the status page's browser test
-# (tests/e2e/test_status_page_browser.py), installed when it is missing and this is root with
-# apt-get; a no-op once it is there. It never fails the build: where it cannot be installed the
-# test skips and says what is missing. `apt-get update` only when the first try finds no package.
-chromium:
-	@command -v chromium >/dev/null 2>&1 || { \
+# $(call debian_package,PACKAGE,WHO): Debian's PACKAGE (its program of the same name, on PATH or in
+# /usr/sbin), installed when it is missing and this is root with apt-get, for WHO (the tests that need
+# it); a no-op once it is there. It never fails the build: where it cannot be installed those tests
+# skip and say what is missing. `apt-get update` only when the first try finds no package.
+define debian_package
+	@command -v $(1) >/dev/null 2>&1 || test -x /usr/sbin/$(1) || { \
 	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
-	    echo "installing Debian's chromium for the browser test (apt-get)"; \
+	    echo "installing Debian's $(1) for $(2) (apt-get)"; \
 	    export DEBIAN_FRONTEND=noninteractive; \
-	    { apt-get install -y -qq --no-install-recommends chromium >/dev/null 2>&1 || \
+	    { apt-get install -y -qq --no-install-recommends $(1) >/dev/null 2>&1 || \
 	      { apt-get update -qq >/dev/null 2>&1 && \
-	        apt-get install -y -qq --no-install-recommends chromium >/dev/null 2>&1; }; } || \
-	    echo "chromium could not be installed (apt-get failed): the browser test will skip"; \
+	        apt-get install -y -qq --no-install-recommends $(1) >/dev/null 2>&1; }; } || \
+	    echo "$(1) could not be installed (apt-get failed): $(2) will skip"; \
 	  else \
-	    echo "chromium is not installed (needs root and apt-get to install it): the browser test will skip"; \
+	    echo "$(1) is not installed (needs root and apt-get to install it): $(2) will skip"; \
 	  fi; }
+endef
+
+# Debian's headless-capable Chromium for the status page's browser test (tests/e2e/test_status_page_browser.py)
+chromium:
+	$(call debian_package,chromium,the browser test)
 
 # Debian's Mosquitto for the plant tests (tests/e2e/test_plant_*.py: a real MQTT broker, started by the
-# tests on a loopback port with their own configuration), installed as chromium is; where it cannot be,
-# those tests skip and say what is missing. The package's own broker service, where one starts, is not used.
+# tests on a loopback port with their own configuration; the package's own service, where one starts,
+# is not used)
 mosquitto:
-	@command -v mosquitto >/dev/null 2>&1 || test -x /usr/sbin/mosquitto || { \
-	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
-	    echo "installing Debian's mosquitto for the plant tests (apt-get)"; \
-	    export DEBIAN_FRONTEND=noninteractive; \
-	    { apt-get install -y -qq --no-install-recommends mosquitto >/dev/null 2>&1 || \
-	      { apt-get update -qq >/dev/null 2>&1 && \
-	        apt-get install -y -qq --no-install-recommends mosquitto >/dev/null 2>&1; }; } || \
-	    echo "mosquitto could not be installed (apt-get failed): the plant tests will skip"; \
-	  else \
-	    echo "mosquitto is not installed (needs root and apt-get to install it): the plant tests will skip"; \
-	  fi; }
+	$(call debian_package,mosquitto,the plant tests)
 
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not slow"
