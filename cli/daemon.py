@@ -150,7 +150,7 @@ def _publish_to_plant(cell, service: Service, folder) -> list:
     if spec is not None:
         from cellcal.daemon.plant_mqtt import MqttPublisher  # only a daemon publishing needs paho
 
-        parts.append(MqttPublisher(spec, folder, cell.name, status=service.status).start())
+        parts.append(MqttPublisher(spec, folder, cell.name, status=service.status, robot=cell.robot).start())
         log.info("plant: publishing to the MQTT broker %s:%d under %s", spec.host, spec.port, spec.topic)
     ua = cell.plant.opcua
     if ua is not None:

@@ -8,7 +8,7 @@ Under the cell's topic T:
   clean stop publishes it itself.
 - ``T/runs/<run id>`` (QoS 1, not retained): one JSON object per finished run, the keys of the JSON
   API's ``/api/v1/runs/<id>`` (``status_api.run_detail``: the status page and the plant read one
-  serializer) plus ``cell_name``, ``topic``, ``published_at`` and ``schema``.
+  serializer) plus ``cell_name``, ``topic``, ``robot``, ``started_by``, ``published_at`` and ``schema``.
 
 Store-and-forward. A finished run is queued in the store's outbox in the transaction that
 finishes it (``Store.finish_run``); the sender here delivers the outbox in order, a window of
@@ -48,13 +48,16 @@ STATE_POLL_S = 0.5  # how often the service's state is looked at for a change
 RETRY_S = (1.0, 60.0)  # the reconnect back-off: first and longest wait
 
 
-def run_message(store: ReadOnlyStore, run_id: int, state_dir, cell_name: str, topic: str) -> dict | None:
+def run_message(store: ReadOnlyStore, run_id: int, state_dir, cell_name: str, topic: str,
+                robot: str | None = None) -> dict | None:
     """The message of one finished run: ``run_detail`` (what ``/api/v1/runs/<id>`` serves) plus the cell's
-    name, its topic, the time of publishing and the schema; None when the store has no such run."""
+    name, its topic, the robot model, what started it (the service runs what the panel starts), the time of
+    publishing and the schema; None when the store has no such run."""
     doc = run_detail(store, run_id, state_dir)
     if doc is None:
         return None
-    return {**doc, "cell_name": cell_name, "topic": topic, "published_at": time.time(), "schema": SCHEMA}
+    return {**doc, "cell_name": cell_name, "topic": topic, "robot": robot, "started_by": "panel",
+            "published_at": time.time(), "schema": SCHEMA}
 
 
 def state_message(status: dict, cell_name: str, outbox: dict | None, online: bool = True,
@@ -85,8 +88,8 @@ class MqttPublisher:
     """The sender: a paho client (its own network thread) and a thread that delivers the outbox and the
     state. ``start`` returns at once; the broker may come later."""
 
-    def __init__(self, spec: MqttSpec, state_dir: str | Path, cell_name: str, status=None):
-        self.spec, self.state_dir, self.cell_name = spec, Path(state_dir), cell_name
+    def __init__(self, spec: MqttSpec, state_dir: str | Path, cell_name: str, status=None, robot: str | None = None):
+        self.spec, self.state_dir, self.cell_name, self.robot = spec, Path(state_dir), cell_name, robot
         self.status = status or (lambda: {})
         self.topic = spec.topic
         self._stop = threading.Event()
@@ -228,7 +231,7 @@ class MqttPublisher:
             self._acked.clear()
         sent: list[tuple[int, int]] = []  # (seq, mid)
         for seq, run_id in batch:
-            message = run_message(reader, run_id, self.state_dir, self.cell_name, self.topic)
+            message = run_message(reader, run_id, self.state_dir, self.cell_name, self.topic, self.robot)
             if message is None:  # the run is gone from the store (it never is, but nothing to send)
                 store.delivered([seq])
                 continue

@@ -67,6 +67,7 @@ def test_the_daemon_publishes_every_finished_run_and_its_state_through_a_broker_
         # (a selector no routine has), the last aborted: none wrote a frame
         assert [r["state"] for r in runs] == ["fault", "refused", "aborted"], [(r["state"], r["reason"]) for r in runs]
         assert not any(r["written_back"] for r in runs)
+        assert all(r["robot"] == net.cell.robot and r["started_by"] == "panel" for r in runs)
         # the state: online, and idle after the last run (the retained copy is the newest)
         consumer.wait(lambda: consumer.states() and consumer.states()[-1]["state"] == "idle", timeout_s=20.0)
         assert consumer.states()[-1]["online"] is True

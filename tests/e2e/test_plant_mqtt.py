@@ -57,10 +57,11 @@ def test_finished_runs_arrive_in_order_with_the_json_apis_keys(tmp_path, store):
         reader = ReadOnlyStore(tmp_path / "state" / STORE_FILE)
         api = run_detail(reader, ids[0], tmp_path / "state")
         reader.close()
-        extra = {"cell_name", "topic", "published_at", "schema"}
+        extra = {"cell_name", "topic", "robot", "started_by", "published_at", "schema"}
         assert set(runs[0]) == set(api) | extra
         assert {k: v for k, v in runs[0].items() if k not in extra} == json.loads(json.dumps(api))
         assert runs[0]["schema"] == SCHEMA and runs[0]["topic"] == TOPIC and runs[0]["cell_name"] == "cell7"
+        assert runs[0]["started_by"] == "panel"
         state = consumer.states()[-1]
         assert state["online"] and state["state"] == "idle" and state["health"] == "ok"
         consumer.wait(lambda: store.outbox_counts()["sent"] == 5)
