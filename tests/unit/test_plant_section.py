@@ -4,6 +4,9 @@ read, a TLS file missing or unreadable, an unknown key, a topic with wildcards, 
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
+from pathlib import Path
 
 import pytest
 
@@ -68,10 +71,27 @@ def test_a_bad_plant_section_is_refused_naming_the_key(tmp_path, plant, key, wor
     assert f"[{key}" in str(refused.value) and words in str(refused.value), str(refused.value)
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root reads any file: the unreadable case needs another user")
+@pytest.mark.skipif(os.geteuid() == 0, reason="root reads any file (the root-only case below covers it)")
 def test_an_unreadable_tls_file_is_refused_naming_it(tmp_path):
     ca = _secret(tmp_path, "ca.pem", 0o000)
     with pytest.raises(CellFileError) as refused:
         _load(tmp_path, {"mqtt": {"host": "b", "topic": "t", "tls": {"ca": "ca.pem"}}})
     assert "[plant.mqtt.tls.ca]" in str(refused.value) and "cannot be read" in str(refused.value)
     ca.chmod(0o600)
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to make a file only root can read and load as another user")
+def test_a_tls_file_the_service_user_cannot_read_is_refused_naming_it():
+    from support.users import as_nobody
+
+    top = Path(tempfile.mkdtemp(prefix="cellcal-plant-"))  # not under pytest's root-only 0700 folder
+    try:
+        top.chmod(0o755)
+        (top / "ca.pem").write_text("-----BEGIN CERTIFICATE-----\n")
+        (top / "ca.pem").chmod(0o600)  # root's: the service's user (nobody here) cannot read it
+        path = edited_cell(top, "sim", {"plant": {"mqtt": {"host": "b", "topic": "t", "tls": {"ca": "ca.pem"}}}})
+        path.chmod(0o644)
+        answer = as_nobody(lambda: load_cell(path), CellFileError)
+        assert "[plant.mqtt.tls.ca]" in answer and f"{top / 'ca.pem'}: cannot be read" in answer, answer
+    finally:
+        shutil.rmtree(top)

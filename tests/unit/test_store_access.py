@@ -29,9 +29,9 @@ from cellcal.config.cell_files import shipped_cells
 from cellcal.daemon.claims import Device, DeviceClaim, FolderLock, InUseError, devices
 from cellcal.daemon.cells import load_cell
 from cellcal.daemon.store import Store, StoreError, check_state_folder
+from support.users import NOBODY, as_nobody
 from support.cli_run import one_message, run_cli  # tests/support/cli_run.py
 
-NOBODY = 65534  # the unprivileged user the root-only case becomes
 
 
 # -- the commands that read the store never make one -----------------------------------------------
@@ -94,29 +94,6 @@ def test_the_daemon_refuses_a_store_it_cannot_write_naming_the_file_and_the_fix(
     assert not (folder / "cellcal.lock").exists()  # refused before it took anything
 
 
-def _as_nobody(action) -> str:
-    """Run `action` in a child process that became user nobody; what it raised (StoreError), or 'ok'."""
-    read, write = os.pipe()
-    pid = os.fork()
-    if pid == 0:  # the child: only this, then _exit
-        try:
-            os.setgid(NOBODY)
-            os.setuid(NOBODY)
-            try:
-                action()
-                answer = "ok"
-            except StoreError as exc:
-                answer = str(exc)
-            os.write(write, answer.encode())
-        finally:
-            os._exit(0)
-    os.close(write)
-    with os.fdopen(read, "rb") as pipe:
-        answer = pipe.read().decode()
-    os.waitpid(pid, 0)
-    return answer
-
-
 @pytest.mark.skipif(os.geteuid() != 0, reason="needs root to make a store as root and start as another user")
 @pytest.mark.parametrize("what", ["the store file", "the folder"])
 def test_a_store_root_made_is_named_with_its_owner_and_the_chown_that_fixes_it(what):
@@ -129,7 +106,7 @@ def test_a_store_root_made_is_named_with_its_owner_and_the_chown_that_fixes_it(w
         content = _store_made_by_someone_else(folder)  # root's, mode 0644
         if what == "the store file":
             os.chown(folder, NOBODY, NOBODY)  # the service's folder; the file in it root's
-        answer = _as_nobody(lambda: Store.open(folder, create=True).close())
+        answer = as_nobody(lambda: Store.open(folder, create=True).close(), StoreError)
         locked = folder / "cellcal.db" if what == "the store file" else folder
         assert answer.startswith(f"{locked} is not writable by user nobody (uid {NOBODY})"), answer
         assert "it belongs to root" in answer and answer.endswith(f"fix: chown -R nobody: {folder}"), answer
