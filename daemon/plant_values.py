@@ -68,13 +68,14 @@ def state_values(state: dict) -> tuple[dict, dict]:
     """The Cell values of a state dict (``state``, ``health``, ``mounted_tool``, ``run``,
     ``devices``) and its devices {name: text}; what is missing or of another type is None. The
     service's own status shapes are taken too: health as {"level", ...}, the mounted tool as
-    {"id", ...}."""
+    {"id", ...}, the run under way as ``run_id``."""
     state = state if isinstance(state, dict) else {}
     health, tool = state.get("health"), state.get("mounted_tool")
     health = health.get("level") if isinstance(health, dict) else health
     tool = tool.get("id") if isinstance(tool, dict) else tool
+    run = state.get("run", state.get("run_id"))  # the service's status says run_id
     values = {"State": text(state.get("state")), "Health": text(health), "MountedTool": _int(tool, 32),
-              "RunUnderWay": _int(state.get("run"))}
+              "RunUnderWay": _int(run)}
     devices = state.get("devices")
     devices = {} if not isinstance(devices, dict) else {
         browse_name(name): text(said) for name, said in devices.items() if browse_name(name)}

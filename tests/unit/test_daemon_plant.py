@@ -30,3 +30,15 @@ def test_a_taken_opcua_port_costs_the_opcua_server_only(tmp_path, caplog):
     assert parts == []
     errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
     assert len(errors) == 1 and str(port) in errors[0] and "runs on without it" in errors[0], errors
+
+
+def test_the_services_own_status_reads_as_the_cells_opcua_values():
+    # what plant_feed hands the OPC UA server is Service.status() as it is: health {"level"}, the mounted tool
+    # {"id", ...}, the run under way as run_id
+    from cellcal.daemon.plant_values import state_values
+
+    values, devices = state_values({"state": "running", "health": {"level": "running", "says": "tcp-laser"},
+                                    "mounted_tool": {"id": 2, "name": "torch"}, "run_id": 7,
+                                    "devices": {"robot": "ready", "panel": "ok"}})
+    assert values == {"State": "running", "Health": "running", "MountedTool": 2, "RunUnderWay": 7}
+    assert devices == {"robot": "ready", "panel": "ok"}
