@@ -55,10 +55,8 @@ def test_the_daemon_publishes_every_finished_run_and_its_state_through_a_broker_
         one_run(net, "aborted")
         broker.start()
         consumer.wait(lambda: {r["id"] for r in consumer.runs()} >= {1, 2, 3}, timeout_s=60.0)
-        first = {}
-        for r in consumer.runs():  # repeats of (topic, run id) dropped, as a consumer does
-            first.setdefault((r["topic"], r["id"]), r)
-        runs = [first[(TOPIC, i)] for i in (1, 2, 3)]
+        first = {r["id"]: r for r in consumer.unique_runs()}  # repeats of (topic, run id) dropped
+        runs = [first[i] for i in (1, 2, 3)]
         # each what `cellcal runs show` reads from the store for it: one store, one serializer
         for r in runs:
             shown = daemon.cli("runs", "show", str(r["id"]))

@@ -53,11 +53,9 @@ def test_twenty_cells_on_one_broker_lose_nothing_while_it_restarts(tmp_path, cap
         assert all(ids == [1, 2, 3] for ids in expected.values())
         consumer.wait(lambda: len({(r["topic"], r["id"]) for r in consumer.runs()}) >= 3 * CELLS, timeout_s=60.0)
         got: dict[str, list[int]] = {}
-        first: dict[tuple[str, int], dict] = {}
-        for r in consumer.runs():
-            if (r["topic"], r["id"]) not in first:
-                first[(r["topic"], r["id"])] = r
-                got.setdefault(r["topic"], []).append(r["id"])
+        first = {(r["topic"], r["id"]): r for r in consumer.unique_runs()}
+        for topic, run_id in first:
+            got.setdefault(topic, []).append(run_id)
         assert got == expected
         for _, store, *_ in cells:
             consumer.wait(lambda: store.outbox_counts()["pending"] == 0)

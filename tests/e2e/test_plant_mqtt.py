@@ -91,11 +91,7 @@ def test_nothing_is_lost_while_the_broker_is_down_and_the_service_restarts(tmp_p
         expected = first + during + later
         consumer.wait(lambda: {r["id"] for r in consumer.runs()} >= set(expected), timeout_s=40.0)
         # at least once on the wire; after dropping repeats of (topic, run id) each run once, in order
-        seen, order = set(), []
-        for r in consumer.runs():
-            if (r["topic"], r["id"]) not in seen:
-                seen.add((r["topic"], r["id"]))
-                order.append(r["id"])
+        order = [r["id"] for r in consumer.unique_runs()]
         assert order == expected
         consumer.wait(lambda: store.outbox_counts()["pending"] == 0)
         assert store.outbox_counts() == {"pending": 0, "sent": 9, "dropped": 0}
@@ -215,7 +211,7 @@ def test_a_connection_the_broker_loses_mid_publish_loses_nothing(tmp_path, store
             relay.drop()
             assert store.outbox_counts()["pending"] > 0  # cut off mid-stream
         consumer.wait(lambda: {r["id"] for r in consumer.runs()} >= set(ids), timeout_s=60.0)
-        order = list(dict.fromkeys(r["id"] for r in consumer.runs()))  # repeats dropped, first arrival kept
+        order = [r["id"] for r in consumer.unique_runs()]  # repeats dropped, first arrival kept
         assert order == ids
         consumer.wait(lambda: store.outbox_counts()["pending"] == 0)
     finally:

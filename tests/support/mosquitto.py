@@ -108,6 +108,14 @@ class Subscriber:
         with self.lock:
             return [doc for topic, doc in self.messages if "/runs/" in topic]
 
+    def unique_runs(self) -> list[dict]:
+        """The runs as a plant consumer keeps them: repeats of (topic, run id) dropped, the first arrival kept,
+        in the order they arrived (delivery is at least once: docs/plant.md)."""
+        first: dict[tuple[str, int], dict] = {}
+        for doc in self.runs():
+            first.setdefault((doc["topic"], doc["id"]), doc)
+        return list(first.values())
+
     def states(self) -> list[dict]:
         with self.lock:
             return [doc for topic, doc in self.messages if topic == self.topic + "/state"]
