@@ -49,6 +49,7 @@ class LinearisedScorer:
             if "columns_of" in t.extra:
                 self._at[id(t)] = self._at[id(t.extra["columns_of"])]
         self._estimated: dict[bytes, np.ndarray] = {}
+        self._penalised: dict = {}  # (terms' ids, cols) -> where their parts' penalties sit (``penalty``)
         self.n_columns = col
         self._structural: dict[int, np.ndarray] = {}  # columns of terms that change the rigid model, (N, 3, m)
         if self._points is None:
@@ -144,13 +145,19 @@ class LinearisedScorer:
         parts = penalised_parts(terms)
         if not parts:
             return None
+        key = (tuple(map(id, terms)), np.asarray(cols).tobytes())
+        if key not in self._penalised:  # where each part's penalty sits among cols, found once
+            placed = []
+            for part, lam in parts:
+                own = self._term_cols(part)
+                at = np.flatnonzero(np.isin(cols, own))
+                placed.append((part, lam, at, np.searchsorted(own, cols[at])))
+            self._penalised[key] = placed
+        placed = self._penalised[key]
         diagonal = np.asarray(diagonal, dtype=float)
         out = np.zeros(diagonal.shape + (len(cols),))
-        for part, lam in parts:
-            own = self._term_cols(part)
-            at = np.flatnonzero(np.isin(cols, own))
-            out[..., at[:, None], at[None, :]] += part_penalty(part, lam, diagonal[..., at],
-                                                               np.searchsorted(own, cols[at]))
+        for part, lam, at, kept in placed:
+            out[..., at[:, None], at[None, :]] += part_penalty(part, lam, diagonal[..., at], kept)
         return out
 
     def heldout_errors_of_steps(self, steps: np.ndarray) -> np.ndarray:
