@@ -147,6 +147,7 @@ class DropProxy:
         self.pairs: list[tuple[socket.socket, socket.socket]] = []
         self.lock = threading.Lock()
         self.closed = False
+        self.holding = threading.Event()  # set: what clients send is swallowed (a connection gone dead)
         threading.Thread(target=self._accept, daemon=True).start()
 
     def _accept(self) -> None:
@@ -162,13 +163,14 @@ class DropProxy:
                 continue
             with self.lock:
                 self.pairs.append((client, upstream))
-            for a, b in ((client, upstream), (upstream, client)):
-                threading.Thread(target=self._pipe, args=(a, b), daemon=True).start()
+            for a, b, outward in ((client, upstream, True), (upstream, client, False)):
+                threading.Thread(target=self._pipe, args=(a, b, outward), daemon=True).start()
 
-    @staticmethod
-    def _pipe(a: socket.socket, b: socket.socket) -> None:
+    def _pipe(self, a: socket.socket, b: socket.socket, outward: bool) -> None:
         try:
             while data := a.recv(65536):
+                if outward and self.holding.is_set():
+                    continue  # never reaches the broker: nothing of it is acknowledged
                 b.sendall(data)
         except OSError:
             pass
@@ -178,10 +180,15 @@ class DropProxy:
             except OSError:
                 pass
 
+    def hold(self) -> None:
+        """The connections go dead without closing: what the clients send from now on is lost."""
+        self.holding.set()
+
     def drop(self) -> None:
-        """Cut every connection through the relay, as a network that fails does."""
+        """Cut every connection through the relay, as a network that fails does (and forward again after)."""
         with self.lock:
             pairs, self.pairs = self.pairs, []
+        self.holding.clear()
         for pair in pairs:
             for s in pair:
                 try:
