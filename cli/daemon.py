@@ -150,8 +150,13 @@ def _publish_to_plant(cell, service: Service, folder) -> list:
     if spec is not None:
         from cellcal.daemon.plant_mqtt import MqttPublisher  # only a daemon publishing needs paho
 
-        parts.append(MqttPublisher(spec, folder, cell.name, status=service.status, robot=cell.robot).start())
-        log.info("plant: publishing to the MQTT broker %s:%d under %s", spec.host, spec.port, spec.topic)
+        try:
+            parts.append(MqttPublisher(spec, folder, cell.name, status=service.status, robot=cell.robot).start())
+        except (OSError, ValueError) as exc:  # a TLS file that is no certificate (ssl.SSLError is an OSError)
+            log.error("plant: not publishing to the MQTT broker %s:%d: %s (plant.mqtt in %s); the service runs on "
+                      "without it", spec.host, spec.port, exc, cell.path)
+        else:
+            log.info("plant: publishing to the MQTT broker %s:%d under %s", spec.host, spec.port, spec.topic)
     ua = cell.plant.opcua
     if ua is not None:
         from cellcal.daemon.plant_feed import OpcuaFeed  # only a daemon serving OPC UA needs asyncua

@@ -12,7 +12,7 @@ from cellcal.config.cells import OpcuaSpec, PlantSpec
 
 
 def _cell(plant):
-    return SimpleNamespace(plant=plant, name="cell7", path="cell7.yaml")
+    return SimpleNamespace(plant=plant, name="cell7", path="cell7.yaml", robot="ur10e")
 
 
 def test_no_section_no_parts(tmp_path):
@@ -42,3 +42,16 @@ def test_the_services_own_status_reads_as_the_cells_opcua_values():
                                     "devices": {"robot": "ready", "panel": "ok"}})
     assert values == {"State": "running", "Health": "running", "MountedTool": 2, "RunUnderWay": 7}
     assert devices == {"robot": "ready", "panel": "ok"}
+
+
+def test_a_tls_file_that_is_no_certificate_costs_the_mqtt_sender_only(tmp_path, caplog):
+    from cellcal.config.cells import MqttSpec
+
+    ca = tmp_path / "ca.pem"
+    ca.write_text("not a certificate\n")
+    spec = PlantSpec(mqtt=MqttSpec(host="127.0.0.1", topic="plant/cell7", client_id="cell7", tls_ca=str(ca)))
+    with caplog.at_level(logging.INFO):
+        parts = _publish_to_plant(_cell(spec), SimpleNamespace(status=dict), tmp_path)
+    assert parts == []
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and "not publishing" in errors[0] and "runs on without it" in errors[0], errors
