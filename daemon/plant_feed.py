@@ -64,13 +64,7 @@ class OpcuaFeed:
 
     def _results(self, store: ReadOnlyStore) -> None:
         """The runs finished since the last look, oldest first (at start: the newest alone)."""
-        if self._last_run is None:
-            row = store.db.execute("SELECT id FROM runs WHERE finished_at IS NOT NULL ORDER BY id DESC "
-                                   "LIMIT 1").fetchone()
-            ids = [] if row is None else [int(row[0])]
-        else:
-            ids = [int(r[0]) for r in store.db.execute(
-                "SELECT id FROM runs WHERE finished_at IS NOT NULL AND id > ? ORDER BY id", (self._last_run,))]
+        ids = store.finished_after(self._last_run)
         for run_id in ids:
             run = run_detail(store, run_id, self.state_dir)
             if run is not None:

@@ -36,7 +36,7 @@ import paho.mqtt.client as mqtt
 from cellcal.config.cells import MqttSpec
 from cellcal.daemon.status_api import ReadOnlyStore, finite, run_detail, run_summary
 from cellcal.daemon.store import Store, StoreError
-from cellcal.daemon.store_schema import RUN_COLUMNS, STORE_FILE, run_row
+from cellcal.daemon.store_schema import STORE_FILE
 
 log = logging.getLogger("cellcal.plant")
 
@@ -76,11 +76,10 @@ def state_message(status: dict, cell_name: str, outbox: dict | None, online: boo
 
 def last_finished(store: ReadOnlyStore, state_dir) -> dict | None:
     """The newest finished run's summary (what ``/api/v1/runs`` lists for it), None before any."""
-    row = store.db.execute(f"SELECT {RUN_COLUMNS} FROM runs WHERE finished_at IS NOT NULL "
-                           "ORDER BY id DESC LIMIT 1").fetchone()
-    if row is None:
+    newest = store.finished_after(None)
+    if not newest:
         return None
-    row = run_row(row)
+    row = store.run(newest[0])
     return run_summary(row, store.written_runs([row.id]), state_dir)
 
 

@@ -320,6 +320,14 @@ class Store:
         rows = self.db.execute(f"SELECT {RUN_COLUMNS} FROM runs ORDER BY id DESC LIMIT ?", (limit,)).fetchall()
         return [run_row(r) for r in rows]
 
+    def finished_after(self, run_id: int | None) -> list[int]:
+        """Ids of the runs finished with an id above run_id, oldest first; None: the newest finished run alone."""
+        if run_id is None:
+            row = self.db.execute("SELECT id FROM runs WHERE finished_at IS NOT NULL ORDER BY id DESC LIMIT 1")
+            return [int(r[0]) for r in row]
+        return [int(r[0]) for r in self.db.execute(
+            "SELECT id FROM runs WHERE finished_at IS NOT NULL AND id > ? ORDER BY id", (int(run_id),))]
+
     def run(self, run_id: int) -> RunRow | None:
         row = self.db.execute(f"SELECT {RUN_COLUMNS} FROM runs WHERE id = ?", (run_id,)).fetchone()
         return None if row is None else run_row(row)

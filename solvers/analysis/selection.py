@@ -136,7 +136,9 @@ class Scores:
         # the terms' own penalties (a spline's, ``base.part_penalty``) from each split's training, as scaled
         d2 = np.diagonal(train, axis1=1, axis2=2)[:, :-1]
         d, empty = unit_scales(d2)
-        own_ridge = self._ridges(common, extras, c, q, d2, own)
+        penalty = self.scorer.penalty
+        common_penalty = penalty(common, c, d2[:, :nc])
+        extra_penalties = [penalty(tuple(e), o, d2[:, nc + np.searchsorted(q, o)]) for e, o in zip(extras, own)]
         d = np.concatenate([d, np.ones((len(d), 1))], axis=1)
         train = train / d[:, :, None] / d[:, None, :]
         held = held / d[:, :, None] / d[:, None, :]
@@ -145,8 +147,8 @@ class Scores:
         eye = np.zeros(train.shape[1:])
         eye[np.arange(nc + nq), np.arange(nc + nq)] = 1.0
         train = train + (RIDGE + gone[:, :, None] * 1.0) * eye
-        if own_ridge[0] is not None:  # the common terms' penalties, before they are eliminated
-            train[:, :nc, :nc] += own_ridge[0] / d[:, :nc, None] / d[:, None, :nc]
+        if common_penalty is not None:  # the common terms' penalties, before they are eliminated
+            train[:, :nc, :nc] += common_penalty / d[:, :nc, None] / d[:, None, :nc]
         # common columns eliminated: x_C = w - X x_P for the extra columns' step x_P
         x = np.linalg.solve(train[:, :nc, :nc], train[:, :nc, nc:])  # (splits, nc, nq + 1)
         reduced = train[:, nc:, nc:] - train[:, nc:, :nc] @ x  # (splits, nq + 1, nq + 1)
@@ -169,27 +171,16 @@ class Scores:
                 continue
             at = np.array([pos[i] for i in which])  # (sets, m)
             a = reduced[:, at[:, :, None], at[:, None, :]]  # (splits, sets, m, m)
-            ridged = [i for i in which if own_ridge[1][i] is not None]
-            if ridged:  # each extra's own penalties (its columns are not eliminated: added here)
+            penalised = [i for i in which if extra_penalties[i] is not None]
+            if penalised:  # each extra's own penalties (its columns are not eliminated: added here)
                 a = a.copy()
-                for i in ridged:
+                for i in penalised:
                     scale = d[:, nc + pos[i]]
-                    a[:, which.index(i)] += own_ridge[1][i] / scale[:, :, None] / scale[:, None, :]
+                    a[:, which.index(i)] += extra_penalties[i] / scale[:, :, None] / scale[:, None, :]
             step = -np.linalg.solve(a, reduced[:, at, nq][..., None])[..., 0]  # (splits, sets, m)
             quad = np.einsum("smi,smij,smj->sm", step, g[:, at[:, :, None], at[:, None, :]], step)
             out[which] = (base[:, None] + 2.0 * np.einsum("smi,smi->sm", step, h[:, at]) + quad).sum(axis=0)
         return np.where(out >= 0.0, out, np.inf)  # < 0: rounding of a step gone wild, never the best
-
-
-    def _ridges(self, common, extras, c, q, d2, own):
-        """(the common terms' penalties over their columns c, (splits, nc, nc), and each extra's over its own
-        columns, (splits, len(own[i]), len(own[i])); None where no part carries one): ``LinearisedScorer.penalty``
-        of each split's training diagonal d2 (over c then q)."""
-        penalty = self.scorer.penalty
-        nc = len(c)
-        common_ridge = penalty(common, c, d2[:, :nc])
-        extra_ridges = [penalty(tuple(e), o, d2[:, nc + np.searchsorted(q, o)]) for e, o in zip(extras, own)]
-        return common_ridge, extra_ridges
 
 
 def _batches(own, limit: int) -> list[list[int]]:
@@ -280,7 +271,7 @@ def select(cause, places, alone, scores: Scores, base: tuple[Term, ...] = (),
 
 def nested_steps(scores: Scores, selection: Selection | None, bases: tuple[tuple[Term, ...], ...] = ()) -> np.ndarray:
     """(1, folds, p) each fold's step with its own selection (None: nothing) and its base (bases[k]; (): none),
-    fitted on its training rows as the search scored it (``search_step``, with the terms' ridges)."""
+    fitted on its training rows as the search scored it (``search_step``, with the terms' penalties)."""
     factors, scorer = scores.scorer.factors, scores.scorer
     out = np.zeros((1, scores.n_folds, scores.p))
     for k in range(scores.n_folds):
