@@ -16,6 +16,10 @@ $(STAMP): pyproject.toml $(LOCK)
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
 	$(PIP) install -c $(LOCK) --upgrade pip
 	$(PIP) install -c $(LOCK) -e '.[dev,ur]'
+	@# the Franka extra (pylibfranka, and franky-sim for the sim-franka cell) where its wheels install on this
+	@# machine; where they do not, the Franka tests skip and say what is missing
+	@$(PIP) install -c $(LOCK) -e '.[dev,ur,franka]' || \
+	  echo "the franka extra (pylibfranka, franky-sim) could not be installed: the sim-franka tests will skip"
 	@touch $(STAMP)
 
 # the whole product on the simulated cell: fakes, daemon, start button, tcp-laser, write-back
@@ -82,7 +86,7 @@ lock:
 	@set -e; tmp=$$(mktemp -d); trap 'rm -rf "$$tmp"' EXIT; \
 	$(PYTHON) -m venv "$$tmp/venv"; \
 	"$$tmp/venv/bin/python" -m pip -qq install --upgrade pip; \
-	"$$tmp/venv/bin/python" -m pip -qq install -e '.[dev,ur]'; \
+	"$$tmp/venv/bin/python" -m pip -qq install -e '.[dev,ur,franka]'; \
 	{ sed -n '/^#/!q;p' $(LOCK) 2>/dev/null || true; } > "$$tmp/lock"; \
 	"$$tmp/venv/bin/python" -m pip freeze --all --exclude-editable >> "$$tmp/lock"; \
 	mv "$$tmp/lock" $(LOCK); \

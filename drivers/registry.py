@@ -30,6 +30,7 @@ _BUILTIN: dict[tuple[str, str], str] = {
     ("trigger", "can"): "cellcal.drivers.triggers.can_bus:CanTrigger",
     ("tracker", "socket"): "cellcal.drivers.tracker_socket:TrackerSocket",
     ("robot", "ur_rtde"): "cellcal.drivers.ur.robot:UrRtdeRobot",
+    ("robot", "franka"): "cellcal.drivers.franka.robot:FrankaRobot",
     ("trigger", "ur_digital_input"): "cellcal.drivers.ur.trigger:UrDigitalInputTrigger",
     ("robot", "sim"): "cellcal.sims.inproc.devices:SimRobot",
     ("trigger", "sim"): "cellcal.sims.inproc.devices:SimTrigger",

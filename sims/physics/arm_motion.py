@@ -112,6 +112,35 @@ def _rigid(elements, values) -> tuple[np.ndarray, np.ndarray]:
     return rotation, position
 
 
+def joint_body_frames(model: KinematicModel, params) -> tuple[list[np.ndarray], np.ndarray]:
+    """The arm of `params` as a physics engine's body tree wants it: for each joint, the 4x4 (m) of
+    the body it turns in its parent body's frame at zero joint angle (the joint turns about that
+    body's z through its origin), and the last body -> flange. For arms whose every joint is a turn
+    about z driven by that joint alone (as the modified-DH files are); ValueError otherwise."""
+    chain = model.chains["flange"]
+    elements = chain.elements
+    params = np.asarray(params, dtype=float)
+    values = [float(params[el.param]) if el.param >= 0 else float(el.constant) for el in elements]
+    driven = [i for i, el in enumerate(elements) if el.joints]
+    if len(driven) != model.n_joints or any(
+            not elements[i].is_rotation or elements[i].axis != 2 or elements[i].joints != ((j, 1.0),)
+            for j, i in enumerate(driven)):
+        raise ValueError(f"{model.name}: not a chain of joints turning about z, one each")
+    frames = []
+    for a, i in zip([0, *(d + 1 for d in driven)], driven):
+        rotation, position = _rigid(elements[a:i], values[a:i])
+        frame = np.eye(4)
+        frame[:3, :3] = rotation @ _rigid(elements[i:i + 1], values[i:i + 1])[0]  # the joint's zero offset
+        frame[:3, 3] = position
+        frames.append(frame)
+    rotation, position = _rigid(elements[driven[-1] + 1:], values[driven[-1] + 1:])
+    rest = np.eye(4)
+    rest[:3, :3], rest[:3, 3] = rotation, position
+    end = np.array(chain.end, dtype=float)
+    end[:3, 3] = end[:3, 3] / 1000.0
+    return frames, rest @ end
+
+
 class ArmKinematics:
     """Flange and TCP frames and the TCP Jacobian of a model's flange chain, in metres.
 

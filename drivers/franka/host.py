@@ -1,0 +1,413 @@
+"""The child process that owns libfranka (pylibfranka) for :mod:`.robot`.
+
+libfranka wants a 1 kHz loop that answers every state with a command, and its Python binding holds
+the GIL while it waits for the robot: in the service's interpreter it would stall every thread, and
+the service's threads would make it miss its cycles. So the loop lives here, in a process of its own,
+with one thread that owns the ``pylibfranka.Robot`` (libfranka is not thread-safe):
+
+* at rest it reads the robot's state (``read_once``) and streams it to the parent;
+* a motion runs libfranka's motion generators, each cycle's command computed here from the state the
+  cycle brought: joint moves on a synchronised trapezoid in joint space (joint position control),
+  linear moves on a straight line with the orientation turned about one axis (Cartesian pose
+  control), contact searches at a Cartesian velocity until the external force estimate
+  (``O_F_ext_hat_K``) exceeds the cell's threshold, then, if asked, a compliant seating: the commanded
+  position gives way to the contact's force across the search and presses with a set force along
+  it (admittance control), so a socket's faces slide the tip into its seat;
+* every motion ends with the arm settled (its joint speeds below :data:`SETTLED_RAD_S` for
+  :data:`SETTLED_FOR_S`), and a stop request decelerates it at the cell's limits.
+
+Protocol on the inherited socket (``multiprocessing.connection`` framing, both ends ours):
+
+* parent -> child: the config dict once; then ``("call", id, name, args)``, ``("stop",)``, ``("exit",)``;
+* child -> parent: ``("ready", info)`` or ``("error", kind, text)``; ``("samples", [...])`` in batches;
+  ``("result", id, value)`` or ``("raised", id, kind, text)`` per call, where kind is ``reflex``,
+  ``network``, ``command`` or ``refused``.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import queue
+import socket
+import threading
+import time
+from multiprocessing.connection import Connection
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+PYLIBFRANKA_MISSING = "the Franka driver needs pylibfranka: pip install 'cellcal[franka]'"
+SETTLED_RAD_S = 2e-3  # every joint slower than this ...
+SETTLED_FOR_S = 0.05  # ... for this long: the arm is at rest
+SETTLE_TIMEOUT_S = 3.0
+SEND_EVERY_S = 0.01  # samples go to the parent in batches this often
+ROTATION_RADIUS_M = 0.1  # a pure turn counts as the path of a point this far from the axis (timing)
+SEAT_DAMPING_N_S_M = 1000.0  # the seating's admittance: 5 N across the search moves the command 5 mm/s
+FORCE_BIAS_S = 0.02  # the force estimate's offset, averaged over this long at a search's start
+
+
+def trapezoid(length: float, speed: float, accel: float):
+    """(duration, s(t)) of a trapezoidal (or triangular) profile over `length` (s in 0..1)."""
+    if length <= 0:
+        return 0.0, lambda t: 1.0
+    t_acc = speed / accel
+    if accel * t_acc * t_acc >= length:  # never reaches the speed
+        t_acc = math.sqrt(length / accel)
+        speed = accel * t_acc
+    t_flat = (length - accel * t_acc * t_acc) / speed
+    total = 2 * t_acc + t_flat
+
+    def s(t: float) -> float:
+        if t <= 0:
+            return 0.0
+        if t >= total:
+            return 1.0
+        if t < t_acc:
+            d = 0.5 * accel * t * t
+        elif t < t_acc + t_flat:
+            d = 0.5 * accel * t_acc * t_acc + speed * (t - t_acc)
+        else:
+            r = total - t
+            d = length - 0.5 * accel * r * r
+        return d / length
+
+    return total, s
+
+
+def rotvec(rotation: np.ndarray) -> np.ndarray:
+    return Rotation.from_matrix(rotation).as_rotvec()
+
+
+def rotation_of(v) -> np.ndarray:
+    return Rotation.from_rotvec(np.asarray(v, dtype=float)).as_matrix()
+
+
+def matrix(flat16) -> np.ndarray:
+    return np.array(flat16, dtype=float).reshape(4, 4, order="F")
+
+
+def flat(m: np.ndarray) -> list[float]:
+    return np.asarray(m, dtype=float).flatten(order="F").tolist()
+
+
+class Stopped(Exception):
+    """The parent asked the motion to stop; it was decelerated to rest."""
+
+
+class Host:
+    def __init__(self, conn: Connection, config: dict):
+        self.conn, self.config = conn, config
+        self.send_lock = threading.Lock()
+        self.calls: queue.Queue = queue.Queue()
+        self.stop_requested = threading.Event()
+        self.batch: list = []
+        self.last_sent = time.monotonic()
+        self.robot = None
+        self.franka = None
+        self.t_s = 0.0
+
+    # talking to the parent
+    def send(self, message) -> None:
+        with self.send_lock:
+            try:
+                self.conn.send(message)
+            except OSError:
+                os._exit(0)
+
+    def sample(self, state, force: bool = False) -> None:
+        """Queue one state for the parent; send the batch when it is due."""
+        self.t_s = state.time.to_sec()
+        self.batch.append((self.t_s, list(state.q), list(state.O_T_EE), int(state.robot_mode.value),
+                           list(state.O_F_ext_hat_K[:3])))
+        now = time.monotonic()
+        if force or now - self.last_sent >= SEND_EVERY_S:
+            self.send(("samples", self.batch))
+            self.batch, self.last_sent = [], now
+
+    def listen(self) -> None:
+        while True:
+            try:
+                message = self.conn.recv()
+            except (EOFError, OSError):
+                os._exit(0)
+            if message[0] == "exit":
+                os._exit(0)
+            if message[0] == "stop":
+                self.stop_requested.set()
+            elif message[0] == "call":
+                self.calls.put(message[1:])
+
+    # the robot thread
+    def connect(self) -> None:
+        import pylibfranka
+
+        self.franka = pylibfranka
+        self.robot = pylibfranka.Robot(self.config["host"], pylibfranka.RealtimeConfig.kIgnore)
+        c = self.config
+        self.robot.set_collision_behavior([c["reflex_torque_nm"]] * 7, [c["reflex_torque_nm"]] * 7,
+                                          [c["reflex_force_n"]] * 6, [c["reflex_force_n"]] * 6)
+
+    def info(self) -> dict:
+        state = self.robot.read_once()
+        self.sample(state, force=True)
+        return {"F_T_NE": list(state.F_T_NE), "F_T_EE": list(state.F_T_EE), "q": list(state.q)}
+
+    def run(self) -> None:
+        while True:
+            try:
+                call = self.calls.get(timeout=self.config["idle_read_s"])
+            except queue.Empty:
+                self._idle_read()
+                continue
+            call_id, name, args = call
+            self.stop_requested.clear()
+            try:
+                value = getattr(self, "do_" + name)(*args)
+                message = ("result", call_id, value)
+            except Stopped:
+                message = ("result", call_id, "stopped")
+            except Exception as exc:  # each reported to the parent, which raises DeviceError
+                message = ("raised", call_id, self.kind_of(exc), f"{type(exc).__name__}: {exc}")
+            self.send(message)
+
+    def kind_of(self, exc: Exception) -> str:
+        f = self.franka
+        if isinstance(exc, f.ControlException):
+            return "reflex"
+        if isinstance(exc, f.NetworkException):
+            return "network"
+        if isinstance(exc, (f.CommandException, f.InvalidOperationException)):
+            return "command"
+        if isinstance(exc, ValueError):
+            return "refused"
+        return "command"
+
+    def _idle_read(self) -> None:
+        try:
+            self.sample(self.robot.read_once())
+        except self.franka.NetworkException as exc:
+            self.send(("lost", f"{type(exc).__name__}: {exc}"))
+            time.sleep(0.2)
+
+    # commands
+    def do_read(self):
+        return self.info()
+
+    def do_set_ee(self, f_t_ee):
+        """The tool frame (flange -> TCP), set as libfranka sets it: NE_T_EE = F_T_NE^-1 F_T_EE."""
+        state = self.robot.read_once()
+        ne_t_ee = np.linalg.inv(matrix(state.F_T_NE)) @ matrix(f_t_ee)
+        self.robot.set_EE(flat(ne_t_ee))
+        for _ in range(50):  # the controller applies it with its next states
+            state = self.robot.read_once()
+            self.sample(state)
+            if np.abs(matrix(state.F_T_EE) - matrix(f_t_ee)).max() < 1e-6:
+                break
+        self.sample(state, force=True)
+        return list(state.F_T_EE)
+
+    def do_recover(self):
+        self.robot.automatic_error_recovery()
+        state = self.robot.read_once()
+        self.sample(state, force=True)
+        return int(state.robot_mode.value)
+
+    def do_move_j(self, q_target, speed, accel):
+        f = self.franka
+        q_target = np.asarray(q_target, dtype=float)
+        control = self.robot.start_joint_position_control(f.ControllerMode.JointImpedance)
+        state, _ = control.readOnce()
+        q0 = np.array(state.q_d, dtype=float)
+        delta = q_target - q0
+        length = float(np.abs(delta).max())
+        total, s = trapezoid(length, speed, accel)
+        t, last_q, last_v = 0.0, q0, np.zeros_like(q0)
+        while True:
+            if self.stop_requested.is_set():
+                self._stop_joints(control, last_q, last_v, accel)
+                raise Stopped()
+            q = q0 + s(t) * delta
+            done = t >= total
+            command = f.JointPositions(q.tolist())
+            command.motion_finished = done
+            last_v, last_q = (q - last_q) / 0.001, q
+            control.writeOnce(command)
+            if done:
+                break
+            state, duration = control.readOnce()
+            self.sample(state)
+            t += duration.to_sec()
+        return self.settle()
+
+    def _stop_joints(self, control, q, v, accel) -> None:
+        f = self.franka
+        speed = float(np.abs(v).max())
+        direction = v / speed if speed > 0 else np.zeros_like(v)
+        while True:
+            state, duration = control.readOnce()
+            self.sample(state)
+            dt = duration.to_sec()
+            speed = max(speed - accel * dt, 0.0)
+            q = q + direction * speed * dt
+            command = f.JointPositions(q.tolist())
+            command.motion_finished = speed == 0.0
+            control.writeOnce(command)
+            if speed == 0.0:
+                break
+        self.settle()
+
+    def do_move_l(self, pose, speed, accel):
+        f = self.franka
+        control = self.robot.start_cartesian_pose_control(f.ControllerMode.JointImpedance)
+        state, _ = control.readOnce()
+        start = matrix(state.O_T_EE_c)
+        p0, r0 = start[:3, 3].copy(), start[:3, :3].copy()
+        p1, r1 = np.asarray(pose[:3], dtype=float), rotation_of(pose[3:6])
+        turn = rotvec(r0.T @ r1)
+        length = max(float(np.linalg.norm(p1 - p0)), float(np.linalg.norm(turn)) * ROTATION_RADIUS_M)
+        total, s = trapezoid(length, speed, accel)
+        t, command_m, previous = 0.0, start, p0
+        while True:
+            if self.stop_requested.is_set():
+                self._stop_linear(control, command_m, previous, accel)
+                raise Stopped()
+            k = s(t)
+            m = np.eye(4)
+            m[:3, :3] = r0 @ rotation_of(turn * k)
+            m[:3, 3] = p0 + k * (p1 - p0)
+            done = t >= total
+            command = f.CartesianPose(flat(m))
+            command.motion_finished = done
+            previous, command_m = command_m[:3, 3], m
+            control.writeOnce(command)
+            if done:
+                break
+            state, duration = control.readOnce()
+            self.sample(state)
+            t += duration.to_sec()
+        return self.settle()
+
+    def _stop_linear(self, control, m, last_p, accel) -> None:
+        f = self.franka
+        state, duration = control.readOnce()
+        velocity = (m[:3, 3] - last_p) / max(duration.to_sec(), 1e-3)
+        speed = float(np.linalg.norm(velocity))
+        direction = velocity / speed if speed > 0 else np.zeros(3)
+        m = m.copy()
+        while True:
+            self.sample(state)
+            dt = duration.to_sec()
+            speed = max(speed - accel * dt, 0.0)
+            m[:3, 3] = m[:3, 3] + direction * speed * dt
+            command = f.CartesianPose(flat(m))
+            command.motion_finished = speed == 0.0
+            control.writeOnce(command)
+            if speed == 0.0:
+                break
+            state, duration = control.readOnce()
+        self.settle()
+
+    def do_contact(self, twist, timeout_s):
+        """Search along `twist` until the external force passes the threshold; then seat; (contact, t)."""
+        f, c = self.franka, self.config
+        twist = np.asarray(twist, dtype=float)
+        accel = c["contact_accel_m_s2"]
+        control = self.robot.start_cartesian_velocity_control(f.ControllerMode.JointImpedance)
+        t, bias, n_bias, speed_k = 0.0, np.zeros(3), 0, 0.0
+        contact = False
+        top = float(np.linalg.norm(twist[:3])) or 1.0
+        while True:
+            state, duration = control.readOnce()
+            self.sample(state)
+            dt = duration.to_sec()
+            t += dt
+            force = np.array(state.O_F_ext_hat_K[:3], dtype=float)
+            if t <= FORCE_BIAS_S:  # the estimate's offset, before the tool can have moved far
+                bias, n_bias = bias + force, n_bias + 1
+            elif np.linalg.norm(force - bias / max(n_bias, 1)) > c["contact_force_n"]:
+                contact = True
+            stopping = contact or t >= timeout_s or self.stop_requested.is_set()
+            speed_k = max(speed_k - accel * dt / top, 0.0) if stopping else min(speed_k + accel * dt / top, 1.0)
+            command = f.CartesianVelocities((twist * speed_k).tolist())
+            command.motion_finished = stopping and speed_k == 0.0
+            control.writeOnce(command)
+            if command.motion_finished:
+                break
+        if self.stop_requested.is_set() and not contact:
+            self.settle()
+            raise Stopped()
+        if contact and c["seat_s"] > 0:
+            self._seat(twist[:3] / top, c["seat_s"], c["seat_force_n"], bias / max(n_bias, 1))
+        self.settle()
+        return contact
+
+    def _seat(self, direction, duration_s, push_n, bias) -> None:
+        """Admittance seating for `duration_s`: the commanded position moves with the external force
+        across the search (a damper of SEAT_DAMPING_N_S_M), and along it until the contact pushes back
+        with `push_n`; the orientation is held. A socket's faces so slide the tip to where they push
+        it equally from every side, whatever the arm's own tracking errors."""
+        f = self.franka
+        control = self.robot.start_cartesian_pose_control(f.ControllerMode.JointImpedance)
+        state, duration = control.readOnce()
+        target = matrix(state.O_T_EE_c)
+        t = 0.0
+        while True:
+            force = np.array(state.O_F_ext_hat_K[:3], dtype=float) - bias
+            along = float(force @ direction)
+            across = force - along * direction
+            dt = duration.to_sec()
+            target[:3, 3] += dt * (across + direction * (push_n + along)) / SEAT_DAMPING_N_S_M
+            done = t >= duration_s or self.stop_requested.is_set()
+            command = f.CartesianPose(flat(target))
+            command.motion_finished = done
+            control.writeOnce(command)
+            if done:
+                break
+            state, duration = control.readOnce()
+            self.sample(state)
+            t += duration.to_sec()
+
+    def settle(self):
+        """Read until the arm is at rest (or SETTLE_TIMEOUT_S of the controller's time); its last state's time."""
+        still, t, start = 0.0, None, None
+        while True:
+            state = self.robot.read_once()
+            self.sample(state)
+            now = state.time.to_sec()
+            start = now if start is None else start
+            dt = 0.0 if t is None else now - t
+            t = now
+            still = still + dt if np.abs(np.asarray(state.dq)).max() < SETTLED_RAD_S else 0.0
+            if still >= SETTLED_FOR_S or now - start > SETTLE_TIMEOUT_S:
+                self.sample(state, force=True)
+                return now
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description="libfranka in a child process (internal)")
+    parser.add_argument("--fd", type=int, required=True)
+    args = parser.parse_args()
+    conn = Connection(socket.socket(fileno=args.fd).detach())
+    try:
+        config = conn.recv()
+        host = Host(conn, config)
+        try:
+            host.connect()
+            info = host.info()
+        except ModuleNotFoundError as exc:
+            conn.send(("error", "missing", f"{PYLIBFRANKA_MISSING} ({exc})"))
+            os._exit(1)
+        except Exception as exc:  # pylibfranka's NetworkException and friends
+            conn.send(("error", "network", f"{type(exc).__name__}: {exc}"))
+            os._exit(1)
+        conn.send(("ready", info))
+        threading.Thread(target=host.listen, daemon=True, name="parent").start()
+        host.run()
+    except (EOFError, OSError):
+        pass
+    os._exit(0)
+
+
+if __name__ == "__main__":
+    main()
