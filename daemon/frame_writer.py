@@ -4,7 +4,7 @@ The frame goes to two places of the controller (:class:`~cellcal.drivers.interfa
 
 * the running program's tool frame (``set_tcp``), which the controller reports back (``tool_frame``);
 * the frame the robot program applies at its next start (``store_tool_frame``), on robots that
-  keep one (a UR: RTDE input registers, docs/integrator.md "Persistent tool frame"). Its generation is
+  keep one (the robot's driver says where: docs/robots.md "What each robot keeps"). Its generation is
   the run whose result it is. A cell with a tool table keeps one per tool, each in its own
   block (slot) of the robot's: :func:`tool_slot`. A tool whose block the robot does not
   have (the registers ran out) gets the running program's frame only (:func:`no_block_note`).

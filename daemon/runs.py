@@ -186,6 +186,9 @@ class RunMachine:
         robot, changed = service.drivers.robot, custody.tool_changed()
         try:
             state = robot.state()
+            if state is RobotState.PROTECTIVE_STOP and robot.recover():  # the operator's start clears it
+                log.info("start: the robot's protective stop cleared (the operator's start)")
+                state = robot.state()
             # the frame before the run: on a tool change, the mounted tool's (set last, read back)
             before = np.asarray(robot.tool_frame(), dtype=float) if state is RobotState.READY and not changed \
                 else None

@@ -237,8 +237,8 @@ class ToolCustody:
             log.error("giving the tool frame back failed: %s", exc)
 
     def _reconnect(self) -> None:
-        """Off the main loop: the lost robots' connections closed (the controller lets one
-        client hold its RTDE inputs), a fresh set of the cell's devices opened, and swapped in
+        """Off the main loop: the lost robots' connections closed (a controller may let only one
+        client hold its inputs), a fresh set of the cell's devices opened, and swapped in
         under the panel's lock, so no panel call runs on a device being replaced; the main
         loop starts no run meanwhile (NOT_READY)."""
         service = self.service

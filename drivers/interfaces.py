@@ -122,6 +122,13 @@ class Robot(abc.ABC):
     def state(self) -> RobotState:
         ...
 
+    def recover(self) -> bool:
+        """Clear a protective stop from the PC where the robot allows it (a Franka's reflex:
+        libfranka's automatic error recovery); True when the robot is ready after it. The service
+        calls it only when the operator presses start. A robot whose stops are cleared at the
+        robot itself (a UR's, on its teach pendant) clears nothing and returns False."""
+        return False
+
     def digital_inputs(self) -> int:
         """The robot's digital inputs now, as a bit field: bit n is input n, numbered as UR's
         RTDE ``actual_digital_input_bits`` numbers them (0-7 standard, 8-15 configurable,

@@ -173,7 +173,8 @@ class SeatPlanner:
                 for branch, seed in seeds:
                     q = inverse_many(model, rest, seed, tool.tcp_pose)
                     ok = np.isfinite(q).all(axis=1)
-                    ok[ok] &= np.sign(np.sin(q[ok, 4])) == np.sign(np.sin(seed[4]))
+                    if model.n_joints == 6:  # each seat on its seed's wrist branch (a six-joint arm's joint 5)
+                        ok[ok] &= np.sign(np.sin(q[ok, 4])) == np.sign(np.sin(seed[4]))
                     if limits is not None:
                         ok[ok] &= np.all((q[ok] >= limits[:, 0]) & (q[ok] <= limits[:, 1]), axis=1)
                     # clear of singularities, and the way in from above on the same branch

@@ -60,7 +60,7 @@ Section ``kinematic_fixture`` of the cell file::
     orientations: 8                       # seats per socket (contacts per ball: 6..24) and placement, 4..24
     max_tilt_deg: 40                      # largest tilt of the tool from the vertical the design may choose
     turn_deg: 60                          # turn about the tool axis the design may choose, + and -
-    wrist_flip: true                      # seats on the flipped wrist too (the arm goes home to flip)
+    wrist_flip: true                      # seats on the flipped wrist too (the arm goes home to flip; six-joint arms)
     approach_mm: 5                        # where each search starts, back along the axis (a ball: its normal)
     search_speed_mm_s: 10
     repeatability_mm: 0.03                # the arm's stated repeatability
@@ -95,6 +95,18 @@ MAX_CONFIRM_TIMEOUT_S = 3600.0
 TARGET = "tip"  # the target column: the centre of the tool tip's rounding, what a socket holds
 MIN_CONTACTS_PER_BALL = 6  # three contacts only place a ball's centre; the rest see the arm
 ELEVATION_DEG = (30.0, 80.0)  # the spots' elevations on the ball, from its equator
+
+
+def _wrist_flip(section, cell) -> bool:
+    """Seats on both wrist branches: a six-joint arm's (its wrist turned over: joints 4 and 6 by a half
+    turn, joint 5 mirrored), the default there; an arm with another number of joints has no such pair
+    of branches, and the option is refused for it (default off)."""
+    six = load_robot(cell.robot).n_joints == 6
+    flip = section.flag("wrist_flip", six)
+    if flip and not six:
+        section.fail("wrist_flip", f"the wrist branches are a six-joint arm's; {cell.robot} has "
+                                   f"{load_robot(cell.robot).n_joints} joints: leave wrist_flip out")
+    return flip
 
 
 @dataclass(frozen=True)
@@ -133,7 +145,7 @@ class KinematicFixture(StepRoutine):
             section.number("approach_mm", 5.0, low=2.0, high=travel_mm / 2),
             section.number("search_speed_mm_s", 10.0, above=0.0, high=min(cell.limits["tcp_speed_m_s"] * 1e3, 20.0)),
             section.number("repeatability_mm", 0.03, above=0.0, high=1.0),
-            section.flag("wrist_flip", True),
+            _wrist_flip(section, cell),
             **_moved_by(section), **_contact_options(section, cell, placed.fixture))
         section.done()
         return options

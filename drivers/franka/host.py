@@ -9,7 +9,8 @@ with one thread that owns the ``pylibfranka.Robot`` (libfranka is not thread-saf
 * a motion runs libfranka's motion generators, each cycle's command computed here from the state the
   cycle brought: joint moves on a synchronised trapezoid in joint space (joint position control),
   linear moves on a straight line with the orientation turned about one axis (Cartesian pose
-  control), contact searches at a Cartesian velocity until the external force estimate
+  control), contact searches as guarded moves (the commanded pose advances at the search's speed,
+  so the arm's stiffness presses on what it meets) until the external force estimate
   (``O_F_ext_hat_K``) exceeds the cell's threshold, then, if asked, a compliant seating: the commanded
   position gives way to the contact's force across the search and presses with a set force along
   it (admittance control), so a socket's faces slide the tip into its seat;
@@ -309,31 +310,39 @@ class Host:
         self.settle()
 
     def do_contact(self, twist, timeout_s):
-        """Search along `twist` until the external force passes the threshold; then seat; (contact, t)."""
+        """A guarded move: the commanded pose moves along `twist` (ramped at the contact acceleration)
+        until the external force estimate passes the threshold, so the arm's own stiffness presses
+        the tool on whatever it meets (a face it slides along does not hide the contact); then it
+        decelerates, and seats. True for a contact, False when `timeout_s` ran out first."""
         f, c = self.franka, self.config
         twist = np.asarray(twist, dtype=float)
         accel = c["contact_accel_m_s2"]
-        control = self.robot.start_cartesian_velocity_control(f.ControllerMode.JointImpedance)
+        control = self.robot.start_cartesian_pose_control(f.ControllerMode.JointImpedance)
+        state, duration = control.readOnce()
+        command = matrix(state.O_T_EE_c)
         t, bias, n_bias, speed_k = 0.0, np.zeros(3), 0, 0.0
         contact = False
-        top = float(np.linalg.norm(twist[:3])) or 1.0
+        top = float(np.linalg.norm(twist[:3])) or float(np.linalg.norm(twist[3:]) * ROTATION_RADIUS_M) or 1.0
         while True:
-            state, duration = control.readOnce()
-            self.sample(state)
             dt = duration.to_sec()
-            t += dt
             force = np.array(state.O_F_ext_hat_K[:3], dtype=float)
             if t <= FORCE_BIAS_S:  # the estimate's offset, before the tool can have moved far
                 bias, n_bias = bias + force, n_bias + 1
             elif np.linalg.norm(force - bias / max(n_bias, 1)) > c["contact_force_n"]:
                 contact = True
             stopping = contact or t >= timeout_s or self.stop_requested.is_set()
-            speed_k = max(speed_k - accel * dt / top, 0.0) if stopping else min(speed_k + accel * dt / top, 1.0)
-            command = f.CartesianVelocities((twist * speed_k).tolist())
-            command.motion_finished = stopping and speed_k == 0.0
-            control.writeOnce(command)
-            if command.motion_finished:
+            step = accel * dt / top
+            speed_k = max(speed_k - step, 0.0) if stopping else min(speed_k + step, 1.0)
+            command[:3, 3] += twist[:3] * speed_k * dt
+            command[:3, :3] = rotation_of(twist[3:] * speed_k * dt) @ command[:3, :3]
+            message = f.CartesianPose(flat(command))
+            message.motion_finished = stopping and speed_k == 0.0
+            control.writeOnce(message)
+            if message.motion_finished:
                 break
+            state, duration = control.readOnce()
+            self.sample(state)
+            t += duration.to_sec()
         if self.stop_requested.is_set() and not contact:
             self.settle()
             raise Stopped()

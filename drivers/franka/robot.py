@@ -15,8 +15,8 @@ cell's clock line up), and every libfranka error becomes a :class:`DeviceError`:
   emergency stop.
 
 The tool frame is libfranka's end effector: :meth:`set_tcp` sets flange -> TCP (``F_T_EE``) with
-``set_EE`` and reads it back from the state. It is volatile: the controller keeps it until the
-client disconnects or the robot restarts, and this robot keeps no tool frame for a program's start
+``set_EE`` and reads it back from the state. It is volatile: the robot forgets it when it restarts
+(Desk's end-effector configuration applies then), and this robot keeps no tool frame for a program's start
 (:meth:`tool_frame_slots` is 0). A Franka user makes a frame persistent in Desk (the end effector's
 settings), which no client can write; ``cellcal`` sets it at each run instead.
 

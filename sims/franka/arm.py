@@ -13,15 +13,16 @@ kinematics (its URDF). What we add is the cell around it:
 * **The real tool** on the flange (the truth's), which blocks the real beams and touches the real
   fixtures. The beams' sensors switch late (latency, jitter), timed on the controller's clock (its
   state's ``time``), for the IO module's trigger ring.
-* **Contact, through MuJoCo.** The pivot's and a kinematic-fixture plate's sockets are trihedral
-  nests (three faces through the apex at the countersink's half angle: a rounded tip rests with its
-  centre on the axis, as in the cone), a stylus plate's balls are balls; the tip's rounding meeting
+* **Contact, through MuJoCo.** The pivot's and a kinematic-fixture plate's sockets are nests of
+  flat faces through the apex at the countersink's half angle (a rounded tip rests with its centre
+  on the axis, as in the cone; :data:`NEST_FACES`), a stylus plate's balls are balls; the tip's rounding meeting
   one is pushed back by a stiff, damped contact (:data:`CONTACT_STIFFNESS_N_M`), applied to the
   flange as an external force, so the arm, under its own controller, is stopped and guided by it.
   The controller reports the force as its external wrench estimate (``O_F_ext_hat_K``, with
   the estimate's noise) -- what a Franka client detects contact by.
 * **Faults.** A reflex (what a Franka does on a collision it did not expect: the motion is aborted,
-  the robot reports ``kReflex`` and the reason until an error recovery) and a dropped connection.
+  the robot reports ``kReflex`` and the reason until an error recovery), on a contact force above
+  :data:`COLLISION_FORCE_N` (the tool driven into a fixture) or injected; and a dropped connection.
 
 The controller's clock is the step count (1 ms a step), kept across client connections (franky-sim
 would count each connection's states from 0), so the trigger ring's stamps and the robot's samples
@@ -34,6 +35,7 @@ import threading
 import xml.etree.ElementTree as ET
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from cellcal.sims.inproc.world import FixtureBall, PivotSocket, fixture_sockets, pivot_socket
 from cellcal.sims.physics.arm_motion import ArmKinematics, joint_body_frames
@@ -41,11 +43,18 @@ from cellcal.sims.physics.scene import SwitchingSensors
 from cellcal.sims.physics.truth import CellTruth, beam_blocked, beam_edges, real_tool_tip
 
 STEP_S = 0.001  # franky-sim's step: the libfranka control rate
-CONTACT_STIFFNESS_N_M = 2.0e5  # 200 N/mm: a steel nest on a stiff post (the arm is the soft part: ~10 N/mm)
+CONTACT_STIFFNESS_N_M = 2.0e5  # 200 N/mm a contact: a steel nest on a stiff post (the arm is the soft part: ~10 N/mm)
 CONTACT_DAMPING_N_S_M = 1.0e3  # about 0.6 of critical for the few kg the flange carries
 FORCE_NOISE_N = 0.15  # the external force estimate's noise (1 sigma per axis)
-NEST_FACES = 3  # a trihedral nest
+# A nest's faces: a pyramid of 12 around the countersink's axis, so a push tilted up to 44 deg from it
+# (atan of cos 15 deg, at 45 deg faces) stays seated as in the cone (45 deg); a trihedral nest would hold
+# only 27 deg. Each face has a quarter of a contact's stiffness and damping: seated, the nest is as stiff
+# as three faces would be.
+NEST_FACES = 12
 REFLEX_ERROR = "cartesian_reflex"  # the error bit a collision reflex sets (libfranka's Errors)
+# A collision: a contact force above this stops the arm with a reflex, as a Franka's collision detection
+# does (franky-sim simulates none); a contact search and its seating press with a few newtons.
+COLLISION_FORCE_N = 30.0
 # libfranka's Errors, in the order the state carries them (41 flags)
 ERROR_NAMES = (
     "joint_position_limits_violation", "cartesian_position_limits_violation", "self_collision_avoidance_violation",
@@ -129,6 +138,20 @@ def place_bodies(worldbody: ET.Element, prefix: str, nominal, true) -> np.ndarra
     return mount
 
 
+def _joint_armature(scene: ET.Element, prefix: str) -> np.ndarray:
+    """Each arm joint's armature (its motor's reflected inertia, kg m^2) in franky-sim's model.
+
+    franky-sim's joint controller adds its damping torque explicitly, from the last step's speed: at
+    1 ms steps a damping gain above 2 x inertia / step is unstable, and franky-sim's default wrist
+    gains (200 N m s/rad on 0.074 kg m^2) make joints 5-7 chatter in a limit cycle at rest. The cell
+    lowers each gain to inertia / step (half the bound, the link's own inertia not counted: still
+    overdamped), the gains a Franka's own joint impedance controller would never leave unstable."""
+    default = next((float(j.get("armature")) for d in scene.iter("default") for j in d.findall("joint")
+                    if j.get("armature") is not None), 0.0)
+    joints = {j.get("name"): j for j in scene.iter("joint")}
+    return np.array([float(joints[f"{prefix}fr3_joint{i}"].get("armature", default)) for i in range(1, 8)])
+
+
 class Contacts:
     """The stiff, damped contact between the real tip's rounding and the cell's nests and balls."""
 
@@ -141,8 +164,9 @@ class Contacts:
         """The force (N, base frame) the fixtures exert on the rounding centred at `centre` moving at `velocity`."""
         total = np.zeros(3)
         for seat in self.seats:
+            share = 3.0 / NEST_FACES if isinstance(seat, PivotSocket) else 1.0
             for depth, normal in self._penetrations(seat, centre):
-                push = CONTACT_STIFFNESS_N_M * depth - CONTACT_DAMPING_N_S_M * float(velocity @ normal)
+                push = share * (CONTACT_STIFFNESS_N_M * depth - CONTACT_DAMPING_N_S_M * float(velocity @ normal))
                 total += max(push, 0.0) * normal  # a contact pushes, never pulls
         return total
 
@@ -180,7 +204,8 @@ class CellArm:
     beams, fixtures and real tool around it. :meth:`run` steps it (in the calling thread) until
     :meth:`close`; the control port's requests read and change it under :attr:`lock`."""
 
-    def __init__(self, truth: CellTruth, model, *, host: str, q0, seed: int = 0, time_scale: float = 1.0):
+    def __init__(self, truth: CellTruth, model, *, host: str, q0, seed: int = 0, time_scale: float = 1.0,
+                 end_effector=None):
         from franky_sim.franka_robot_protocol import RobotCommand
         from franky_sim.mujoco_simulator import MujocoSimulator
 
@@ -194,6 +219,7 @@ class CellArm:
         self.robot = self.sim.add_robot(initial_q=tuple(float(v) for v in q0))
         self._mount = place_bodies(self.sim.worldbody, "robot0_", joint_body_frames(model, model.nominal),
                                    joint_body_frames(model, truth.arm_params))
+        self.robot.kv = np.minimum(self.robot.kv, _joint_armature(self.sim.scene, "robot0_") / STEP_S)
         self.robot.__class__ = _cell_robot_class(type(self.robot))
         self.robot.cell = self
         self.server = _cell_server_class()(self.robot, [host])
@@ -202,6 +228,12 @@ class CellArm:
         self.server.init()
         self.sim.start()
         self._check_bodies()
+        if end_effector is not None:  # the end effector configured in Desk (flange -> TCP, 4x4)
+            hand = self.robot.robot_parameters  # where franky-sim puts the nominal end effector (its hand's TCP)
+            f_t_ne = np.eye(4)
+            f_t_ne[:3, :3] = Rotation.from_euler("xyz", hand.ee_tcp_rpy).as_matrix()
+            f_t_ne[:3, 3] = hand.ee_tcp_xyz
+            self.robot.set_NE_T_EE(tuple((np.linalg.inv(f_t_ne) @ end_effector).flatten(order="F").tolist()))
         self.steps = 0
         self.force_n = np.zeros(3)
         self.reflex: str | None = None  # the reason of an active reflex, until an error recovery
@@ -235,6 +267,11 @@ class CellArm:
         if self.truth.tool is None:
             return position, position
         return self.truth.tool.segment(rotation, position)
+
+    def end_effector_pose(self) -> np.ndarray:
+        """The controller's tool frame now (F_T_EE, flange -> TCP) as [x, y, z, rx, ry, rz]."""
+        f_t_ee = np.array(self.robot.state.F_T_EE, dtype=float).reshape(4, 4, order="F")
+        return np.concatenate([f_t_ee[:3, 3], Rotation.from_matrix(f_t_ee[:3, :3]).as_rotvec()])
 
     def tool_tip(self) -> np.ndarray:
         return real_tool_tip(self.truth, self.physics, self.q(), self._body)
@@ -276,6 +313,8 @@ class CellArm:
             hand = self._hand_id
             data.xfrc_applied[hand, :3] = self.force_n
             data.xfrc_applied[hand, 3:] = np.cross(body[0] - data.xipos[hand], self.force_n)
+            if self.reflex is None and float(np.linalg.norm(self.force_n)) > COLLISION_FORCE_N:
+                self.trigger_reflex(REFLEX_ERROR)
             self.sim.step()
             self._tip_old = body[0]
             t_old = self.t_s

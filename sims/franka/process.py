@@ -80,6 +80,7 @@ class ControlServer:
         with arm.lock:
             if cmd == "state":
                 return {"ok": True, "t_s": arm.t_s, "q": arm.q().tolist(), "reflex": arm.reflex,
+                        "tcp_offset": arm.end_effector_pose().tolist(),
                         "force_n": arm.force_n.tolist(), "moving": bool(arm.server.current_motion_id),
                         "plate_step": arm.plate_step, "messages": arm.messages[-20:]}
             if cmd == "truth":
@@ -185,6 +186,7 @@ def main(argv=None) -> int:
     from cellcal.config.robot_files import load_robot
     from cellcal.sims.franka.arm import CellArm
     from cellcal.sims.physics.truth import truth_of_cell
+    from cellcal.solvers.geometry import se3
 
     parser = argparse.ArgumentParser(prog="python -m cellcal.sims.franka.process",
                                      description="A simulated Franka arm (franky-sim, MuJoCo) in a cell's hidden truth.")
@@ -198,8 +200,12 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     cell = read_cell(args.cell_file)
     model = load_robot(cell.robot)
+    # the end effector as Desk has it configured: the cell's tool as drawn (the hand's own without a tool)
+    end_effector = se3.homogeneous(se3.rotvec_to_matrix(cell.tool.tcp_pose[3:]), cell.tool.tcp_pose[:3]) \
+        if cell.tool is not None else None
     arm = CellArm(truth_of_cell(cell, model), model, host=args.host, q0=np.asarray(cell.home_q_rad, float),
-                  seed=cell.sim_truth.seed if cell.sim_truth is not None else 0, time_scale=args.time_scale)
+                  seed=cell.sim_truth.seed if cell.sim_truth is not None else 0, time_scale=args.time_scale,
+                  end_effector=end_effector)
     control = ControlServer(arm, args.host, args.control_port).start()
     signal.signal(signal.SIGTERM, lambda *_: arm.close())
     if args.parent_pid:

@@ -69,6 +69,7 @@ from cellcal.sims.physics.clock import SimClock
 from cellcal.sims.physics.truth import CellTruth, truth_of_cell
 
 UR_PORTS = (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT)
+FRANKA_PORTS = (1337, 1338)  # libfranka's robot and gripper ports
 EDGE_WAIT_S = 0.2  # how long one request for new edges waits (the wiring's shutdown time)
 PARTNER_RELAY_S = 0.02  # how often (simulated time) robot a's real tip is passed to robot b's controller
 
@@ -81,7 +82,7 @@ class SimCellError(RuntimeError):
 class NetAddresses:
     """Where each fake of a networked cell listens, read from the cell's driver options."""
 
-    ur_host: str
+    ur_host: str  # the robot controller's address (a UR's, or a Franka's with ``robot_driver: franka``)
     modbus: tuple[str, int] | None
     tracker: tuple[str, int] | None
     trigger_base_register: int = 100
@@ -90,6 +91,7 @@ class NetAddresses:
     tracker_targets: tuple = ("smr1",)
     other_ur_hosts: tuple = ()  # (robot name, host) of the cell's robots besides a
     panel: bool = False  # the IO module serves the operator panel (not only the trigger ring)
+    robot_driver: str = "ur_rtde"  # which controller is faked: a UR's (ur_rtde) or a Franka's (franka)
 
     @classmethod
     def of(cls, cell: Cell) -> "NetAddresses":
@@ -99,10 +101,13 @@ class NetAddresses:
             raise CellFileError(what, source=cell.path, section=f"drivers.{kind}")
 
         robot = drivers["robot"]
-        if robot.name != "ur_rtde":
-            fail("robot", f"sim-cell serves a UR controller: driver must be ur_rtde, not {robot.name!r}")
+        if robot.name not in ("ur_rtde", "franka"):
+            fail("robot", f"sim-cell serves a UR controller (driver ur_rtde) or a simulated Franka arm (driver "
+                          f"franka), not driver {robot.name!r}")
         if not isinstance(robot.options.get("host"), str):
-            fail("robot", "host: missing (the address the fake UR controller serves on)")
+            fail("robot", "host: missing (the address the simulated controller serves on)")
+        if robot.name == "franka" and len(cell.robots) > 1:
+            fail("robot", "a simulated Franka cell has one robot")
         modbus, base, unit, panel_map = None, 100, 1, PanelMap()
         for kind in ("panel", "trigger"):
             spec = drivers.get(kind)
@@ -139,10 +144,15 @@ class NetAddresses:
                                     "address (the UR ports are fixed)", source=cell.path, section=where)
             others.append((name, spec.driver.options["host"]))
         return cls(robot.options["host"], modbus, tracker, base, panel_map, unit, targets, tuple(others),
-                   drivers.get("panel") is not None)
+                   drivers.get("panel") is not None, robot.name)
+
+    @property
+    def robot_ports(self) -> tuple:
+        return FRANKA_PORTS if self.robot_driver == "franka" else UR_PORTS
 
     def listening_line(self) -> str:
-        parts = [f"ur {self.ur_host} ({', '.join(map(str, UR_PORTS))})"]
+        brand = "franka" if self.robot_driver == "franka" else "ur"
+        parts = [f"{brand} {self.ur_host} ({', '.join(map(str, self.robot_ports))})"]
         parts += [f"robot {name}: ur {host}" for name, host in self.other_ur_hosts]
         if self.modbus:
             parts.append(f"modbus {self.modbus[0]}:{self.modbus[1]}")
@@ -237,16 +247,21 @@ class SimCell:
     def start(self) -> "SimCell":
         a = self.addresses
         for host in (a.ur_host, *(h for _, h in a.other_ur_hosts)):
-            for port in (*UR_PORTS, CONTROL_PORT):
+            for port in (*a.robot_ports, CONTROL_PORT):
                 check_free(host, port)
         for address in (a.modbus, a.tracker):
             if address is not None:
                 check_free(*address)
         try:
-            self.fake_ur = FakeUrProcess(a.ur_host, robot=self.cell.robot, q0=self.cell.home_q_rad,
-                                         cell_file=self.cell.path,  # the tool the cell has mounted (with_tool)
-                                         tool=self.cell.tool.id if self.cell.tool is not None else None,
-                                         time_scale=self.clock.time_scale)
+            if a.robot_driver == "franka":  # franky-sim's MuJoCo arm, in the cell's truth (sims.franka)
+                from cellcal.sims.franka.process import FrankaSimProcess
+
+                self.fake_ur = FrankaSimProcess(a.ur_host, cell_file=self.cell.path, time_scale=self.clock.time_scale)
+            else:
+                self.fake_ur = FakeUrProcess(a.ur_host, robot=self.cell.robot, q0=self.cell.home_q_rad,
+                                             cell_file=self.cell.path,  # the tool the cell has mounted (with_tool)
+                                             tool=self.cell.tool.id if self.cell.tool is not None else None,
+                                             time_scale=self.clock.time_scale)
             try:
                 self.fake_ur.start()
             except RuntimeError as exc:
