@@ -8,8 +8,8 @@ with one thread that owns the ``pylibfranka.Robot`` (libfranka is not thread-saf
 * at rest it reads the robot's state (``read_once``) and streams it to the parent;
 * a motion runs libfranka's motion generators, each cycle's command computed here from the state the
   cycle brought: joint moves on a synchronised trapezoid in joint space (joint position control),
-  linear moves on a straight line with the orientation turned about one axis (Cartesian pose
-  control), contact searches as guarded moves (the commanded pose advances at the search's speed,
+  linear moves on a straight line with the orientation turned about one axis, solved for the joints
+  beforehand with Franka's published kinematics (joint position control), contact searches as guarded moves (the commanded pose advances at the search's speed,
   so the arm's stiffness presses on what it meets) until the external force estimate
   (``O_F_ext_hat_K``) exceeds the cell's threshold, then, if asked, a compliant seating: the commanded
   position gives way to the contact's force across the search and presses with a set force along
@@ -90,6 +90,57 @@ def matrix(flat16) -> np.ndarray:
 
 def flat(m: np.ndarray) -> list[float]:
     return np.asarray(m, dtype=float).flatten(order="F").tolist()
+
+
+# Franka's published kinematics (modified DH, Craig: Rx(alpha) Tx(a) Rz(q) Tz(d)), the same for the FR3
+# and the Panda: (alpha, a, d) of joints 1-7 in rad and m, then the flange 0.107 m along joint 7's axis.
+# The robot's controller computes its poses (O_T_EE) with exactly these; the driver solves linear
+# moves with them.
+FRANKA_MDH = ((0.0, 0.0, 0.333), (-math.pi / 2, 0.0, 0.0), (math.pi / 2, 0.0, 0.316), (math.pi / 2, 0.0825, 0.0),
+              (-math.pi / 2, -0.0825, 0.384), (math.pi / 2, 0.0, 0.0), (math.pi / 2, 0.088, 0.0))
+FLANGE_M = 0.107
+IK_TOLERANCE_M = 1e-10  # position (m) and orientation (rad) of a solved pose
+IK_STEPS = 20
+
+
+def _frames(q) -> list[np.ndarray]:
+    """Each joint's frame (4x4, base frame) after its turn, and the flange's last."""
+    m, out = np.eye(4), []
+    for (alpha, a, d), angle in zip(FRANKA_MDH, q):
+        ca, sa, cq, sq = math.cos(alpha), math.sin(alpha), math.cos(angle), math.sin(angle)
+        step = np.array([[cq, -sq, 0.0, a], [sq * ca, cq * ca, -sa, -d * sa], [sq * sa, cq * sa, ca, d * ca],
+                         [0.0, 0.0, 0.0, 1.0]])
+        m = m @ step
+        out.append(m)
+    flange = out[-1].copy()
+    flange[:3, 3] += flange[:3, 2] * FLANGE_M
+    out.append(flange)
+    return out
+
+
+def forward(q) -> np.ndarray:
+    """The flange (4x4) at joints q, with Franka's published kinematics."""
+    return _frames(q)[-1]
+
+
+def inverse(target: np.ndarray, seed, f_t_ee: np.ndarray):
+    """Joints near `seed` that put the end effector (flange . f_t_ee) at `target`: damped Newton steps of
+    the least joint motion (the spare degree of freedom is left where the seed has it); None if none
+    converges."""
+    q = np.array(seed, dtype=float)
+    for _ in range(IK_STEPS):
+        frames = _frames(q)
+        pose = frames[-1] @ f_t_ee
+        error = np.concatenate([target[:3, 3] - pose[:3, 3], rotvec(target[:3, :3] @ pose[:3, :3].T)])
+        if np.abs(error).max() < IK_TOLERANCE_M:
+            return q
+        jacobian = np.zeros((6, 7))
+        for j, frame in enumerate(frames[:7]):
+            axis = frame[:3, 2]
+            jacobian[:3, j] = np.cross(axis, pose[:3, 3] - frame[:3, 3])
+            jacobian[3:, j] = axis
+        q = q + jacobian.T @ np.linalg.solve(jacobian @ jacobian.T + 1e-12 * np.eye(6), error)
+    return None
 
 
 class Stopped(Exception):
@@ -259,28 +310,44 @@ class Host:
         self.settle()
 
     def do_move_l(self, pose, speed, accel):
+        """The TCP on a straight line, its orientation turned about one axis: the line solved for the
+        joints before the arm moves (one pose a millisecond of the profile, each from the last, so the
+        arm's spare degree of freedom stays where it was), then run in joint position control. A
+        Cartesian motion generator would solve each cycle from wherever the arm lags to, and a big turn
+        then swings the tool off the line."""
         f = self.franka
-        control = self.robot.start_cartesian_pose_control(f.ControllerMode.JointImpedance)
-        state, _ = control.readOnce()
-        start = matrix(state.O_T_EE_c)
+        state = self.robot.read_once()
+        f_t_ee = matrix(state.F_T_EE)
+        q0 = np.array(state.q_d, dtype=float)
+        start = forward(q0) @ f_t_ee
         p0, r0 = start[:3, 3].copy(), start[:3, :3].copy()
         p1, r1 = np.asarray(pose[:3], dtype=float), rotation_of(pose[3:6])
         turn = rotvec(r0.T @ r1)
         length = max(float(np.linalg.norm(p1 - p0)), float(np.linalg.norm(turn)) * ROTATION_RADIUS_M)
         total, s = trapezoid(length, speed, accel)
-        t, command_m, previous = 0.0, start, p0
+        path, q = [], q0
+        for t in np.arange(0.0, total + 0.001, 0.001):
+            k = s(float(t))
+            target = np.eye(4)
+            target[:3, :3] = r0 @ rotation_of(turn * k)
+            target[:3, 3] = p0 + k * (p1 - p0)
+            q = inverse(target, q, f_t_ee)
+            if q is None:
+                raise ValueError(f"move_l: no joint solution on the line at {np.round(target[:3, 3], 4).tolist()} m "
+                                 "(out of reach or through a singularity)")
+            path.append(q)
+        control = self.robot.start_joint_position_control(f.ControllerMode.JointImpedance)
+        state, _ = control.readOnce()
+        t, last, velocity = 0.0, q0, np.zeros(7)
         while True:
             if self.stop_requested.is_set():
-                self._stop_linear(control, command_m, previous, accel)
+                self._stop_joints(control, last, velocity, accel)
                 raise Stopped()
-            k = s(t)
-            m = np.eye(4)
-            m[:3, :3] = r0 @ rotation_of(turn * k)
-            m[:3, 3] = p0 + k * (p1 - p0)
-            done = t >= total
-            command = f.CartesianPose(flat(m))
+            i = min(int(round(t / 0.001)), len(path) - 1)
+            done = i == len(path) - 1
+            command = f.JointPositions(path[i].tolist())
             command.motion_finished = done
-            previous, command_m = command_m[:3, 3], m
+            velocity, last = (path[i] - last) / 0.001, path[i]
             control.writeOnce(command)
             if done:
                 break

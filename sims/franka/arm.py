@@ -141,11 +141,13 @@ def place_bodies(worldbody: ET.Element, prefix: str, nominal, true) -> np.ndarra
 def _joint_armature(scene: ET.Element, prefix: str) -> np.ndarray:
     """Each arm joint's armature (its motor's reflected inertia, kg m^2) in franky-sim's model.
 
-    franky-sim's joint controller adds its damping torque explicitly, from the last step's speed: at
-    1 ms steps a damping gain above 2 x inertia / step is unstable, and franky-sim's default wrist
-    gains (200 N m s/rad on 0.074 kg m^2) make joints 5-7 chatter in a limit cycle at rest. The cell
-    lowers each gain to inertia / step (half the bound, the link's own inertia not counted: still
-    overdamped), the gains a Franka's own joint impedance controller would never leave unstable."""
+    franky-sim's joint controller is a PD per joint whose damping torque is added explicitly, from the
+    last step's speed: at 1 ms steps a damping gain above 2 x inertia / step is unstable, and its
+    default wrist gains (200 N m s/rad on 0.074 kg m^2) make joints 5-7 chatter in a limit cycle at
+    rest. The cell's arm uses the wrist's inertia / step (half the bound, the links' own inertia not
+    counted) and gives every joint the same ratio of damping to stiffness: each then lags its command
+    by the same time (37 ms), so a tool path keeps its shape as it lags, where franky-sim's defaults
+    (100 ms at the shoulder) swing a tool that turns fast off its line by centimetres."""
     default = next((float(j.get("armature")) for d in scene.iter("default") for j in d.findall("joint")
                     if j.get("armature") is not None), 0.0)
     joints = {j.get("name"): j for j in scene.iter("joint")}
@@ -164,37 +166,43 @@ class Contacts:
         """The force (N, base frame) the fixtures exert on the rounding centred at `centre` moving at `velocity`."""
         total = np.zeros(3)
         for seat in self.seats:
-            share = 3.0 / NEST_FACES if isinstance(seat, PivotSocket) else 1.0
-            for depth, normal in self._penetrations(seat, centre):
+            for depth, normal, share in self._penetrations(seat, centre):
                 push = share * (CONTACT_STIFFNESS_N_M * depth - CONTACT_DAMPING_N_S_M * float(velocity @ normal))
                 total += max(push, 0.0) * normal  # a contact pushes, never pulls
         return total
 
     def _penetrations(self, seat, centre):
+        """(depth, normal, share of a contact's stiffness) of each surface the rounding presses."""
         r = self.radius_m
+        face = 3.0 / NEST_FACES
         if isinstance(seat, FixtureBall):
             d = centre - seat.centre_m
             n = float(np.linalg.norm(d))
             depth = seat.radius_m + r - n
-            return [(depth, d / n)] if depth > 0 and n > 0 else []
-        if isinstance(seat, PivotSocket):
-            out = []
+            return [(depth, d / n, 1.0)] if depth > 0 and n > 0 else []
+        if isinstance(seat, PivotSocket):  # the countersink's faces up to the rim, then the flat top
             d = centre - seat.apex_m
             rho = math.hypot(d[0], d[1])
             a = seat.half_angle_rad
-            rim_height = seat.rim_radius_m / math.tan(a)  # where the faces meet the fixture's top
-            if d[2] - r > rim_height + 1e-3 or rho > seat.face_radius_m + r:
-                return out
-            if rho <= seat.rim_radius_m + r * math.cos(a):  # over the opening: the nest's faces
-                for e in self._outward:
-                    normal = np.array([0.0, 0.0, math.sin(a)]) - e * math.cos(a)
-                    depth = r - float(d @ normal)
-                    if depth > 0:
-                        out.append((depth, normal))
-            else:  # beside it: the flat top
-                depth = r - (d[2] - rim_height)
-                if depth > 0:
-                    out.append((depth, np.array([0.0, 0.0, 1.0])))
+            rim_height = seat.rim_radius_m / math.tan(a)  # the top's height above the apex
+            if d[2] - r > rim_height or rho > seat.face_radius_m + r:
+                return []
+            out = []
+            for e in self._outward:
+                normal = np.array([0.0, 0.0, math.sin(a)]) - e * math.cos(a)
+                gap = float(d @ normal)
+                if d[2] - gap * normal[2] <= rim_height:  # nearest to the face itself
+                    if gap < r:
+                        out.append((r - gap, normal, face))
+                else:  # nearest to the face's top edge, where it meets the flat top
+                    corner = seat.rim_radius_m * e + [0.0, 0.0, rim_height]
+                    along = np.array([-e[1], e[0], 0.0])
+                    v = d - corner - float((d - corner) @ along) * along
+                    gap = float(np.linalg.norm(v))
+                    if 0.0 < gap < r:
+                        out.append((r - gap, v / gap, face))
+            if rho >= seat.rim_radius_m and d[2] - rim_height < r:  # beside the opening: the flat top
+                out.append((r - (d[2] - rim_height), np.array([0.0, 0.0, 1.0]), 1.0))
             return out
         return []
 
@@ -219,7 +227,9 @@ class CellArm:
         self.robot = self.sim.add_robot(initial_q=tuple(float(v) for v in q0))
         self._mount = place_bodies(self.sim.worldbody, "robot0_", joint_body_frames(model, model.nominal),
                                    joint_body_frames(model, truth.arm_params))
-        self.robot.kv = np.minimum(self.robot.kv, _joint_armature(self.sim.scene, "robot0_") / STEP_S)
+        # every joint lags its command by one time constant, the shortest the wrist's damping allows
+        lag_s = float(np.min(_joint_armature(self.sim.scene, "robot0_") / STEP_S / self.robot.kp))
+        self.robot.kv = self.robot.kp * lag_s
         self.robot.__class__ = _cell_robot_class(type(self.robot))
         self.robot.cell = self
         self.server = _cell_server_class()(self.robot, [host])
@@ -314,7 +324,8 @@ class CellArm:
             data.xfrc_applied[hand, :3] = self.force_n
             data.xfrc_applied[hand, 3:] = np.cross(body[0] - data.xipos[hand], self.force_n)
             if self.reflex is None and float(np.linalg.norm(self.force_n)) > COLLISION_FORCE_N:
-                self.trigger_reflex(REFLEX_ERROR)
+                self.trigger_reflex(REFLEX_ERROR, f"a collision: {np.linalg.norm(self.force_n):.0f} N on the tool "
+                                                  f"at {np.round(body[0], 4).tolist()} m")
             self.sim.step()
             self._tip_old = body[0]
             t_old = self.t_s
@@ -375,7 +386,7 @@ class CellArm:
             elif fault["kind"] == "drop":
                 self.server.reset_state()
 
-    def trigger_reflex(self, why: str = REFLEX_ERROR) -> None:
+    def trigger_reflex(self, why: str = REFLEX_ERROR, cause: str = "injected") -> None:
         """A collision reflex: the motion is aborted, the robot holds and reports the reason until recovered."""
         from franky_sim.franka_robot_protocol import BaseCommand, MoveStatus, RobotCommand
 
@@ -389,7 +400,7 @@ class CellArm:
                                           MoveStatus.kReflexAborted)
             except OSError:
                 pass
-        self.log(f"reflex: {reason}")
+        self.log(f"reflex: {reason} ({cause})")
 
     def recover(self) -> None:
         self.reflex = None
