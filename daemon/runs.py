@@ -178,6 +178,7 @@ class RunMachine:
             return None, None, (ResultCode.NO_SUCH_ROUTINE, f"this cell cannot run {routine}: {exc}")
         if custody.reconnecting is not None:
             return None, None, (ResultCode.NOT_READY, "the service is reconnecting to the robot")
+        self._clear_protective_stop(service.drivers.robot)  # the operator's start clears what the robot lets it
         if custody.owed:
             custody.recover()
         waiting = custody.waiting(registry.routine_class(routine).robots)
@@ -186,9 +187,6 @@ class RunMachine:
         robot, changed = service.drivers.robot, custody.tool_changed()
         try:
             state = robot.state()
-            if state is RobotState.PROTECTIVE_STOP and robot.recover():  # the operator's start clears it
-                log.info("start: the robot's protective stop cleared (the operator's start)")
-                state = robot.state()
             # the frame before the run: on a tool change, the mounted tool's (set last, read back)
             before = np.asarray(robot.tool_frame(), dtype=float) if state is RobotState.READY and not changed \
                 else None
@@ -231,6 +229,17 @@ class RunMachine:
             if refusal is not None:
                 return None, None, refusal
         return context, prepared, None
+
+    @staticmethod
+    def _clear_protective_stop(robot) -> None:
+        """A protective stop the robot lets the PC clear (a reflex, on some arms), cleared at the
+        operator's start, before anything else is asked of the robot; a robot whose stops are cleared at
+        the robot itself stays stopped, and the start is refused below as not ready."""
+        try:
+            if robot.state() is RobotState.PROTECTIVE_STOP and robot.recover():
+                log.info("start: the robot's protective stop cleared (the operator's start)")
+        except DeviceError as exc:
+            log.warning("start: the robot's protective stop could not be cleared: %s", exc)
 
     def _with_history(self, run_id: int, routine: str, cell, options):
         """The routine's options with what earlier runs in this store found (:meth:`Routine.with_history`:

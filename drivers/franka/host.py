@@ -260,10 +260,16 @@ class Host:
         return list(state.F_T_EE)
 
     def do_recover(self):
+        """libfranka's automatic error recovery; the time of the first state after it that shows the
+        robot out of reflex (or of the last read, 1 s on)."""
         self.robot.automatic_error_recovery()
-        state = self.robot.read_once()
+        for _ in range(1000):
+            state = self.robot.read_once()
+            self.sample(state)
+            if state.robot_mode != self.franka.RobotMode.Reflex:
+                break
         self.sample(state, force=True)
-        return int(state.robot_mode.value)
+        return state.time.to_sec()
 
     def do_move_j(self, q_target, speed, accel):
         f = self.franka

@@ -390,7 +390,7 @@ class FrankaRobot(Robot):
         with self._lock:
             if self.state() is not RobotState.PROTECTIVE_STOP:
                 return False
-            self._call("recover", timeout_s=self.command_timeout_s + 5.0)
+            self._catch_up(self._call("recover", timeout_s=self.command_timeout_s + 5.0))
             return self.state() is RobotState.READY
 
     def close(self) -> None:

@@ -41,15 +41,18 @@ from support.service_panel import SELECT  # noqa: E402
 
 pytestmark = pytest.mark.slow
 
-# tcp-laser on this arm: the tip within TIP_MM and the axis within AXIS_DEG of the real tool. The
-# routine's fit has no model of the arm's own errors: each pose puts the tool off by what the arm's
-# 0.3 mm / 0.02 deg errors add up to there (0.1 mm rms over the routine's +-45 deg tilts: the
-# residual), and the fitted tip is off by their average over the poses. Measured 0.20 mm and
-# 0.05-0.07 deg (seed 7); with the arm as drawn (the same cell, sim_truth's arm errors 0) 0.003 mm
-# and 0.001 deg, as close as on the UR cells. The bounds: the largest tool-tip error the arm's
-# errors make at any of the routine's poses (0.45 mm, the cell's own truth evaluated below), and
-# the axis error such a tip error makes over the 78 mm between the two sweep heights (0.33 deg).
+# The tool routines on this arm: their fits have no model of the arm's own errors, so each pose puts the
+# tool off by what the arm's 0.3 mm / 0.02 deg errors add up to there (0.1 mm rms over tcp-laser's
+# +-45 deg tilts: its residual), and the fitted tip is off by their average over the poses. Measured
+# (seed 7): tcp-laser 0.21 mm and 0.05 deg, tcp-npoint 0.16 mm; with the arm as drawn (the same cell,
+# sim_truth's arm errors 0) tcp-laser lands within 0.003 mm and 0.001 deg, as close as on the UR cells.
+# The bounds: the most the arm's errors move the tool tip and turn the flange at a pose of the routines'
+# region (the cell's own truth evaluated below: 0.85 mm, 0.05 deg), plus the fit's own noise.
 LATENCY_MS = (2.0, 3.0)  # the truth 2.5 ms; the fit's sd 0.6 ms
+# the simulated arm's clock, simulated seconds per wall second: franky-sim's step and our cell take about
+# 0.2 ms of a core and libfranka's loop in the driver about as much, so two cores keep up at 2 with the
+# suite's other worker busy (the same results as real time: 0.208 against 0.205 mm for tcp-laser's tip)
+FRANKA_TIME_SCALE = 2.0
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +64,7 @@ def franka(tmp_path_factory):
         path = edited_cell(folder, "sim-franka", {"drivers": {"panel": {"timeout_s": 0.3}}}, name="sim-franka.yaml",
                            host=host)
         cell = load_cell(path)
-        sim = SimCell(cell).start()
+        sim = SimCell(cell, time_scale=FRANKA_TIME_SCALE).start()
     except BaseException:
         loopback.release(host)
         raise
@@ -89,9 +92,10 @@ def at_rest(franka) -> dict:
     return franka.control.request(cmd="state")
 
 
-def arm_error_bound_mm(cell) -> float:
-    """The largest distance between the real tool tip and where the nominal arm puts it, over random
-    poses near the beams (the routine's working region): what the arm's own errors can add to a pose."""
+def arm_errors(cell) -> tuple[float, float]:
+    """The most the arm's own errors move the real tool tip (mm) and turn the flange (deg) from where
+    the nominal arm puts them, over random poses within 0.6 rad of home (the routines' working region):
+    what they can add to any pose a routine measures."""
     from cellcal.sims.physics.arm_motion import ArmKinematics
 
     model = load_robot(cell.robot)
@@ -99,30 +103,46 @@ def arm_error_bound_mm(cell) -> float:
     real, drawn = ArmKinematics(model, truth.arm_params), ArmKinematics(model)
     rng = np.random.default_rng(0)
     home = np.asarray(cell.home_q_rad, dtype=float)
-    worst = 0.0
+    tip = turn = 0.0
     for _ in range(200):
         q = home + rng.uniform(-0.6, 0.6, len(home))
         (r1, p1), (r0, p0) = real.flange(q), drawn.flange(q)
-        worst = max(worst, float(np.linalg.norm((p1 + r1 @ truth.tool.tcp_m) - (p0 + r0 @ truth.tool.tcp_m))))
-    return worst * 1e3
+        tip = max(tip, float(np.linalg.norm((p1 + r1 @ truth.tool.tcp_m) - (p0 + r0 @ truth.tool.tcp_m))))
+        turn = max(turn, float(np.degrees(np.arccos(np.clip((np.trace(r0.T @ r1) - 1) / 2, -1.0, 1.0)))))
+    return tip * 1e3, turn
 
 
 def test_tcp_laser_and_npoint_through_cellcal_run(franka, capsys):
     """tcp-laser and tcp-npoint through ``cellcal run --cell sim-franka``: their gates pass, the tool
     lands within the arm's own error of the hidden truth, the trigger's latency is found."""
-    bound = arm_error_bound_mm(franka.cell)
-    assert 0.2 < bound < 0.6, bound  # the cell's arm errors are what this file's bounds assume
+    bound, turn = arm_errors(franka.cell)
+    assert 0.3 < bound < 1.5 and 0.02 < turn < 0.2, (bound, turn)  # the cell's arm errors, as this file assumes
     code, laser = run_cli(capsys, "tcp-laser", "--cell", str(franka.path), "--out", str(franka.folder))
     assert code == 0 and laser["passed_gates"], laser
     score = laser["sim_truth"]
-    assert score["position_error_mm"] <= bound, score
-    assert score["axis_error_deg"] <= np.degrees(bound / 78.0), score  # a tip error over the two heights' 78 mm
+    # off by the arm's errors, at most, and by the fit's own noise (3 of its standard deviations)
+    assert score["position_error_mm"] <= bound + 3 * laser["tcp_std_mm"], score
+    assert score["axis_error_deg"] <= turn + 3 * laser["axis_std_deg"], score
     latency = next(p["value"] for p in laser["parameters"] if p["name"] == "latency_ms")
     assert LATENCY_MS[0] <= latency <= LATENCY_MS[1], latency
     assert laser["written_back"] is False  # `cellcal run` writes nothing to the controller
     code, npoint = run_cli(capsys, "tcp-npoint", "--cell", str(franka.path), "--out", str(franka.folder))
     assert code == 0 and npoint["passed_gates"], npoint
     assert npoint["sim_truth"]["position_error_mm"] <= bound, npoint["sim_truth"]
+    assert npoint["sim_truth"]["position_error_mm"] <= 0.3  # the cell's tcp_npoint.target_mm
+
+
+def test_kinematic_fixture_through_cellcal_run(franka, capsys):
+    """kinematic-fixture through ``cellcal run --cell sim-franka``: 64 seats in the plate's sockets at
+    four placements, each found by force and seated by admittance in MuJoCo; its gates pass and the
+    calibrated arm is nearer the truth over the whole workspace than the drawing. Measured: 0.040 mm
+    mean over 300 random poses against the drawing's 0.568 (seed 7, real time and twice as fast alike);
+    the design's own expected error is 0.24 mm (1 sigma) at the 0.03 mm it assumes: the bound."""
+    code, result = run_cli(capsys, "kinematic-fixture", "--cell", str(franka.path), "--out", str(franka.folder))
+    assert code == 0 and result["passed_gates"], result
+    score = result["sim_truth"]
+    assert score["workspace_mean_mm"] <= 0.24, score
+    assert score["workspace_mean_mm"] < score["workspace_nominal_mean_mm"] / 4, score
 
 
 def press(franka, routine: str) -> dict:
@@ -137,35 +157,61 @@ def press(franka, routine: str) -> dict:
     return plc_reads(franka)
 
 
+def until_ready(daemon) -> None:
+    """Until the service says (its JSON API's /api/v1/state) the robot is ready and owed no frame: a
+    lost robot reconnected, a frame a faulted run left changed given back."""
+    import re
+    import urllib.request
+
+    url = re.search(r"JSON API \(read-only\): (http://\S+/)", daemon.log()).group(1) + "api/v1/state"
+    deadline = time.monotonic() + 60.0
+    while True:
+        with urllib.request.urlopen(url, timeout=5) as answer:
+            state = json.loads(answer.read())
+        if state["devices"]["robot"] == "ready" and state["frame_owed_by_run"] is None:
+            return
+        assert time.monotonic() < deadline, (state, daemon.log())
+        time.sleep(0.2)
+
+
 def controller_frame(franka) -> np.ndarray:
     return np.asarray(at_rest(franka)["tcp_offset"], dtype=float)
 
 
 def test_service_writes_the_frame_back_through_set_ee_and_keeps_it_on_faults(franka):
-    """From the panel through the service: tcp-laser's frame written back with set_EE and read
-    back from the controller; then a collision reflex in the middle of a sweep and a cut connection
-    each end a run with the robot-fault code, the written frame kept; the start after a reflex
-    clears it (libfranka's error recovery) and runs."""
+    """From the panel through the service: tcp-laser's frame written back with set_EE and read back
+    from the controller, and tcp-check's verdict on it. Then a collision reflex once the arm has moved
+    0.3 s in a motion of a check (injected through the simulator) and a cut connection each end a run
+    with the robot-fault code, nothing written and the frame on the controller kept (given back once
+    the robot is ready: a run sets its own frame to measure with); the start after a reflex clears it
+    (libfranka's error recovery) and checks, and after the cut the service reconnects and checks."""
     daemon = Daemon(franka, franka.folder)
     try:
         before = controller_frame(franka)
         reads = press(franka, "tcp-laser")
-        assert reads["code"] == ResultCode.OK, (reads, daemon.log()[-3000:])
+        assert reads["code"] == ResultCode.OK, daemon.log()
         written = daemon.cli("runs", "show", "1")
-        frame = np.asarray(written["tool_frame"]["pose_m_rad"], dtype=float)
+        frame = np.asarray(written["result"]["tool_frame"]["pose_m_rad"], dtype=float)
         on_controller = controller_frame(franka)
-        # libfranka carries the end effector as 32-bit floats: 1e-7 of a 0.15 m offset, 1e-7 rad
-        assert np.abs(on_controller - frame).max() < 1e-6, (on_controller, frame)
+        # set_EE carries the frame as doubles and the controller keeps it so: read back to rounding
+        assert np.abs(on_controller - frame).max() < 1e-9, (on_controller, frame)
         assert np.abs(on_controller - before).max() > 1e-4  # the drawn frame it replaced
+        reads = press(franka, "tcp-check")
+        assert reads["code"] == ResultCode.OK and reads["verdict"] == "ok", (reads, daemon.log())
 
-        franka.control.request(cmd="fault", kind="reflex", after_motion_s=0.3)
-        reads = press(franka, "tcp-laser")
-        assert reads["code"] == ResultCode.ROBOT_FAULT, (reads, daemon.log()[-3000:])
-        assert franka.control.request(cmd="state")["reflex"] is not None  # it stays until a start recovers it
-        assert np.abs(controller_frame(franka) - on_controller).max() < 1e-9  # the old frame kept
-
-        reads = press(franka, "tcp-laser")  # the operator's start recovers the arm, and the run passes
-        assert reads["code"] == ResultCode.OK, (reads, daemon.log()[-3000:])
+        for fault in ("reflex", "drop"):
+            franka.control.request(cmd="fault", kind=fault, after_motion_s=0.3)
+            reads = press(franka, "tcp-check")
+            assert reads["code"] == ResultCode.ROBOT_FAULT, (fault, daemon.log())
+            if fault == "reflex":  # it stays until a start recovers it
+                assert franka.control.request(cmd="state")["reflex"] is not None
+            if fault == "drop":
+                until_ready(daemon)  # reconnected, the frame given back
+                assert np.abs(controller_frame(franka) - on_controller).max() < 1e-9
+            reads = press(franka, "tcp-check")  # the start after it: recovered, reconnected; the check passes
+            assert reads["code"] == ResultCode.OK and reads["verdict"] == "ok", (fault, reads, daemon.log())
+            # the frame written before the faults is the one on the controller (an "ok" check writes none)
+            assert np.abs(controller_frame(franka) - on_controller).max() < 1e-9, fault
         assert franka.control.request(cmd="state")["reflex"] is None
         assert "protective stop cleared" in daemon.log()
     finally:
