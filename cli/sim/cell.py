@@ -47,7 +47,7 @@ def cmd_sim_cell(args) -> int:
         print(sim.addresses.listening_line(), flush=True)
         while not stopping.wait(0.2):
             if sim.fake_ur is None or not sim.fake_ur.alive:
-                print("cellcal sim-cell: the fake UR controller ended", file=sys.stderr)
+                print(f"cellcal sim-cell: the {getattr(sim.fake_ur, 'what', 'fake controller')} ended", file=sys.stderr)
                 return 1
         return 0
     finally:
@@ -84,9 +84,11 @@ def _tool_id(text: str) -> int:
 
 def add_parser(sub) -> None:
     p = sub.add_parser("sim-cell", help="serve the fakes of a networked simulated cell until stopped",
-                       description="Start the fake UR controller, the Modbus IO module (panel and trigger "
-                                   "ring) and the tracker server a cell file's drivers connect to, wired to "
-                                   "one simulated arm and beam. Runs until SIGTERM or SIGINT.")
+                       description="Start the robot controller's fake (a fake UR controller for driver ur_rtde; "
+                                   "a simulated Franka arm, franky-sim on MuJoCo, for driver franka: the franka "
+                                   "extra), the Modbus IO module (panel and trigger ring) and the tracker server a "
+                                   "cell file's drivers connect to, wired to one simulated arm and beam. Runs until "
+                                   "SIGTERM or SIGINT.")
     p.add_argument("--cell", default="sim-net", metavar="CELL.yaml",
                    help="cell file, or the name of a shipped cell (default: sim-net)")
     which = p.add_mutually_exclusive_group()

@@ -272,24 +272,29 @@ class Host:
         return state.time.to_sec()
 
     def do_move_j(self, q_target, speed, accel):
-        f = self.franka
         q_target = np.asarray(q_target, dtype=float)
-        control = self.robot.start_joint_position_control(f.ControllerMode.JointImpedance)
-        state, _ = control.readOnce()
-        q0 = np.array(state.q_d, dtype=float)
+        q0 = np.array(self.robot.read_once().q_d, dtype=float)
         delta = q_target - q0
-        length = float(np.abs(delta).max())
-        total, s = trapezoid(length, speed, accel)
-        t, last_q, last_v = 0.0, q0, np.zeros_like(q0)
+        total, s = trapezoid(float(np.abs(delta).max()), speed, accel)
+        return self._run_joints(lambda t: q0 + s(t) * delta, total)
+
+    def _run_joints(self, at, total):
+        """Joint position control along `at(t)` (joints at the motion's time t) until `total`, then settle;
+        a stop decelerates the joints at the driver's ``stop_decel_rad_s2``."""
+        f = self.franka
+        control = self.robot.start_joint_position_control(f.ControllerMode.JointImpedance)
+        control.readOnce()
+        t, last = 0.0, at(0.0)
+        velocity = np.zeros_like(last)
         while True:
             if self.stop_requested.is_set():
-                self._stop_joints(control, last_q, last_v, accel)
+                self._stop_joints(control, last, velocity, self.config["stop_decel_rad_s2"])
                 raise Stopped()
-            q = q0 + s(t) * delta
+            q = at(min(t, total))
             done = t >= total
             command = f.JointPositions(q.tolist())
             command.motion_finished = done
-            last_v, last_q = (q - last_q) / 0.001, q
+            velocity, last = (q - last) / 0.001, q
             control.writeOnce(command)
             if done:
                 break
@@ -321,7 +326,6 @@ class Host:
         arm's spare degree of freedom stays where it was), then run in joint position control. A
         Cartesian motion generator would solve each cycle from wherever the arm lags to, and a big turn
         then swings the tool off the line."""
-        f = self.franka
         state = self.robot.read_once()
         f_t_ee = matrix(state.F_T_EE)
         q0 = np.array(state.q_d, dtype=float)
@@ -342,45 +346,7 @@ class Host:
                 raise ValueError(f"move_l: no joint solution on the line at {np.round(target[:3, 3], 4).tolist()} m "
                                  "(out of reach or through a singularity)")
             path.append(q)
-        control = self.robot.start_joint_position_control(f.ControllerMode.JointImpedance)
-        state, _ = control.readOnce()
-        t, last, velocity = 0.0, q0, np.zeros(7)
-        while True:
-            if self.stop_requested.is_set():
-                self._stop_joints(control, last, velocity, accel)
-                raise Stopped()
-            i = min(int(round(t / 0.001)), len(path) - 1)
-            done = i == len(path) - 1
-            command = f.JointPositions(path[i].tolist())
-            command.motion_finished = done
-            velocity, last = (path[i] - last) / 0.001, path[i]
-            control.writeOnce(command)
-            if done:
-                break
-            state, duration = control.readOnce()
-            self.sample(state)
-            t += duration.to_sec()
-        return self.settle()
-
-    def _stop_linear(self, control, m, last_p, accel) -> None:
-        f = self.franka
-        state, duration = control.readOnce()
-        velocity = (m[:3, 3] - last_p) / max(duration.to_sec(), 1e-3)
-        speed = float(np.linalg.norm(velocity))
-        direction = velocity / speed if speed > 0 else np.zeros(3)
-        m = m.copy()
-        while True:
-            self.sample(state)
-            dt = duration.to_sec()
-            speed = max(speed - accel * dt, 0.0)
-            m[:3, 3] = m[:3, 3] + direction * speed * dt
-            command = f.CartesianPose(flat(m))
-            command.motion_finished = speed == 0.0
-            control.writeOnce(command)
-            if speed == 0.0:
-                break
-            state, duration = control.readOnce()
-        self.settle()
+        return self._run_joints(lambda t: path[min(int(round(t / 0.001)), len(path) - 1)], (len(path) - 1) * 0.001)
 
     def do_contact(self, twist, timeout_s):
         """A guarded move: the commanded pose moves along `twist` (ramped at the contact acceleration)

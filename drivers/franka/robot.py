@@ -47,6 +47,7 @@ from scipy.spatial.transform import Rotation
 
 from cellcal.config.reader import Section
 from cellcal.drivers.franka.host import PYLIBFRANKA_MISSING, ROTATION_RADIUS_M
+from cellcal.drivers.arguments import check_robot_options, limited as _limit, travel_s as _travel_s, vector as _vector
 from cellcal.drivers.interfaces import ContactResult, DeviceError, DeviceTimeout, Robot, RobotSample, RobotState
 from cellcal.drivers.registry import DriverConfigError
 
@@ -58,26 +59,6 @@ JOINT_SPEED_MAX, JOINT_ACCEL_MAX = 2.62, 10.0  # the FR3's slowest joint limits 
 TOOL_SPEED_MAX, TOOL_ACCEL_MAX = 2.0, 10.0  # its Cartesian limits (m/s, m/s^2; translation)
 KEPT_SAMPLES = 60000  # a minute of the 1 kHz stream
 FRAME_TOLERANCE = 1e-6  # a tool frame read back: libfranka carries it as 32-bit floats
-
-
-def _vector(value, n: int, what: str, lengths=None) -> np.ndarray:
-    v = np.asarray(value, dtype=float).ravel()
-    if len(v) not in (lengths or (n,)) or not np.all(np.isfinite(v)):
-        raise ValueError(f"{what} must be {n} finite numbers, got {value!r}")
-    return v
-
-
-def _limit(value: float, upper: float, what: str) -> float:
-    value = float(value)
-    if not 0.0 < value <= upper:
-        raise ValueError(f"{what} must be in (0, {upper}], got {value}")
-    return value
-
-
-def _travel_s(length: float, speed: float, accel: float) -> float:
-    if length * accel < speed ** 2:
-        return 2.0 * (length / accel) ** 0.5
-    return length / speed + speed / accel
 
 
 def pose_of(flat16) -> np.ndarray:
@@ -104,11 +85,7 @@ class FrankaRobot(Robot):
     def check_options(**options) -> None:
         """Refuse an option out of range, naming it (also run by the registry at cell load)."""
         o = Section.of_options(DriverConfigError, **options)
-        o.text("host")
-        for key in ("connect_timeout_s", "command_timeout_s", "stale_after_s"):
-            o.timeout(key)
-        o.number("motion_timeout_factor", low=1.0, high=100.0)
-        o.number("motion_timeout_margin_s", low=0.0, high=60.0)
+        check_robot_options(o)
         o.number("contact_force_n", above=0.0, high=50.0)
         o.number("contact_accel_m_s2", above=0.0, high=TOOL_ACCEL_MAX)
         o.number("seat_s", low=0.0, high=10.0)

@@ -37,6 +37,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from cellcal.config.reader import Section
+from cellcal.drivers.arguments import check_robot_options, limited as _limit, travel_s as _travel_s, vector as _vector
 from cellcal.drivers.interfaces import ContactResult, DeviceError, DeviceTimeout, Robot, RobotSample, RobotState, StoredToolFrame
 from cellcal.drivers.registry import DriverConfigError
 from cellcal.drivers.ur.host import UR_RTDE_MISSING, UR_RTDE_MODULES
@@ -52,28 +53,6 @@ TOOL_SPEED_MAX, TOOL_ACCEL_MAX = 3.0, 150.0
 ROTATION_RADIUS_M = 0.5  # for deadlines only: a turn of 1 rad counts as 0.5 m of TCP path
 POLL_S = 0.004
 SETTLED_TOLERANCE = 5e-5  # m and rad: stream pose vs the controller's get_forward_kin at rest
-
-
-def _vector(value, n: int, what: str, lengths=None) -> np.ndarray:
-    v = np.asarray(value, dtype=float).ravel()
-    if len(v) not in (lengths or (n,)) or not np.all(np.isfinite(v)):
-        raise ValueError(f"{what} must be {n} finite numbers, got {value!r}")
-    return v
-
-
-def _limit(value: float, upper: float, what: str) -> float:
-    """A motion argument: positive and within ur_rtde's own bound."""
-    value = float(value)
-    if not 0.0 < value <= upper:
-        raise ValueError(f"{what} must be in (0, {upper}], got {value}")
-    return value
-
-
-def _travel_s(length: float, speed: float, accel: float) -> float:
-    """Duration of a rest-to-rest trapezoidal move."""
-    if length * accel < speed**2:
-        return 2.0 * math.sqrt(length / accel)
-    return length / speed + speed / accel
 
 
 def _rotation_angle(rotvec_a, rotvec_b) -> float:
@@ -93,11 +72,7 @@ class UrRtdeRobot(Robot):
     def check_options(**options) -> None:
         """Refuse an option out of range, naming it (also run by the registry at cell load)."""
         o = Section.of_options(DriverConfigError, **options)
-        o.text("host")
-        for key in ("connect_timeout_s", "command_timeout_s", "stale_after_s"):
-            o.timeout(key)
-        o.number("motion_timeout_factor", low=1.0, high=100.0)
-        o.number("motion_timeout_margin_s", low=0.0, high=60.0)
+        check_robot_options(o)
         o.number("reach_tolerance_rad", above=0.0, high=0.1)
         o.number("reach_tolerance_m", above=0.0, high=0.1)
         o.number("contact_accel_m_s2", above=0.0, high=TOOL_ACCEL_MAX)

@@ -29,19 +29,19 @@ class ControlClient:
     """One kept connection to the control port (for callers that ask often: the wiring of a
     networked cell); ``request`` raises RuntimeError if the fake says no, OSError if it is gone."""
 
-    def __init__(self, host: str, port: int = CONTROL_PORT, timeout_s: float = 10.0):
+    def __init__(self, host: str, port: int = CONTROL_PORT, timeout_s: float = 10.0, what: str = "fake UR controller"):
         self.sock = socket.create_connection((host, port), timeout=timeout_s)
         self.reader = self.sock.makefile("r", encoding="utf-8", newline="\n")
-        self.host = host
+        self.host, self.what = host, what
 
     def request(self, **message) -> dict:
         self.sock.sendall((json.dumps(message) + "\n").encode())
         line = self.reader.readline()
         if not line:
-            raise ConnectionError(f"fake UR controller at {self.host} closed the control connection")
+            raise ConnectionError(f"{self.what} at {self.host} closed the control connection")
         reply = json.loads(line)
         if not reply.get("ok"):
-            raise RuntimeError(f"fake UR controller at {self.host}: {reply.get('error')}")
+            raise RuntimeError(f"{self.what} at {self.host}: {reply.get('error')}")
         return reply
 
     def interrupt(self) -> None:
@@ -62,6 +62,8 @@ class FakeUrProcess:
 
     ``cell_file``: the controller obeys that cell file's hidden truth (built in the child
     from the file, so it is the truth the in-process cell and the run's score have)."""
+
+    what = "fake UR controller"  # what the messages call it
 
     def __init__(self, host: str, *, robot: str | None = None, q0=None, cell: dict | None = None,
                  cell_file: str | None = None, plugins=(), control_port: int = CONTROL_PORT,
@@ -106,7 +108,7 @@ class FakeUrProcess:
                     if not line:  # the process ended before it was ready
                         break
         self.stop()
-        raise RuntimeError(f"fake UR controller at {self.host} did not start: {self.stderr_text()[-2000:]}")
+        raise RuntimeError(f"{self.what} at {self.host} did not start: {self.stderr_text()[-2000:]}")
 
     def stderr_text(self) -> str:
         if self._stderr is None:
@@ -120,7 +122,7 @@ class FakeUrProcess:
             sock.sendall((json.dumps(message) + "\n").encode())
             reply = json.loads(sock.makefile("r").readline())
         if not reply.get("ok"):
-            raise RuntimeError(f"fake UR controller at {self.host}: {reply.get('error')}")
+            raise RuntimeError(f"{self.what} at {self.host}: {reply.get('error')}")
         return reply
 
     def state(self) -> dict:
@@ -128,7 +130,7 @@ class FakeUrProcess:
 
     def client(self, timeout_s: float = 10.0) -> ControlClient:
         """A kept connection to the control port (close it when done)."""
-        return ControlClient(self.host, self.control_port, timeout_s)
+        return ControlClient(self.host, self.control_port, timeout_s, self.what)
 
     def fault(self, kind: str, **when) -> None:
         """Inject a fault now, or with ``after_motion_s=...`` once the arm has moved that long."""

@@ -15,8 +15,9 @@ kinematics (its URDF). What we add is the cell around it:
   state's ``time``), for the IO module's trigger ring.
 * **Contact, through MuJoCo.** The pivot's and a kinematic-fixture plate's sockets are nests of
   flat faces through the apex at the countersink's half angle (a rounded tip rests with its centre
-  on the axis, as in the cone; :data:`NEST_FACES`), a stylus plate's balls are balls; the tip's rounding meeting
-  one is pushed back by a stiff, damped contact (:data:`CONTACT_STIFFNESS_N_M`), applied to the
+  on the axis, as in the cone; :data:`NEST_FACES`), the stylus and a stylus plate's balls are balls,
+  which the whole tool (its core segment, of the tool's radius) can touch; the tool meeting one is
+  pushed back by a stiff, damped contact (:data:`CONTACT_STIFFNESS_N_M`), applied to the
   flange as an external force, so the arm, under its own controller, is stopped and guided by it.
   The controller reports the force as its external wrench estimate (``O_F_ext_hat_K``, with
   the estimate's noise) -- what a Franka client detects contact by.
@@ -39,7 +40,7 @@ from scipy.spatial.transform import Rotation
 
 from cellcal.sims.inproc.world import FixtureBall, PivotSocket, fixture_sockets, pivot_socket
 from cellcal.sims.physics.arm_motion import ArmKinematics, joint_body_frames
-from cellcal.sims.physics.scene import SwitchingSensors
+from cellcal.sims.physics.scene import ContactSphere, SwitchingSensors
 from cellcal.sims.physics.truth import CellTruth, beam_blocked, beam_edges, real_tool_tip
 
 STEP_S = 0.001  # franky-sim's step: the libfranka control rate
@@ -154,6 +155,14 @@ def _joint_armature(scene: ET.Element, prefix: str) -> np.ndarray:
     return np.array([float(joints[f"{prefix}fr3_joint{i}"].get("armature", default)) for i in range(1, 8)])
 
 
+def _nearest_on_segment(segment, point: np.ndarray) -> np.ndarray:
+    front, back = segment
+    axis = back - front
+    length2 = float(axis @ axis)
+    k = 0.0 if length2 == 0.0 else min(max(float((point - front) @ axis) / length2, 0.0), 1.0)
+    return front + k * axis
+
+
 class Contacts:
     """The stiff, damped contact between the real tip's rounding and the cell's nests and balls."""
 
@@ -162,20 +171,25 @@ class Contacts:
         angles = 2.0 * np.pi * np.arange(NEST_FACES) / NEST_FACES
         self._outward = np.stack([np.cos(angles), np.sin(angles), np.zeros(NEST_FACES)], axis=1)
 
-    def force(self, centre: np.ndarray, velocity: np.ndarray) -> np.ndarray:
-        """The force (N, base frame) the fixtures exert on the rounding centred at `centre` moving at `velocity`."""
-        total = np.zeros(3)
+    def force(self, body, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The force (N, base frame) the fixtures exert on the real tool, whose core segment is `body`
+        (the tip's rounding centre first) moving at `velocity`, and where it acts (the contacts' mean
+        point, weighted by their force): the nests meet the tip's rounding, the balls the whole tool."""
+        total, moment_point, weight = np.zeros(3), np.zeros(3), 0.0
         for seat in self.seats:
-            for depth, normal, share in self._penetrations(seat, centre):
+            point = body[0] if isinstance(seat, PivotSocket) else _nearest_on_segment(body, seat.centre_m)
+            for depth, normal, share in self._penetrations(seat, point):
                 push = share * (CONTACT_STIFFNESS_N_M * depth - CONTACT_DAMPING_N_S_M * float(velocity @ normal))
-                total += max(push, 0.0) * normal  # a contact pushes, never pulls
-        return total
+                if push > 0:  # a contact pushes, never pulls
+                    total += push * normal
+                    moment_point, weight = moment_point + push * point, weight + push
+        return total, (moment_point / weight if weight > 0 else body[0])
 
     def _penetrations(self, seat, centre):
         """(depth, normal, share of a contact's stiffness) of each surface the rounding presses."""
         r = self.radius_m
         face = 3.0 / NEST_FACES
-        if isinstance(seat, FixtureBall):
+        if isinstance(seat, (FixtureBall, ContactSphere)):  # a ball: a stylus, a stylus plate's
             d = centre - seat.centre_m
             n = float(np.linalg.norm(d))
             depth = seat.radius_m + r - n
@@ -214,6 +228,7 @@ class CellArm:
 
     def __init__(self, truth: CellTruth, model, *, host: str, q0, seed: int = 0, time_scale: float = 1.0,
                  end_effector=None):
+        import mujoco
         from franky_sim.franka_robot_protocol import RobotCommand
         from franky_sim.mujoco_simulator import MujocoSimulator
 
@@ -251,11 +266,14 @@ class CellArm:
         self.motion_s = 0.0  # how long the current motion has run
         self.plate_step = 1
         self.seats = self._seats()
+        self._contacts = Contacts(self.seats, self.tool_radius_m)
+        self._hand = mujoco.mj_name2id(self.sim.model, mujoco.mjtObj.mjOBJ_BODY, "robot0_hand")
         self._body = self.tool_body()
         self._tip_old = self._body[0]
         self._blocked = {id(b): beam_blocked(b, self._body, self.tool_radius_m) for b in truth.beams}
         self.sensors = SwitchingSensors({b.channel: self._blocked[id(b)] for b in truth.beams})
         self.cond = threading.Condition(self.lock)
+        self._edges_told = self.sensors.count
         self._closing = threading.Event()
         self.messages: list[str] = []
 
@@ -287,7 +305,7 @@ class CellArm:
         return real_tool_tip(self.truth, self.physics, self.q(), self._body)
 
     def _seats(self) -> list:
-        seats = [pivot_socket(self.truth)] + fixture_sockets(self.truth, self.plate_step)
+        seats = [pivot_socket(self.truth), self.truth.stylus] + fixture_sockets(self.truth, self.plate_step)
         return [s for s in seats if s is not None]
 
     def _check_bodies(self) -> None:
@@ -310,19 +328,15 @@ class CellArm:
 
     # one step
     def step(self) -> None:
-        import mujoco
-
         with self.lock:
             self._fire_faults()
             self.server.process_commands()
             body = self._body
             velocity = (body[0] - self._tip_old) / STEP_S
-            self.force_n = Contacts(self.seats, self.tool_radius_m).force(body[0], velocity) if self.seats \
-                else np.zeros(3)
-            data, m = self.sim.data, self.sim.model
-            hand = self._hand_id
-            data.xfrc_applied[hand, :3] = self.force_n
-            data.xfrc_applied[hand, 3:] = np.cross(body[0] - data.xipos[hand], self.force_n)
+            self.force_n, at = self._contacts.force(body, velocity)
+            data, hand = self.sim.data, self._hand
+            data.xfrc_applied[hand, :3] = self.force_n  # at the body's centre of mass: the force, and its moment
+            data.xfrc_applied[hand, 3:] = np.cross(at - data.xipos[hand], self.force_n)
             if self.reflex is None and float(np.linalg.norm(self.force_n)) > COLLISION_FORCE_N:
                 self.trigger_reflex(REFLEX_ERROR, f"a collision: {np.linalg.norm(self.force_n):.0f} N on the tool "
                                                   f"at {np.round(body[0], 4).tolist()} m")
@@ -336,20 +350,10 @@ class CellArm:
             self.sensors.advance(self.t_s)
             self.server._FrankaServer__message_id = self.steps  # the controller's clock, across connections
             self.server.send_state()
-            if self.server.current_motion_id:
-                self.motion_s += STEP_S
-            else:
-                self.motion_s = 0.0
-            self.cond.notify_all()
-        del m, mujoco
-
-    @property
-    def _hand_id(self) -> int:
-        import mujoco
-
-        if not hasattr(self, "_hand"):
-            self._hand = mujoco.mj_name2id(self.sim.model, mujoco.mjtObj.mjOBJ_BODY, "robot0_hand")
-        return self._hand
+            self.motion_s = self.motion_s + STEP_S if self.server.current_motion_id else 0.0
+            if self.sensors.count != self._edges_told:  # wake a reader of the edges only for new ones
+                self._edges_told = self.sensors.count
+                self.cond.notify_all()
 
     def run(self) -> None:
         """Step until :meth:`close`, one step per `STEP_S / time_scale` of the wall when the machine keeps up."""
@@ -414,6 +418,7 @@ class CellArm:
                 return {"ok": False, "error": "the arm is moving: the plate is moved with the arm at rest"}
             self.plate_step = step
             self.seats = self._seats()
+            self._contacts = Contacts(self.seats, self.tool_radius_m)
             self.log(f"the operator moved the plate to placement {step}")
             return {"ok": True, "step": step, "sockets": len(self.seats)}
 

@@ -17,18 +17,16 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import selectors
 import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 
 import numpy as np
 
-from cellcal.sims.fake_ur.process import ControlClient
+from cellcal.sims.fake_ur.process import FakeUrProcess
 from cellcal.sims.physics.clock import MAX_TIME_SCALE, checked_time_scale
 
 CONTROL_PORT = 30199  # as the fake UR controller's: one fake per loopback address
@@ -104,8 +102,11 @@ class ControlServer:
         self.listener.close()
 
 
-class FrankaSimProcess:
-    """``with FrankaSimProcess("127.0.9.1", cell_file=...) as sim: ...``; always ends the process."""
+class FrankaSimProcess(FakeUrProcess):
+    """``with FrankaSimProcess("127.0.9.1", cell_file=...) as sim: ...``; always ends the process. Started,
+    asked and stopped as the fake UR controller's process is (the same control protocol)."""
+
+    what = "simulated Franka arm"
 
     def __init__(self, host: str, *, cell_file: str, control_port: int = CONTROL_PORT, time_scale: float = 1.0):
         self.host, self.control_port = host, control_port
@@ -116,63 +117,8 @@ class FrankaSimProcess:
         self.proc: subprocess.Popen | None = None
         self._stderr = None
 
-    def start(self, timeout_s: float = 60.0) -> "FrankaSimProcess":
-        self._stderr = tempfile.TemporaryFile()
-        self.proc = subprocess.Popen(self.args, stdout=subprocess.PIPE, stderr=self._stderr, stdin=subprocess.DEVNULL)
-        deadline = time.monotonic() + timeout_s
-        with selectors.DefaultSelector() as selector:
-            selector.register(self.proc.stdout, selectors.EVENT_READ)
-            while time.monotonic() < deadline:
-                if selector.select(timeout=0.1):
-                    line = self.proc.stdout.readline().decode(errors="replace")
-                    if line.startswith("READY"):
-                        return self
-                    if not line:
-                        break
-        self.stop()
-        raise RuntimeError(f"simulated Franka arm at {self.host} did not start: {self.stderr_text()[-2000:]}")
-
-    def stderr_text(self) -> str:
-        if self._stderr is None:
-            return ""
-        self._stderr.seek(0)
-        return self._stderr.read().decode(errors="replace")
-
-    def request(self, timeout_s: float = 5.0, **message) -> dict:
-        client = self.client(timeout_s)
-        try:
-            return client.request(**message)
-        finally:
-            client.close()
-
-    def client(self, timeout_s: float = 10.0) -> ControlClient:
-        return ControlClient(self.host, self.control_port, timeout_s)
-
-    def fault(self, kind: str, **when) -> None:
-        self.request(cmd="fault", kind=kind, **when)
-
-    @property
-    def alive(self) -> bool:
-        return self.proc is not None and self.proc.poll() is None
-
-    def stop(self, timeout_s: float = 5.0) -> None:
-        if self.proc is None:
-            return
-        if self.alive:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=5)
-        if self.proc.stdout is not None:
-            self.proc.stdout.close()
-
-    def __enter__(self) -> "FrankaSimProcess":
-        return self.start() if self.proc is None else self
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
+    def start(self, timeout_s: float = 60.0) -> "FrankaSimProcess":  # MuJoCo and pinocchio take a while to load
+        return super().start(timeout_s)
 
 
 def _exit_with_parent(parent_pid: int, arm) -> None:

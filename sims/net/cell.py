@@ -44,6 +44,11 @@ the trigger ring gets the controller's switching times, and the relay runs every
 :data:`PARTNER_RELAY_S` of that time. Clients see an arm that moves K times as fast in wall time,
 with the same timestamps a real-time run has.
 
+A cell whose robot driver is ``franka`` (``sim-franka.yaml``) gets the simulated Franka arm instead of
+the fake UR controller (:mod:`cellcal.sims.franka`: franky-sim's MuJoCo FR3 in the cell's truth, which
+pylibfranka drives on port 1337 of the robot's address), with the same control port: the wiring, the
+tracker and the operator's hands on the plate reach it as they reach the fake UR controller.
+
 A cell file that does not describe such a cell is refused with a CellFileError naming
 the section; a fake that cannot start (a port in use) raises SimCellError.
 """

@@ -15,8 +15,8 @@ them, and each case's routine sections are the shipped ones unless a case says o
 from __future__ import annotations
 
 import json
+import os
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,9 +28,8 @@ pytest.importorskip("franky_sim", reason="the franka extra is not installed (pip
 
 from cellcal.cli.main import main as cli_main  # noqa: E402
 from cellcal.config.robot_files import load_robot  # noqa: E402
-from cellcal.daemon.cells import load_cell, open_drivers  # noqa: E402
+from cellcal.daemon.cells import load_cell  # noqa: E402
 from cellcal.daemon.service import ResultCode  # noqa: E402
-from cellcal.drivers.interfaces import DeviceError, RobotState  # noqa: E402
 from cellcal.sims.fake_ur.process import ControlClient  # noqa: E402
 from cellcal.sims.net.cell import SimCell  # noqa: E402
 from cellcal.sims.physics.truth import truth_of_cell  # noqa: E402
@@ -65,6 +64,10 @@ def franka(tmp_path_factory):
                            host=host)
         cell = load_cell(path)
         sim = SimCell(cell, time_scale=FRANKA_TIME_SCALE).start()
+        # the simulator is most of this module's load (0.8 of a core at twice real time): it yields to the
+        # suite's other worker, whose fakes keep the wall-clock handshakes of ur_rtde, and runs slower then
+        # (it follows its own clock; libfranka's client follows it)
+        os.setpriority(os.PRIO_PROCESS, sim.fake_ur.proc.pid, 10)
     except BaseException:
         loopback.release(host)
         raise
@@ -133,16 +136,31 @@ def test_tcp_laser_and_npoint_through_cellcal_run(franka, capsys):
 
 
 def test_kinematic_fixture_through_cellcal_run(franka, capsys):
-    """kinematic-fixture through ``cellcal run --cell sim-franka``: 64 seats in the plate's sockets at
-    four placements, each found by force and seated by admittance in MuJoCo; its gates pass and the
-    calibrated arm is nearer the truth over the whole workspace than the drawing. Measured: 0.040 mm
+    """kinematic-fixture through ``cellcal run --cell sim-franka``, then ``cellcal analyze`` on its
+    dataset: 64 seats in the plate's sockets at four placements, each found by force and seated by
+    admittance in MuJoCo; its gates pass and the calibrated arm is nearer the truth over the whole
+    workspace than the drawing. Measured: 0.040 mm
     mean over 300 random poses against the drawing's 0.568 (seed 7, real time and twice as fast alike);
     the design's own expected error is 0.24 mm (1 sigma) at the 0.03 mm it assumes: the bound."""
     code, result = run_cli(capsys, "kinematic-fixture", "--cell", str(franka.path), "--out", str(franka.folder))
     assert code == 0 and result["passed_gates"], result
     score = result["sim_truth"]
-    assert score["workspace_mean_mm"] <= 0.24, score
+    # as on the UR cell (tests/e2e/test_kinematic_fixture.py): within 2x the plan's own promise and the
+    # goal of 0.15 mm; and well below the drawing's error
+    design = result["design"]
+    assert score["workspace_mean_mm"] < min(2.0 * design["expected_error_mm"], 0.15), (score, design)
     assert score["workspace_mean_mm"] < score["workspace_nominal_mean_mm"] / 4, score
+    # what the model misses in the seats, through the CLI on the run's own dataset: the arm sags under
+    # gravity in MuJoCo, but its joints are rigid and measured, so the sag is in the joints the model is
+    # given, not between them: no cause is named (held-out 0.002 mm, the seating's scatter)
+    plate = franka.folder / "bar.yaml"
+    plate.write_text(json.dumps({"points": ["s0", "s1"], "distances_mm": [["s0", "s1", 200.0, 0.02]],
+                                 "seating_sd_mm": 0.03}))
+    code = cli_main(["analyze", "--robot", "franka-fr3", "--data", result["dataset"], "--fixture", str(plate), "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err[-2000:]
+    finding = json.loads(out)
+    assert finding["cause"] == "none", finding
 
 
 def press(franka, routine: str) -> dict:

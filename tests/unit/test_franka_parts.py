@@ -55,13 +55,18 @@ def socket() -> PivotSocket:
     return PivotSocket(np.array([0.4, 0.1, 0.2]), 0.003)
 
 
+def pushed(contacts, centre) -> np.ndarray:
+    """The force on a tool at rest whose tip's rounding is centred at `centre`, its shank straight up."""
+    return contacts.force((np.asarray(centre, float), np.asarray(centre, float) + [0.0, 0.0, 0.1]), np.zeros(3))[0]
+
+
 def test_a_seated_tip_feels_no_force_and_a_pressed_one_is_pushed_back_along_the_axis():
     """At the seat the rounding touches every face without pressing; pressed 10 um down, the faces
     push it straight back up with the nest's stiffness (three faces' worth, shared by all twelve)."""
     nest = socket()
     contacts = Contacts([nest], nest.tool_radius_m)
-    assert np.allclose(contacts.force(nest.seat_m, np.zeros(3)), 0.0, atol=1e-9)
-    pressed = contacts.force(nest.seat_m - [0.0, 0.0, 1e-5], np.zeros(3))
+    assert np.allclose(pushed(contacts, nest.seat_m), 0.0, atol=1e-9)
+    pressed = pushed(contacts, nest.seat_m - [0.0, 0.0, 1e-5])
     assert abs(pressed[0]) < 1e-9 and abs(pressed[1]) < 1e-9
     # each face pushes k/4 x depth along its normal; depth = 1e-5 sin(45 deg); the normals' z: sin(45 deg)
     expected = NEST_FACES * CONTACT_STIFFNESS_N_M * 3.0 / NEST_FACES * 1e-5 * math.sin(math.pi / 4) ** 2
@@ -75,7 +80,7 @@ def test_off_the_seat_the_faces_push_the_tip_home():
     contacts = Contacts([nest], nest.tool_radius_m)
     for direction in ([1.0, 0.0], [0.0, 1.0], [-0.6, 0.8]):
         off = np.array([*direction, 0.0]) * 5e-4 - [0.0, 0.0, 2e-4]
-        force = contacts.force(nest.seat_m + off, np.zeros(3))
+        force = pushed(contacts, nest.seat_m + off)
         assert force[:2] @ np.asarray(direction) < 0 and force[2] > 0, (direction, force)
 
 
@@ -87,13 +92,25 @@ def test_above_the_rim_and_beside_it_there_is_no_wall():
     contacts = Contacts([nest], r)
     rim_height = nest.rim_radius_m / math.tan(nest.half_angle_rad)
     top = nest.apex_m[2] + rim_height
-    assert not contacts.force(nest.apex_m + [0.0054, 0.0, rim_height + r + 0.001], np.zeros(3)).any()
-    beside = contacts.force(np.array([*(nest.apex_m[:2] + [0.010, 0.0]), top + r - 1e-4]), np.zeros(3))
+    assert not pushed(contacts, nest.apex_m + [0.0054, 0.0, rim_height + r + 0.001]).any()
+    beside = pushed(contacts, [*(nest.apex_m[:2] + [0.010, 0.0]), top + r - 1e-4])
     assert beside[2] == pytest.approx(CONTACT_STIFFNESS_N_M * 1e-4) and abs(beside[0]) < 1e-9
     edge_dir = np.array([-1.0, 0.0, 1.0]) / math.sqrt(2)  # from the rim's edge up and in, towards the axis
     on_edge = np.array([nest.apex_m[0] + nest.rim_radius_m, nest.apex_m[1], top]) + edge_dir * (r - 1e-4)
-    force = contacts.force(on_edge, np.zeros(3))
+    force = pushed(contacts, on_edge)
     assert np.allclose(force / np.linalg.norm(force), edge_dir, atol=1e-9), force
+
+
+def test_a_ball_meets_the_shank_and_pushes_where_it_touches():
+    """The stylus (a ball) touching the tool's side 50 mm behind the tip pushes it sideways there."""
+    from cellcal.sims.physics.scene import ContactSphere
+
+    ball = ContactSphere(np.array([0.4, 0.1, 0.25]), 0.0005)
+    contacts = Contacts([ball], 0.003)
+    tip = np.array([0.4 - 0.0035 + 1e-5, 0.1, 0.2])  # the shank's surface 10 um into the ball, 50 mm up
+    force, at = contacts.force((tip, tip + [0.0, 0.0, 0.1]), np.zeros(3))
+    assert force[0] == pytest.approx(-CONTACT_STIFFNESS_N_M * 1e-5) and abs(force[1]) < 1e-9 and abs(force[2]) < 1e-9
+    assert at == pytest.approx([tip[0], 0.1, 0.25])
 
 
 def test_trapezoid_profile():
