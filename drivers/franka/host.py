@@ -170,8 +170,7 @@ class Host:
     def sample(self, state, force: bool = False) -> None:
         """Queue one state for the parent; send the batch when it is due."""
         self.t_s = state.time.to_sec()
-        self.batch.append((self.t_s, list(state.q), list(state.O_T_EE), int(state.robot_mode.value),
-                           list(state.O_F_ext_hat_K[:3])))
+        self.batch.append((self.t_s, list(state.q), list(state.O_T_EE), int(state.robot_mode.value)))
         now = time.monotonic()
         if force or now - self.last_sent >= SEND_EVERY_S:
             self.send(("samples", self.batch))

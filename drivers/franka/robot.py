@@ -132,11 +132,10 @@ class FrankaRobot(Robot):
                         "seat_s": seat_s, "seat_force_n": seat_force_n, "reflex_force_n": reflex_force_n,
                         "reflex_torque_nm": reflex_torque_nm, "idle_read_s": 0.002,
                         "stop_decel_rad_s2": stop_decel_rad_s2})
-            info = self._await_ready(connect_timeout_s)
+            self._await_ready(connect_timeout_s)
         except BaseException:
             self._end_child()
             raise
-        self._f_t_ne = np.asarray(info["F_T_NE"], dtype=float)
         self._reader = threading.Thread(target=self._read, daemon=True, name=f"libfranka process {host}")
         self._reader.start()
         self._wait_for_sample(command_timeout_s)
@@ -176,9 +175,12 @@ class FrankaRobot(Robot):
                 return
             with self._cond:
                 kind = message[0]
-                if kind == "samples":
-                    for t, q, o_t_ee, mode, force in message[1]:
-                        self._samples.append((RobotSample(t, np.asarray(q, dtype=float), pose_of(o_t_ee)), mode))
+                if kind == "samples" and message[1]:
+                    times, qs, poses, modes = zip(*message[1])
+                    m = np.asarray(poses, dtype=float).reshape(-1, 4, 4).transpose(0, 2, 1)  # column-major
+                    tcp = np.concatenate([m[:, :3, 3], Rotation.from_matrix(m[:, :3, :3]).as_rotvec()], axis=1)
+                    for t, q, pose, mode in zip(times, qs, tcp, modes):  # one conversion for the whole batch
+                        self._samples.append((RobotSample(t, np.asarray(q, dtype=float), pose), mode))
                     self._received_at = time.monotonic()
                 elif kind == "lost":
                     self._failure = f"connection lost: {message[1]}"
