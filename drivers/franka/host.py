@@ -157,7 +157,6 @@ class Host:
         self.last_sent = time.monotonic()
         self.robot = None
         self.franka = None
-        self.t_s = 0.0
 
     # talking to the parent
     def send(self, message) -> None:
@@ -169,8 +168,7 @@ class Host:
 
     def sample(self, state, force: bool = False) -> None:
         """Queue one state for the parent; send the batch when it is due."""
-        self.t_s = state.time.to_sec()
-        self.batch.append((self.t_s, list(state.q), list(state.O_T_EE), int(state.robot_mode.value)))
+        self.batch.append((state.time.to_sec(), list(state.q), list(state.O_T_EE), int(state.robot_mode.value)))
         now = time.monotonic()
         if force or now - self.last_sent >= SEND_EVERY_S:
             self.send(("samples", self.batch))

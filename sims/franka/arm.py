@@ -261,7 +261,7 @@ class CellArm:
             self.robot.set_NE_T_EE(tuple((np.linalg.inv(f_t_ne) @ end_effector).flatten(order="F").tolist()))
         self.steps = 0
         self.force_n = np.zeros(3)
-        self.reflex: str | None = None  # the reason of an active reflex, until an error recovery
+        self.reflex = None  # no reflex active (sets the error flags too)
         self.faults: list[dict] = []
         self.motion_s = 0.0  # how long the current motion has run
         self.plate_step = 1
@@ -426,8 +426,15 @@ class CellArm:
         self.messages.append(f"{self.t_s:.3f} {text}")
         del self.messages[:-200]
 
-    def errors(self) -> tuple[bool, ...]:
-        return tuple(self.reflex == name for name in ERROR_NAMES)
+    @property
+    def reflex(self) -> str | None:
+        """The reason of an active reflex (libfranka's error name), until an error recovery."""
+        return self._reflex
+
+    @reflex.setter
+    def reflex(self, reason: str | None) -> None:
+        self._reflex = reason
+        self.errors = tuple(reason == name for name in ERROR_NAMES)  # the state's flags, sent every step
 
 
 def _cell_robot_class(base):
@@ -442,7 +449,7 @@ def _cell_robot_class(base):
             cell = self.cell
             noise = cell.rng.normal(0.0, FORCE_NOISE_N, 3)
             force = tuple((cell.force_n + noise).tolist()) + (0.0, 0.0, 0.0)
-            errors = cell.errors()
+            errors = cell.errors
             # franky-sim 1.0.4 reports the pose of the commanded joints here (its kinematics hands back
             # pinocchio's frame object, which the commanded pose's computation then overwrites); a Franka
             # reports the pose of the measured joints, with the nominal kinematics, as this does

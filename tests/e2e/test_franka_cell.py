@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -73,8 +74,8 @@ def franka(tmp_path_factory):
         raise
     control = ControlClient(host)
     try:
-        yield type("Franka", (), {"path": path, "cell": cell, "sim": sim, "host": host, "control": control,
-                                  "panel": sim.modbus, "folder": folder})()
+        yield SimpleNamespace(path=path, cell=cell, sim=sim, host=host, control=control, panel=sim.modbus,
+                              folder=folder)
     finally:
         control.close()
         sim.stop()
